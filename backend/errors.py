@@ -1,0 +1,21 @@
+"""Exception types of vislam.
+
+Every error a user can cause by their input is a :class:`VislamError`; the command line
+prints its message as one line and exits with code 2.
+"""
+
+
+class VislamError(Exception):
+    """Base class of all errors vislam raises on purpose."""
+
+
+class InputError(VislamError):
+    """A user's file or argument is unusable: names the file, the key and what is wrong."""
+
+
+class ConfigError(VislamError):
+    """A configuration key or value is unknown or invalid."""
+
+
+class FilterError(VislamError):
+    """The estimator cannot go on (e.g. the full state would not fit in memory)."""

@@ -1,0 +1,1 @@
+"""vislam command line, file outputs and plots."""
