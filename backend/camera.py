@@ -1,0 +1,124 @@
+"""Rectified stereo pinhole camera model (ECE276A visual-inertial SLAM notes).
+
+A point ``p_in_cam`` (optical frame: x right, y down, z forward) with homogeneous
+``q = [p_in_cam; 1]`` is observed as ``z = [uL, vL, uR, vR] = Ks @ pi(q)``,
+``pi(q) = q / q[2]``. Every function is vectorized over leading axes: (n, 3) points
+give (n, 4) pixels, and a single (3,) point gives (4,).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def pi(q: np.ndarray) -> np.ndarray:
+    """Projection pi(q) = q / q_3 (ECE276A; 0-based q[2]); (..., 4) -> (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    return q / q[..., 2:3]
+
+
+def dpi_dq(q: np.ndarray) -> np.ndarray:
+    """d pi / d q = (1/q3) [[1,0,-q1/q3,0],[0,1,-q2/q3,0],[0,0,0,0],[0,0,-q4/q3,1]]; (..., 4) -> (..., 4, 4)."""
+    q = np.asarray(q, dtype=float)
+    inv_depth = 1.0 / q[..., 2]
+    J = np.zeros(q.shape[:-1] + (4, 4))
+    J[..., 0, 0] = J[..., 1, 1] = J[..., 3, 3] = inv_depth
+    J[..., 0, 2] = -q[..., 0] * inv_depth**2
+    J[..., 1, 2] = -q[..., 1] * inv_depth**2
+    J[..., 3, 2] = -q[..., 3] * inv_depth**2
+    return J
+
+
+def _homogeneous(p: np.ndarray) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    return np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class StereoCamera:
+    """Left intrinsics ``K`` (3x3) and ``baseline`` (metres) of a rectified stereo pair.
+
+    ``eq=False``: equality/hash are by identity (a numpy field makes field-wise ``==`` ambiguous).
+    """
+
+    K: np.ndarray
+    baseline: float
+
+    def __post_init__(self) -> None:
+        K = np.array(self.K, dtype=float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"K must be a finite 3x3 matrix with fx, fy > 0, got {self.K!r}")
+        baseline = float(self.baseline)
+        if not np.isfinite(baseline) or baseline <= 0:
+            raise ValueError(f"baseline must be a finite positive number of metres, got {self.baseline!r}")
+        K.setflags(write=False)
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "baseline", baseline)
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def Ks(self) -> np.ndarray:
+        """Stereo calibration [[fx,0,cx,0],[0,fy,cy,0],[fx,0,cx,-fx b],[0,fy,cy,0]] (ECE276A)."""
+        fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
+        return np.array(
+            [
+                [fx, 0.0, cx, 0.0],
+                [0.0, fy, cy, 0.0],
+                [fx, 0.0, cx, -fx * self.baseline],
+                [0.0, fy, cy, 0.0],
+            ]
+        )
+
+    def project(self, p_in_cam: np.ndarray) -> np.ndarray:
+        """Pixels z = Ks pi([p; 1]); (..., 3) -> (..., 4) = [uL, vL, uR, vR]."""
+        return pi(_homogeneous(p_in_cam)) @ self.Ks.T
+
+    def projection_jacobian(self, p_in_cam: np.ndarray) -> np.ndarray:
+        """dz/dp = Ks dpi/dq([p; 1]) P^T with P^T = [I3; 0]; (..., 3) -> (..., 4, 3)."""
+        return self.Ks @ dpi_dq(_homogeneous(p_in_cam))[..., :, :3]
+
+    def triangulate(self, z: np.ndarray) -> np.ndarray:
+        """Point from pixels: depth = fx b / (uL - uR), x = (uL - cx) depth / fx,
+        y = ((vL + vR)/2 - cy) depth / fy; (..., 4) -> (..., 3).
+
+        Needs positive disparity; zero gives inf and negative gives a point behind the camera.
+        """
+        z = np.asarray(z, dtype=float)
+        u_left, v = z[..., 0], 0.5 * (z[..., 1] + z[..., 3])
+        depth = self.fx * self.baseline / (u_left - z[..., 2])
+        return np.stack(
+            [(u_left - self.cx) * depth / self.fx, (v - self.cy) * depth / self.fy, depth], axis=-1
+        )
+
+    def triangulation_jacobian(self, z: np.ndarray) -> np.ndarray:
+        """d triangulate / d z; (..., 4) -> (..., 3, 4).
+
+        With d = uL - uR and p = (x, y, depth): dp/duL = ([b, 0, 0] - p) / d,
+        dp/duR = p / d, dy/dvL = dy/dvR = depth / (2 fy).
+        """
+        z = np.asarray(z, dtype=float)
+        p = self.triangulate(z)
+        disparity = (z[..., 0] - z[..., 2])[..., None]
+        J = np.zeros(z.shape[:-1] + (3, 4))
+        J[..., :, 0] = -p / disparity
+        J[..., 0, 0] += self.baseline / disparity[..., 0]
+        J[..., :, 2] = p / disparity
+        J[..., 1, 1] = J[..., 1, 3] = 0.5 * p[..., 2] / self.fy
+        return J

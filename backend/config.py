@@ -1,0 +1,215 @@
+"""The one place for every noise, prior and threshold of the estimator.
+
+`FilterConfig` is a typed dataclass; :func:`load_config` reads it from TOML (flat keys or a
+``[filter]`` table) and :func:`apply_overrides` sets single keys from ``KEY=VALUE`` strings as
+given on the command line (``vislam run --set pixel_sigma=1.5``). Unknown keys and values of
+the wrong type are refused with a :class:`~backend.errors.ConfigError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Optional
+
+from backend.errors import ConfigError
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+MODES = ("slam", "mapping", "dead-reckoning")
+IMU_FLIP_CHOICES = ("auto", "yes", "no")
+VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
+
+
+@dataclass
+class FilterConfig:
+    """Estimator options. Units: metres, seconds, radians, pixels. ``None`` = estimate from data."""
+
+    # --- what to estimate
+    mode: str = "slam"  # slam | mapping (poses from dead reckoning held fixed) | dead-reckoning
+    full_state: bool = False  # keep every landmark in the state (course formulation) instead of marginalizing ended tracks
+    max_state_mib: float = 2048.0  # refuse --full-state when the dense covariance would exceed this
+    estimate_gyro_bias: bool = True
+
+    # --- data conventions (checked by backend.conventions)
+    imu_flip: str = "auto"  # auto | yes | no: flip the IMU's y and z axes, diag(1,-1,-1,1) @ imu_T_cam
+    velocity_index: str = "auto"  # auto | this | next: velocity stamped k (this) or k+1 (next) drives step k -> k+1
+    convention_horizon: int = 3  # steps between triangulation and reprojection in the convention test
+
+    # --- IMU noise: white noise per axis of the velocity measurements (None: estimated from the data)
+    linear_velocity_sigma: Optional[float] = None  # m/s
+    angular_velocity_sigma: Optional[float] = None  # rad/s
+    linear_velocity_sigma_floor: float = 0.05  # m/s: model error kept even for clean velocities
+    angular_velocity_sigma_floor: float = 0.002  # rad/s
+    gyro_bias_sigma0: float = 0.02  # rad/s: prior standard deviation of the gyro bias
+    gyro_bias_random_walk: float = 1e-4  # rad/s/sqrt(s)
+    initial_pose_sigma: float = 1e-6  # the world frame is the first pose
+
+    # --- camera
+    pixel_sigma: float = 1.5  # px, per coordinate of z = [uL, vL, uR, vR]
+    image_width: Optional[float] = None  # px; None: 2.5 cx (the files carry no image size)
+    image_height: Optional[float] = None  # px; None: 2.5 cy
+
+    # --- landmarks
+    min_disparity: float = 1.0  # px: a landmark is initialized only from an observation with larger disparity
+    max_depth: float = 80.0  # m: ... and nearer than this
+    gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
+    max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    max_track_age: int = 0  # steps; older landmarks are marginalized and re-triangulated (0: never)
+
+    # --- health checks
+    nis_window: int = 50  # steps in the moving NIS average
+    nis_warn_factor: float = 3.0  # warn when the windowed NIS per observation leaves [4/f, 4 f]
+
+    # --- execution
+    blas_threads: int = 1  # BLAS threads; small matrices run 5-20x slower with more than one
+
+    def validate(self) -> "FilterConfig":
+        """Raise ConfigError on an invalid value; return self."""
+        _choice("mode", self.mode, MODES)
+        _choice("imu_flip", self.imu_flip, IMU_FLIP_CHOICES)
+        _choice("velocity_index", self.velocity_index, VELOCITY_INDEX_CHOICES)
+        positive = [
+            "pixel_sigma", "linear_velocity_sigma_floor", "angular_velocity_sigma_floor",
+            "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma", "max_depth",
+            "nis_warn_factor", "max_state_mib",
+        ]
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"config key '{name}': must be a finite number > 0, got {value!r}")
+        for name in ("linear_velocity_sigma", "angular_velocity_sigma", "image_width", "image_height"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"config key '{name}': must be > 0 or unset, got {value!r}")
+        if not 0.5 < self.gate_probability < 1.0:
+            raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
+        if self.min_disparity < 0:
+            raise ConfigError(f"config key 'min_disparity': must be >= 0, got {self.min_disparity!r}")
+        for name in ("convention_horizon", "nis_window", "blas_threads", "max_consecutive_gated"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"config key '{name}': must be an integer >= 1, got {getattr(self, name)!r}")
+        return self
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def describe(self) -> str:
+        """Multi-line listing printed at the start of a run (OpenVINS style)."""
+        width = max(len(f.name) for f in fields(self))
+        return "\n".join(f"  {f.name:<{width}} = {getattr(self, f.name)!r}" for f in fields(self))
+
+
+def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(f"config key '{name}': must be one of {', '.join(choices)}, got {value!r}")
+
+
+def _field_types() -> dict[str, str]:
+    return {f.name: str(f.type) for f in fields(FilterConfig)}
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """Convert a TOML or command-line value to the declared type of key ``name``."""
+    types = _field_types()
+    if name not in types:
+        raise ConfigError(f"unknown config key '{name}' (known: {', '.join(sorted(types))})")
+    declared = types[name]
+    optional = declared.startswith("Optional")
+    if isinstance(value, str):
+        text = value.strip()
+        if optional and text.lower() in ("none", "null", "auto", ""):
+            return None
+        if "bool" in declared:
+            if text.lower() in ("1", "true", "yes", "on"):
+                return True
+            if text.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ConfigError(f"config key '{name}': expected true or false, got {value!r}")
+        if "int" in declared:
+            try:
+                return int(text)
+            except ValueError:
+                raise ConfigError(f"config key '{name}': expected an integer, got {value!r}") from None
+        if "float" in declared:
+            try:
+                return float(text)
+            except ValueError:
+                raise ConfigError(f"config key '{name}': expected a number, got {value!r}") from None
+        return text
+    if value is None and optional:
+        return None
+    if "bool" in declared:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config key '{name}': expected true or false, got {value!r}")
+        return value
+    if "int" in declared:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config key '{name}': expected an integer, got {value!r}")
+        return value
+    if "float" in declared:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config key '{name}': expected a number, got {value!r}")
+        return float(value)
+    if not isinstance(value, str):
+        raise ConfigError(f"config key '{name}': expected a string, got {value!r}")
+    return value
+
+
+def config_from_dict(values: dict[str, Any], base: FilterConfig | None = None) -> FilterConfig:
+    """A FilterConfig with ``values`` applied over ``base`` (default: the defaults)."""
+    config = dataclasses.replace(base) if base is not None else FilterConfig()
+    for name, value in values.items():
+        setattr(config, name, _coerce(name, value))
+    return config.validate()
+
+
+def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterConfig:
+    """Read a TOML file: keys at the top level or in a ``[filter]`` table."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            data = tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    table = data.get("filter", data)
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: key 'filter' must be a table")
+    try:
+        return config_from_dict(table, base)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def apply_overrides(config: FilterConfig, assignments: list[str]) -> FilterConfig:
+    """Apply ``KEY=VALUE`` strings (command line ``--set``)."""
+    values: dict[str, Any] = {}
+    for item in assignments:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        values[key.strip().replace("-", "_")] = value
+    return config_from_dict(values, config)
+
+
+def to_toml(config: FilterConfig) -> str:
+    """Serialize as a ``[filter]`` TOML table (unset optional keys are written as comments)."""
+    lines = ["[filter]"]
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if value is None:
+            lines.append(f"# {f.name} =   # unset: estimated from the data")
+        elif isinstance(value, bool):
+            lines.append(f"{f.name} = {'true' if value else 'false'}")
+        elif isinstance(value, str):
+            lines.append(f'{f.name} = "{value}"')
+        else:
+            lines.append(f"{f.name} = {value!r}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,130 @@
+"""Data conventions, checked rather than assumed.
+
+Two questions the files do not answer reliably:
+
+1. Extrinsic: is ``imu_T_cam`` right as given, or do the velocities use an IMU frame with the
+   y and z axes flipped (``diag(1,-1,-1,1) @ imu_T_cam``)?
+2. Velocity timing: does the velocity stamped k ("this", the course formulation) or the one
+   stamped k+1 ("next") drive the step from k to k+1?
+
+The test: stereo points triangulated at step k, carried by dead reckoning to step k+h and
+reprojected into the left image; the median pixel error of each variant. The variant with the
+smaller error fits the data.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from backend import se3
+from backend.camera import StereoCamera
+from backend.imu import dead_reckoning
+from backend.sequence import Sequence
+
+IMU_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def flipped_extrinsic(imu_T_cam: np.ndarray) -> np.ndarray:
+    """The extrinsic with the IMU's y and z axes flipped."""
+    return IMU_FLIP @ imu_T_cam
+
+
+def reprojection_error(
+    seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str, horizon: int = 3, min_disparity: float = 1.0
+) -> float:
+    """Median left-image error (px) of points triangulated at k and reprojected at k+horizon."""
+    camera = StereoCamera(seq.K, seq.baseline)
+    poses = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
+    cam_T_imu = se3.inverse(imu_T_cam)
+    errors = []
+    for k in range(seq.num_steps - horizon):
+        ids_a, z_a = seq.observations(k)
+        ids_b, z_b = seq.observations(k + horizon)
+        common, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
+        if common.size == 0:
+            continue
+        z_a, z_b = z_a[ia], z_b[ib]
+        keep = (z_a[:, 0] - z_a[:, 2]) >= min_disparity
+        if not keep.any():
+            continue
+        p_cam_a = camera.triangulate(z_a[keep])
+        # cam_b_T_cam_a = cam_T_imu (T_b^-1 T_a) imu_T_cam
+        b_T_a = cam_T_imu @ se3.inverse(poses[k + horizon]) @ poses[k] @ imu_T_cam
+        p_cam_b = p_cam_a @ b_T_a[:3, :3].T + b_T_a[:3, 3]
+        front = p_cam_b[:, 2] > 0.1
+        if not front.any():
+            continue
+        z_pred = camera.project(p_cam_b[front])
+        errors.append(np.linalg.norm(z_pred[:, :2] - z_b[keep][front][:, :2], axis=1))
+    if not errors:
+        return float("nan")
+    return float(np.median(np.concatenate(errors)))
+
+
+@dataclass
+class ConventionDecision:
+    """The extrinsic and velocity timing used, with the test's numbers behind them."""
+
+    imu_flip: bool
+    velocity_index: str  # "this" | "next"
+    imu_T_cam: np.ndarray  # the extrinsic used (flipped or not)
+    errors_px: dict[str, float]  # "flip=no,velocity=this" -> median px, every variant tested
+    flip_source: str  # "auto" | "configured"
+    velocity_source: str
+
+    def as_dict(self) -> dict:
+        return {
+            "imu_flip": self.imu_flip,
+            "imu_flip_decided_by": self.flip_source,
+            "velocity_index": self.velocity_index,
+            "velocity_index_decided_by": self.velocity_source,
+            "reprojection_median_px": self.errors_px,
+            "imu_T_cam_used": self.imu_T_cam.tolist(),
+        }
+
+    def describe(self) -> str:
+        def err(flip: bool, vel: str) -> str:
+            value = self.errors_px.get(_key(flip, vel))
+            return "n/a" if value is None else f"{value:.2f} px"
+
+        v = self.velocity_index
+        f = self.imu_flip
+        return (
+            f"extrinsic: {'IMU y,z flipped' if f else 'as given'} ({self.flip_source}; median reprojection "
+            f"as given {err(False, v)}, flipped {err(True, v)})\n"
+            f"velocity timing: velocity stamped {'k+1' if v == 'next' else 'k'} drives step k->k+1 "
+            f"({self.velocity_source}; stamped k {err(f, 'this')}, stamped k+1 {err(f, 'next')})"
+        )
+
+
+def _key(flip: bool, velocity_index: str) -> str:
+    return f"flip={'yes' if flip else 'no'},velocity={velocity_index}"
+
+
+def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: str = "auto", horizon: int = 3) -> ConventionDecision:
+    """Test every variant that is not fixed by the caller and take the one that fits best."""
+    flips = [False, True] if imu_flip == "auto" else [imu_flip == "yes"]
+    indices = ["this", "next"] if velocity_index == "auto" else [velocity_index]
+    errors: dict[str, float] = {}
+    if len(flips) * len(indices) > 1:
+        for flip, index in itertools.product(flips, indices):
+            extrinsic = flipped_extrinsic(seq.imu_T_cam) if flip else seq.imu_T_cam
+            errors[_key(flip, index)] = reprojection_error(seq, extrinsic, index, horizon)
+        finite = {k: v for k, v in errors.items() if np.isfinite(v)}
+        best = min(finite, key=finite.get) if finite else _key(flips[0], indices[0])
+    else:
+        best = _key(flips[0], indices[0])
+    flip = "flip=yes" in best
+    index = best.split("velocity=")[1]
+    extrinsic = flipped_extrinsic(seq.imu_T_cam) if flip else seq.imu_T_cam
+    return ConventionDecision(
+        imu_flip=flip,
+        velocity_index=index,
+        imu_T_cam=extrinsic,
+        errors_px=errors,
+        flip_source="auto" if imu_flip == "auto" else "configured",
+        velocity_source="auto" if velocity_index == "auto" else "configured",
+    )

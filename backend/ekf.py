@@ -1,0 +1,445 @@
+"""The visual-inertial EKF on SE(3): one object, stepped one time step at a time.
+
+State (right perturbation, ECE276A / Barfoot ch. 7-9):
+
+    world_T_imu = mu exp(xi^),   xi in R^6 = [rho, theta]          (pose, 6)
+    b_g                                                             (gyro bias, 3)
+    m_1 .. m_n  in the world frame                                  (active landmarks, 3 each)
+
+with one dense covariance ``P`` over ``[xi, b_g, m_1 .. m_n]``. Only landmarks whose track is
+live are in the state; when a track ends its landmark is marginalized (rows and columns
+dropped, exact for a Gaussian) and moves to the map with its mean and 3x3 covariance.
+
+Prediction, for the body twist u = [v, omega - b_g] over tau = t_{k+1} - t_k:
+
+    mu    <- mu exp(tau u^)                                         (course eq. for the mean)
+    xi    <- exp(-tau u-curlyhat) xi - tau J_r(tau u) [0; I] delta_b + w,   w ~ N(0, W)
+    P_xx  <- F P_xx F^T + Q,  P_x,L <- F P_x,L,   F = [[exp(-tau u-curlyhat), -tau J_r E], [0, I]]
+
+Observation of landmark j in the stereo pair (course eq. z = Ks pi(cam_T_imu T^-1 m)):
+
+    p_imu = mu^-1 m,   p_cam = cam_T_imu p_imu,   z = Ks pi([p_cam; 1])
+    dz/dxi = J_cam R_ci [-I, p_imu^]      (T^-1 m = exp(-xi^) mu^-1 m ~ p_imu - xi^ p_imu)
+    dz/dm  = J_cam R_ci R_wi^T            J_cam = Ks dpi/dq P^T  (4x3)
+
+Update: every observed landmark jointly, each 4-row block of H touching 6 pose and 3 landmark
+columns; per-observation chi-square (4 dof) gating on the 4x4 innovation blocks; then
+
+    S = H P H^T + R = L L^T,   A = L^-1 H P,   dx = A^T L^-1 r,   P <- P - A^T A
+
+which is the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain);
+P is symmetrized after every update and its positive definiteness checked periodically.
+
+Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation with
+enough disparity:  m = mu imu_T_cam tri(z),  with  dm/dxi = R_wi [I, -p_imu^],
+dm/dz = R_wi R_ic dtri/dz, and  P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_factor, solve_triangular
+from scipy.stats import chi2
+
+from backend import se3
+from backend.camera import StereoCamera
+from backend.config import FilterConfig
+from backend.errors import FilterError
+
+POSE = slice(0, 6)
+BIAS = slice(6, 9)
+CORE = 9  # pose + gyro bias
+
+
+@dataclass
+class ImuNoise:
+    """White noise of the velocity measurements, per axis (the process noise of the prediction)."""
+
+    linear_sigma: np.ndarray  # (3,) m/s
+    angular_sigma: np.ndarray  # (3,) rad/s
+
+
+@dataclass
+class StepStats:
+    """What one call of :meth:`VisualInertialEKF.update` did."""
+
+    observed: int = 0  # observations handed in
+    used: int = 0  # observations of tracked landmarks used in the joint update
+    gated: int = 0  # observations rejected by the Mahalanobis gate
+    initialized: int = 0  # new landmarks added to the state
+    deferred: int = 0  # new features not initialized (disparity too small or too far): retried later
+    marginalized: int = 0  # landmarks moved from the state to the map
+    dropped: int = 0  # landmarks removed as repeatedly gated
+    nis_sum: float = 0.0  # sum over used observations of r_i^T S_ii^-1 r_i (expectation 4 each)
+    active: int = 0  # landmarks in the state after the step
+
+
+@dataclass
+class HealthMonitor:
+    """Watches the NIS and the covariance; collects one message per episode of trouble."""
+
+    window: int
+    warn_factor: float
+    messages: list[str] = field(default_factory=list)
+    _nis: deque = field(default_factory=deque)
+    _count: deque = field(default_factory=deque)
+    _inconsistent: bool = False
+
+    def add_nis(self, step: int, nis_sum: float, count: int) -> None:
+        self._nis.append(nis_sum)
+        self._count.append(count)
+        if len(self._nis) > self.window:
+            self._nis.popleft()
+            self._count.popleft()
+        total = sum(self._count)
+        if len(self._nis) < self.window or total < 20:
+            return
+        mean = sum(self._nis) / total
+        bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor
+        if bad and not self._inconsistent:
+            self.report(
+                f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} over the last "
+                f"{self.window} steps (expected about 4; tune pixel_sigma or the IMU noise)"
+            )
+        self._inconsistent = bad
+
+    def report(self, message: str) -> None:
+        self.messages.append(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+class VisualInertialEKF:
+    """Stereo visual-inertial EKF on SE(3) with a bounded landmark state (online API).
+
+    Use: ``predict(dt, v, w)`` then ``update(ids, pixels)`` once per time step.
+    """
+
+    def __init__(
+        self,
+        camera: StereoCamera,
+        imu_T_cam: np.ndarray,
+        config: FilterConfig,
+        imu_noise: ImuNoise,
+        world_T_imu: np.ndarray | None = None,
+        expected_landmarks: int | None = None,
+    ) -> None:
+        self.camera = camera
+        self.config = config.validate()
+        self.imu_T_cam = np.array(imu_T_cam, dtype=float)
+        cam_T_imu = se3.inverse(self.imu_T_cam)
+        self._R_ci = cam_T_imu[:3, :3].copy()
+        self._t_ci = cam_T_imu[:3, 3].copy()
+        self._R_ic = self.imu_T_cam[:3, :3].copy()
+        self._t_ic = self.imu_T_cam[:3, 3].copy()
+        self.imu_noise = imu_noise
+        self._estimate_pose = config.mode == "slam"
+        self._use_vision = config.mode != "dead-reckoning"
+        if config.full_state and expected_landmarks is not None:
+            self.check_full_state_size(expected_landmarks, config)
+
+        self.mu = np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float)
+        self.gyro_bias = np.zeros(3)
+        self.P = np.zeros((CORE, CORE))
+        if self._estimate_pose:
+            self.P[POSE, POSE] = np.eye(6) * config.initial_pose_sigma**2
+            if config.estimate_gyro_bias:
+                self.P[BIAS, BIAS] = np.eye(3) * config.gyro_bias_sigma0**2
+        self._R_pix = config.pixel_sigma**2
+        self._gate = float(chi2.ppf(config.gate_probability, 4))
+
+        # active landmarks, in state order
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._m = np.zeros((0, 3))
+        self._gated_run = np.zeros(0, dtype=np.int64)
+        self._born = np.zeros(0, dtype=np.int64)  # step of (re-)initialization
+        self._slot: dict[int, int] = {}
+        # marginalized landmarks (the map), appended in batches
+        self._map_ids: list[np.ndarray] = []
+        self._map_pos: list[np.ndarray] = []
+        self._map_cov: list[np.ndarray] = []
+
+        self.health = HealthMonitor(config.nis_window, config.nis_warn_factor)
+        self.step_index = 0
+
+    # ------------------------------------------------------------------ public state
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        return self.mu
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        return self.P[POSE, POSE]
+
+    @property
+    def num_active(self) -> int:
+        return self._ids.size
+
+    @staticmethod
+    def check_full_state_size(num_landmarks: int, config: FilterConfig) -> None:
+        """Refuse a full state whose dense covariance would not fit in ``max_state_mib``."""
+        dim = CORE + 3 * num_landmarks
+        mib = 8.0 * dim * dim / 2**20
+        if mib > config.max_state_mib:
+            raise FilterError(
+                f"--full-state with {num_landmarks} landmarks needs a {dim}x{dim} covariance "
+                f"({mib:.0f} MiB > max_state_mib = {config.max_state_mib:.0f}); run without --full-state"
+            )
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
+        """mu <- mu exp(tau u^);  P_x <- F P_x F^T + Q  (module docstring)."""
+        self.step_index += 1
+        u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.gyro_bias])
+        twist = dt * u
+        self.mu = self.mu @ se3.exp_se3(twist)
+        if not self._estimate_pose:
+            return
+        Phi = np.eye(CORE)
+        Phi[POSE, POSE] = se3.exp_curly(-twist)
+        if self.config.estimate_gyro_bias:
+            Phi[POSE, BIAS] = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
+        P = self.P
+        P[:CORE, :] = Phi @ P[:CORE, :]
+        P[:, :CORE] = P[:, :CORE] @ Phi.T
+        noise = self.imu_noise
+        diag = np.concatenate([noise.linear_sigma**2, noise.angular_sigma**2]) * dt * dt
+        P[np.arange(6), np.arange(6)] += diag
+        if self.config.estimate_gyro_bias:
+            P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
+
+    # ------------------------------------------------------------------ update
+    def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
+        """Use the stereo observations ``pixels`` (n,4) = [uL vL uR vR] of landmarks ``ids`` (n,)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        pixels = np.asarray(pixels, dtype=float).reshape(-1, 4)
+        stats = StepStats(observed=ids.size)
+        if not self._use_vision:
+            return stats
+        if not self.config.full_state and self._ids.size:
+            ended = ~np.isin(self._ids, ids)
+            if self.config.max_track_age:
+                # re-anchor old tracks: feature trackers drift, so a long track stops being one point
+                ended |= self.step_index - self._born >= self.config.max_track_age
+            if ended.any():
+                stats.marginalized = int(ended.sum())
+                self._remove(ended, to_map=True)
+        slots = np.fromiter((self._slot.get(i, -1) for i in ids.tolist()), dtype=np.int64, count=ids.size)
+        known = slots >= 0
+        if known.any():
+            self._joint_update(slots[known], pixels[known], stats)
+        if (~known).any():
+            self._initialize(ids[~known], pixels[~known], stats)
+        stats.active = self._ids.size
+        if stats.used:
+            self.health.add_nis(self.step_index, stats.nis_sum, stats.used)
+        if self.step_index % 100 == 0:
+            self._check_covariance()
+        return stats
+
+    def _observation_model(self, slots: np.ndarray, pixels: np.ndarray):
+        """Innovations (k,4), H_xi (k,4,6), H_m (k,4,3) and a mask of points in front of the camera."""
+        R_wi = self.mu[:3, :3]
+        p_wi = self.mu[:3, 3]
+        p_imu = (self._m[slots] - p_wi) @ R_wi
+        p_cam = p_imu @ self._R_ci.T + self._t_ci
+        in_front = p_cam[:, 2] > 0.1
+        p_cam[~in_front, 2] = 1.0  # placeholder, those rows are gated out
+        J_cam = self.camera.projection_jacobian(p_cam) @ self._R_ci  # (k,4,3) dz/dp_imu
+        H_m = J_cam @ R_wi.T
+        if self._estimate_pose:
+            H_xi = np.concatenate([-J_cam, J_cam @ se3.hat3(p_imu)], axis=2)
+        else:
+            H_xi = np.zeros((slots.size, 4, 6))
+        residual = pixels - self.camera.project(p_cam)
+        return residual, H_xi, H_m, in_front
+
+    def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+        residual, H_xi, H_m, in_front = self._observation_model(slots, pixels)
+        k = slots.size
+        P = self.P
+        cols = CORE + 3 * slots[:, None] + np.arange(3)  # (k,3) landmark columns
+        # P H^T, using the sparsity of H: each 4-row block touches 6 pose and 3 landmark columns
+        PHt = P[:, :6] @ H_xi.reshape(4 * k, 6).T  # (D,4k)
+        P_cols = P[:, cols].transpose(1, 0, 2)  # (k,D,3)
+        PHt += (P_cols @ H_m.transpose(0, 2, 1)).transpose(1, 0, 2).reshape(-1, 4 * k)
+        # S = H P H^T + R
+        S = H_xi.reshape(4 * k, 6) @ PHt[:6]
+        S += (H_m @ PHt[cols]).reshape(4 * k, 4 * k)
+        S[np.diag_indices_from(S)] += self._R_pix
+        # per-observation Mahalanobis gate on the 4x4 diagonal blocks
+        idx = np.arange(k)
+        blocks = S.reshape(k, 4, k, 4)[idx, :, idx, :]  # (k,4,4)
+        nis = np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
+        inlier = in_front & (nis <= self._gate)
+        if inlier.any():
+            inlier = self._posterior_gate(S, residual, inlier)
+            stats.used = int(inlier.sum())
+            stats.gated = int(k - stats.used)
+            stats.nis_sum = float(nis[inlier].sum())
+        self._gated_run[slots[inlier]] = 0
+        self._gated_run[slots[~inlier]] += 1
+        if stats.used:
+            rows = (4 * np.flatnonzero(inlier)[:, None] + np.arange(4)).ravel()
+            L = self._cholesky(S[np.ix_(rows, rows)])
+            A = solve_triangular(L, PHt[:, rows].T, lower=True, check_finite=False)  # L^-1 H P
+            w = solve_triangular(L, residual[inlier].ravel(), lower=True, check_finite=False)
+            dx = A.T @ w
+            P -= A.T @ A
+            P += P.T
+            P *= 0.5
+            self._apply_correction(dx)
+        bad = self._gated_run >= self.config.max_consecutive_gated
+        if bad.any():
+            stats.dropped = int(bad.sum())
+            self._remove(bad, to_map=False)
+
+    @staticmethod
+    def _cholesky(S: np.ndarray) -> np.ndarray:
+        L, _ = cho_factor(S, lower=True, check_finite=False)
+        return np.tril(L)
+
+    def _posterior_gate(self, S: np.ndarray, residual: np.ndarray, inlier: np.ndarray) -> np.ndarray:
+        """Leave-one-out test of the prior-gated observations (one pass).
+
+        With all others used, observation i has the standardized residual
+        e_i = (S^-1 r)_i  with covariance  (S^-1)_ii,  so  e_i^T (S^-1)_ii^-1 e_i ~ chi2(4).
+        It catches features that agree with the prior pose but not with the other features
+        (e.g. on a car driving ahead), which the prior gate lets through while the pose is uncertain.
+        """
+        idx = np.flatnonzero(inlier)
+        if idx.size < 3:
+            return inlier
+        rows = (4 * idx[:, None] + np.arange(4)).ravel()
+        L = self._cholesky(S[np.ix_(rows, rows)])
+        L_inv = solve_triangular(L, np.eye(rows.size), lower=True, check_finite=False)
+        e = (L_inv.T @ (L_inv @ residual[idx].ravel())).reshape(-1, 4)
+        # diagonal 4x4 blocks of S^-1 = L^-T L^-1
+        cols = L_inv.reshape(rows.size, idx.size, 4).transpose(1, 0, 2)  # (k, 4k, 4)
+        blocks = cols.transpose(0, 2, 1) @ cols
+        loo = np.einsum("ki,ki->k", e, np.linalg.solve(blocks, e[:, :, None])[:, :, 0])
+        out = inlier.copy()
+        out[idx[loo > self._gate]] = False
+        return out
+
+    def _apply_correction(self, dx: np.ndarray) -> None:
+        if self._estimate_pose:
+            self.mu = self.mu @ se3.exp_se3(dx[POSE])
+            self.gyro_bias = self.gyro_bias + dx[BIAS]
+        self._m += dx[CORE:].reshape(-1, 3)
+
+    # ------------------------------------------------------------------ landmarks
+    def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+        """Stereo triangulation and state augmentation with the pose cross covariance."""
+        cfg = self.config
+        disparity = pixels[:, 0] - pixels[:, 2]
+        ok = disparity >= max(cfg.min_disparity, 1e-9)
+        depth = np.full(ids.size, np.inf)
+        depth[ok] = self.camera.fx * self.camera.baseline / disparity[ok]
+        ok &= depth <= cfg.max_depth
+        stats.deferred = int(ids.size - ok.sum())
+        if not ok.any():
+            return
+        ids, pixels = ids[ok], pixels[ok]
+        n = ids.size
+        R_wi = self.mu[:3, :3]
+        p_cam = self.camera.triangulate(pixels)
+        p_imu = p_cam @ self._R_ic.T + self._t_ic
+        m = p_imu @ R_wi.T + self.mu[:3, 3]
+        J_z = (R_wi @ self._R_ic) @ self.camera.triangulation_jacobian(pixels)  # (n,3,4)
+        new_cov = self._R_pix * (J_z @ J_z.transpose(0, 2, 1))  # (n,3,3) pixel part
+        D = self.P.shape[0]
+        P_new = np.zeros((D + 3 * n, D + 3 * n))
+        P_new[:D, :D] = self.P
+        block = np.zeros((3 * n, 3 * n))
+        for i in range(n):  # block diagonal pixel part
+            block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = new_cov[i]
+        if self._estimate_pose:
+            J_xi = np.concatenate(
+                [np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2
+            ).reshape(3 * n, 6)
+            cross = J_xi @ self.P[POSE, :]  # (3n, D)
+            block += cross[:, POSE] @ J_xi.T
+            P_new[D:, :D] = cross
+            P_new[:D, D:] = cross.T
+        P_new[D:, D:] = block
+        self.P = P_new
+        self._ids = np.concatenate([self._ids, ids])
+        self._m = np.concatenate([self._m, m])
+        self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
+        self._born = np.concatenate([self._born, np.full(n, self.step_index, dtype=np.int64)])
+        self._reindex()
+        stats.initialized = n
+
+    def _remove(self, mask: np.ndarray, to_map: bool) -> None:
+        """Marginalize the landmarks in ``mask`` (drop their rows and columns)."""
+        gone = np.flatnonzero(mask)
+        if to_map:
+            diag = CORE + 3 * gone[:, None] + np.arange(3)
+            self._map_ids.append(self._ids[gone].copy())
+            self._map_pos.append(self._m[gone].copy())
+            self._map_cov.append(self.P[diag[:, :, None], diag[:, None, :]].copy())
+        keep_lm = np.flatnonzero(~mask)
+        keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
+        self.P = self.P[np.ix_(keep, keep)]
+        self._ids = self._ids[keep_lm]
+        self._m = self._m[keep_lm]
+        self._gated_run = self._gated_run[keep_lm]
+        self._born = self._born[keep_lm]
+        self._reindex()
+
+    def _reindex(self) -> None:
+        self._slot = dict(zip(self._ids.tolist(), range(self._ids.size)))
+
+    def finish(self) -> None:
+        """Marginalize every active landmark into the map (end of the sequence)."""
+        if self._ids.size:
+            self._remove(np.ones(self._ids.size, dtype=bool), to_map=True)
+
+    def landmark_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids (K,), positions (K,3), covariances (K,3,3)) of mapped and active landmarks, by id.
+
+        A landmark re-initialized after its track ended keeps its latest estimate.
+        """
+        ids = self._map_ids + [self._ids]
+        pos = self._map_pos + [self._m]
+        diag = CORE + 3 * np.arange(self._ids.size)[:, None] + np.arange(3)
+        cov = self._map_cov + [self.P[diag[:, :, None], diag[:, None, :]]]
+        ids_all = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
+        pos_all = np.concatenate(pos) if pos else np.zeros((0, 3))
+        cov_all = np.concatenate(cov) if cov else np.zeros((0, 3, 3))
+        # keep the last entry of each id, sorted by id
+        rev = ids_all[::-1]
+        _, first_in_rev = np.unique(rev, return_index=True)
+        last = ids_all.size - 1 - first_in_rev
+        return ids_all[last], pos_all[last], cov_all[last]
+
+    # ------------------------------------------------------------------ health
+    def _check_covariance(self) -> None:
+        """Say so (once per episode) when P is not positive definite, and repair it."""
+        estimated = np.ones(self.P.shape[0], dtype=bool)
+        if not self._estimate_pose:
+            estimated[:CORE] = False
+        elif not self.config.estimate_gyro_bias:
+            estimated[BIAS] = False
+        sub = self.P[np.ix_(estimated, estimated)]
+        if sub.size == 0:
+            return
+        eigval, eigvec = np.linalg.eigh(sub)
+        if eigval.min() > -1e-9 * max(eigval.max(), 1e-30):
+            return
+        self.health.report(
+            f"step {self.step_index}: covariance lost positive definiteness (min eigenvalue "
+            f"{eigval.min():.3g}); eigenvalues clipped"
+        )
+        repaired = (eigvec * np.maximum(eigval, 1e-12)) @ eigvec.T
+        self.P[np.ix_(estimated, estimated)] = 0.5 * (repaired + repaired.T)
+
+
+def pose_sigma_summary(P: np.ndarray) -> tuple[float, float]:
+    """(position sigma m, rotation sigma deg) from the pose block of a covariance."""
+    return math.sqrt(max(np.trace(P[0:3, 0:3]), 0.0)), math.degrees(math.sqrt(max(np.trace(P[3:6, 3:6]), 0.0)))

@@ -1,0 +1,247 @@
+"""Trajectory error metrics (ATE, RPE) of an estimate against ground truth, computed with evo.
+
+* ATE: the estimate is aligned to the ground truth with Umeyama's method (SE(3) by default,
+  Sim(3) on request) using all time-matched positions; ATE is the translation error
+  ``|p_gt_i - p_est_aligned_i|`` per matched pose, summarised as RMSE / mean / median / max.
+* RPE: for pose pairs ``(i, j)`` a fixed distance apart, the error of the relative motion
+  ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; translation RMSE (metres) and rotation-angle RMSE
+  (degrees). Pairs are all pairs whose ground-truth path distance is ``delta`` metres (10 %
+  tolerance), or ``delta`` frames apart. If the ground truth path is shorter than ``delta``
+  (or, in frames, has too few poses) the delta falls back to ``min(10, N-1)`` frames, and
+  ``rpe_delta`` / ``rpe_unit`` report what was used. RPE uses the aligned estimate (only
+  the Sim(3) scale matters for it).
+
+evo is imported inside the functions (it is slow to import). The caller's arrays are never
+modified (evo aligns in place, so it works on copies).
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from backend.errors import InputError
+
+__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose"]
+
+MIN_MATCHES = 3
+FALLBACK_DELTA_FRAMES = 10
+
+
+@dataclass
+class TrajectoryErrors:
+    """Summary of an estimate's errors against ground truth (see the module docstring)."""
+
+    ate_rmse: float  # metres, after alignment
+    ate_mean: float
+    ate_median: float
+    ate_max: float
+    rpe_trans_rmse: float  # metres
+    rpe_rot_rmse_deg: float  # degrees
+    rpe_delta: float  # in rpe_unit
+    rpe_unit: str  # "m" or "frames"
+    num_matched: int  # poses matched in time
+    path_length: float  # metres, along the matched ground-truth poses
+    alignment: str  # "se3" or "sim3"
+
+    def as_dict(self) -> dict:
+        """Plain-Python dict (floats, ints, strings) of all fields."""
+        out = asdict(self)
+        for key, value in out.items():
+            if isinstance(value, np.generic):
+                out[key] = value.item()
+        return out
+
+
+def _check(t: Any, poses: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
+    stamps = np.array(t, dtype=float)  # copies
+    arr = np.array(poses, dtype=float)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise ValueError(f"{what} poses must have shape (N, 4, 4), got {arr.shape}")
+    if stamps.shape != (arr.shape[0],):
+        raise ValueError(f"{what} time stamps must have shape ({arr.shape[0]},), got {stamps.shape}")
+    if not np.all(np.isfinite(stamps)):
+        raise InputError(f"{what}: non-finite time stamp")
+    if not np.all(np.isfinite(arr)):
+        index = int(np.flatnonzero(~np.isfinite(arr).all(axis=(1, 2)))[0])
+        raise InputError(f"{what}: non-finite pose at index {index} (t = {stamps[index]:.6f})")
+    if len(stamps) > 1 and not np.all(np.diff(stamps) > 0):
+        raise InputError(f"{what}: time stamps are not strictly increasing")
+    return stamps, arr
+
+
+def _evo_trajectory(t: np.ndarray, poses: np.ndarray, name: str):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    return PoseTrajectory3D(timestamps=t.copy(), poses_se3=[p.copy() for p in poses], name=name)
+
+
+def _associated(est_t, est_poses, gt_t, gt_poses, max_diff: float):
+    """evo trajectories (est, gt) of the time-matched poses."""
+    from evo.core.sync import SyncException, associate_trajectories
+
+    et, ep = _check(est_t, est_poses, "estimate")
+    gt, gp = _check(gt_t, gt_poses, "ground truth")
+    if len(et) == 0 or len(gt) == 0:
+        raise InputError(
+            f"too few poses to compare: estimate {len(et)}, ground truth {len(gt)}"
+        )
+    est = _evo_trajectory(et, ep, "estimate")
+    ref = _evo_trajectory(gt, gp, "ground truth")
+    try:
+        est_sync, ref_sync = associate_trajectories(est, ref, max_diff=max_diff)
+        matched = est_sync.num_poses
+    except SyncException:
+        matched = 0
+    if matched < MIN_MATCHES:
+        raise InputError(
+            f"only {matched} estimated pose(s) match a ground-truth time stamp within "
+            f"{max_diff} s; at least {MIN_MATCHES} are needed"
+        )
+    return est_sync, ref_sync
+
+
+def associate(
+    est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, max_diff: float = 0.01
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Match estimated and ground-truth poses by nearest time stamp (within ``max_diff`` s).
+
+    Returns ``(est_poses_matched (M,4,4), gt_poses_matched (M,4,4), t (M,))`` with ``t`` the
+    estimate's stamps of the matches. Raises :class:`InputError` if fewer than 3 match.
+    """
+    est_sync, ref_sync = _associated(est_t, est_poses, gt_t, gt_poses, max_diff)
+    return (
+        np.array(est_sync.poses_se3),
+        np.array(ref_sync.poses_se3),
+        np.array(est_sync.timestamps, dtype=float),
+    )
+
+
+def _aligned(est_t, est_poses, gt_t, gt_poses, sim3: bool, max_diff: float):
+    """(aligned estimate, ground truth) evo trajectories of the matched poses."""
+    from evo.core.geometry import GeometryException
+
+    est_sync, ref_sync = _associated(est_t, est_poses, gt_t, gt_poses, max_diff)
+    est_aligned = copy.deepcopy(est_sync)
+    try:
+        est_aligned.align(ref_sync, correct_scale=sim3)
+    except GeometryException as exc:
+        raise InputError(
+            f"cannot align the estimate to the ground truth ({exc}); are the "
+            f"{ref_sync.num_poses} matched positions all on one straight line?"
+        ) from exc
+    return est_aligned, ref_sync
+
+
+def _ape(est_aligned, ref):
+    from evo.core.metrics import APE, PoseRelation
+
+    ape = APE(PoseRelation.translation_part)
+    ape.process_data((ref, est_aligned))
+    return ape
+
+
+def _rpe(est_aligned, ref, delta: float, unit: str) -> tuple[float, float, float, str]:
+    from evo.core.filters import FilterException
+    from evo.core.metrics import RPE, PoseRelation, StatisticsType, Unit
+
+    n = ref.num_poses
+    fallback = (float(min(FALLBACK_DELTA_FRAMES, n - 1)), "frames")
+    if unit == "m":
+        if not delta > 0:
+            raise ValueError(f"rpe_delta must be positive, got {delta}")
+        use = (float(delta), "m") if ref.path_length >= delta else fallback
+    elif unit == "frames":
+        if not (delta >= 1 and float(delta).is_integer()):
+            raise ValueError(f"rpe_delta in frames must be a positive integer, got {delta}")
+        use = (float(delta), "frames") if delta <= n - 1 else fallback
+    else:
+        raise ValueError(f"rpe_unit must be 'm' or 'frames', got {unit!r}")
+
+    extra = {}
+    if "pairs_from_reference" in inspect.signature(RPE.__init__).parameters:
+        extra["pairs_from_reference"] = True  # delta measured along the ground truth
+
+    def run(d: float, u: str) -> tuple[float, float]:
+        values = []
+        for relation in (PoseRelation.translation_part, PoseRelation.rotation_angle_deg):
+            rpe = RPE(
+                relation,
+                delta=d if u == "m" else int(d),
+                delta_unit=Unit.meters if u == "m" else Unit.frames,
+                all_pairs=True,
+                **extra,
+            )
+            rpe.process_data((ref, est_aligned))
+            values.append(float(rpe.get_statistic(StatisticsType.rmse)))
+        return values[0], values[1]
+
+    try:
+        trans, rot = run(*use)
+    except FilterException:  # no pair at that distance (e.g. one huge gap): frames instead
+        if use == fallback:
+            raise
+        use = fallback
+        trans, rot = run(*use)
+    return trans, rot, use[0], use[1]
+
+
+def trajectory_errors(
+    est_t: Any,
+    est_poses: Any,
+    gt_t: Any,
+    gt_poses: Any,
+    *,
+    sim3: bool = False,
+    rpe_delta: float = 100.0,
+    rpe_unit: str = "m",
+    max_diff: float = 0.01,
+) -> TrajectoryErrors:
+    """ATE and RPE of an estimate against ground truth (see the module docstring).
+
+    Poses are ``world_T_imu`` ``(N, 4, 4)`` with stamps ``(N,)`` in seconds; they are
+    matched by nearest stamp within ``max_diff``. Raises :class:`InputError` if fewer than 3
+    poses match or the alignment is degenerate.
+    """
+    from evo.core.metrics import StatisticsType
+
+    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    ape = _ape(est_aligned, ref)
+    rpe_trans, rpe_rot, used_delta, used_unit = _rpe(est_aligned, ref, rpe_delta, rpe_unit)
+    return TrajectoryErrors(
+        ate_rmse=float(ape.get_statistic(StatisticsType.rmse)),
+        ate_mean=float(ape.get_statistic(StatisticsType.mean)),
+        ate_median=float(ape.get_statistic(StatisticsType.median)),
+        ate_max=float(ape.get_statistic(StatisticsType.max)),
+        rpe_trans_rmse=rpe_trans,
+        rpe_rot_rmse_deg=rpe_rot,
+        rpe_delta=used_delta,
+        rpe_unit=used_unit,
+        num_matched=int(ref.num_poses),
+        path_length=float(ref.path_length),
+        alignment="sim3" if sim3 else "se3",
+    )
+
+
+def ate_per_pose(
+    est_t: Any,
+    est_poses: Any,
+    gt_t: Any,
+    gt_poses: Any,
+    *,
+    sim3: bool = False,
+    max_diff: float = 0.01,
+    return_stamps: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Translation error (metres) of every matched pose after alignment, as ``(M,)``; in
+    the order of ``associate(...)``. With ``return_stamps`` returns ``(t (M,), errors)``,
+    ready for :func:`tools.plots.plot_error_over_time`."""
+    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    errors = np.array(_ape(est_aligned, ref).error, dtype=float)
+    if return_stamps:
+        return np.array(est_aligned.timestamps, dtype=float), errors
+    return errors

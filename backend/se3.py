@@ -1,0 +1,250 @@
+"""Closed-form SO(3)/SE(3) Lie-group maths (pure numpy, float64).
+
+Conventions (Barfoot, "State Estimation for Robotics", 2017, ch. 7):
+a twist is ``xi = [rho, theta]`` (translation first, rotation second) and
+``hat(xi) = [[theta^, rho], [0, 0]]``. Poses are 4x4 homogeneous matrices named
+``a_T_b`` (maps points in frame b to frame a).
+
+Every closed form switches to its Taylor series (to t^8) for rotation angles below
+``_SMALL_ANGLE`` = 0.1: there the series is exact to ~1e-16 relative, and above it the
+closed-form coefficients are accurate to ~1e-11 relative or better (the least accurate
+ones multiply O(t^4) terms, so the matrices stay at machine precision).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL_ANGLE = 0.1
+_NEAR_PI = 1e-2  # log_so3 reads the axis from the symmetric part when pi - angle < this
+
+
+def _coefficients(angle: float) -> tuple[float, float, float, float, float, float]:
+    """Scalar coefficients of the SO(3)/SE(3) series at rotation angle ``angle``.
+
+    Returns (a, b, c, d, e, f):
+      a = sin t / t,  b = (1 - cos t) / t^2,  c = (t - sin t) / t^3   (eqs. 7.14, 7.37)
+      d = 1/t^2 - (1 + cos t) / (2 t sin t)                             (inverse J, 7.45)
+      e = (t^2 + 2 cos t - 2) / (2 t^4),  f = (2t - 3 sin t + t cos t) / (2 t^5)  (Q, 7.86)
+    """
+    t = angle
+    t2 = t * t
+    if t < _SMALL_ANGLE:
+        t4 = t2 * t2
+        t6 = t4 * t2
+        t8 = t4 * t4
+        return (
+            1.0 - t2 / 6.0 + t4 / 120.0 - t6 / 5040.0 + t8 / 362880.0,
+            0.5 - t2 / 24.0 + t4 / 720.0 - t6 / 40320.0 + t8 / 3628800.0,
+            1.0 / 6.0 - t2 / 120.0 + t4 / 5040.0 - t6 / 362880.0 + t8 / 39916800.0,
+            1.0 / 12.0 + t2 / 720.0 + t4 / 30240.0 + t6 / 1209600.0 + t8 / 47900160.0,
+            1.0 / 24.0 - t2 / 720.0 + t4 / 40320.0 - t6 / 3628800.0 + t8 / 479001600.0,
+            1.0 / 120.0 - t2 / 2520.0 + t4 / 120960.0 - t6 / 9979200.0 + t8 / 1245404160.0,
+        )
+    s, c = np.sin(t), np.cos(t)
+    return (
+        s / t,
+        (1.0 - c) / t2,
+        (t - s) / (t2 * t),
+        1.0 / t2 - 1.0 / (2.0 * t * np.tan(0.5 * t)),
+        (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2),
+        (2.0 * t - 3.0 * s + t * c) / (2.0 * t2 * t2 * t),
+    )
+
+
+# ---------------------------------------------------------------- hat / vee
+
+
+def hat3(w: np.ndarray) -> np.ndarray:
+    """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3)."""
+    w = np.asarray(w, dtype=float)
+    W = np.zeros(w.shape[:-1] + (3, 3))
+    W[..., 0, 1], W[..., 0, 2] = -w[..., 2], w[..., 1]
+    W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
+    W[..., 2, 0], W[..., 2, 1] = -w[..., 1], w[..., 0]
+    return W
+
+
+def vee3(W: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`hat3`; (..., 3, 3) -> (..., 3)."""
+    W = np.asarray(W, dtype=float)
+    return np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)
+
+
+def hat(xi: np.ndarray) -> np.ndarray:
+    """Twist to se(3): [[theta^, rho], [0, 0]] (Barfoot eq. 7.28); (6,) -> (4, 4)."""
+    xi = np.asarray(xi, dtype=float)
+    X = np.zeros((4, 4))
+    X[:3, :3] = hat3(xi[3:])
+    X[:3, 3] = xi[:3]
+    return X
+
+
+def vee(X: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`hat`; (4, 4) -> (6,) = [rho, theta]."""
+    X = np.asarray(X, dtype=float)
+    return np.concatenate([X[:3, 3], vee3(X[:3, :3])])
+
+
+def curly_hat(xi: np.ndarray) -> np.ndarray:
+    """Adjoint of se(3), xi^curly = [[theta^, rho^], [0, theta^]] (Barfoot eq. 7.32)."""
+    xi = np.asarray(xi, dtype=float)
+    C = np.zeros((6, 6))
+    C[:3, :3] = C[3:, 3:] = hat3(xi[3:])
+    C[:3, 3:] = hat3(xi[:3])
+    return C
+
+
+# ---------------------------------------------------------------- SO(3)
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: R = I + (sin t/t) w^ + ((1-cos t)/t^2) w^ w^ (Barfoot eq. 7.14)."""
+    w = np.asarray(w, dtype=float)
+    a, b, *_ = _coefficients(float(np.linalg.norm(w)))
+    W = hat3(w)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of R, angle in [0, pi] (inverse of Barfoot eq. 7.14).
+
+    The angle is atan2(|vee(R - R^T)|/2, (tr R - 1)/2), accurate over the whole range.
+    Near pi the axis comes from the symmetric part (R + R^T)/2 - cos t I = (1 - cos t) a a^T,
+    its sign from the skew part.
+    """
+    R = np.asarray(R, dtype=float)
+    skew = vee3(R - R.T)  # = 2 sin(t) a
+    s = 0.5 * float(np.linalg.norm(skew))
+    c = 0.5 * (float(np.trace(R)) - 1.0)
+    angle = float(np.arctan2(s, c))
+    if np.pi - angle >= _NEAR_PI:
+        a, *_ = _coefficients(angle)  # sin t / t
+        return skew / (2.0 * a)
+    B = 0.5 * (R + R.T) - c * np.eye(3)
+    i = int(np.argmax(np.diag(B)))
+    axis = B[:, i] / np.sqrt(B[i, i] * (1.0 - c))
+    if axis @ skew < 0.0:
+        axis = -axis
+    return angle * axis
+
+
+def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    """J_l(w) = I + ((1-cos t)/t^2) w^ + ((t - sin t)/t^3) w^ w^ (Barfoot eq. 7.37)."""
+    w = np.asarray(w, dtype=float)
+    _, b, c, *_ = _coefficients(float(np.linalg.norm(w)))
+    W = hat3(w)
+    return np.eye(3) + b * W + c * (W @ W)
+
+
+def right_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    """J_r(w) = J_l(-w) (Barfoot eq. 7.87)."""
+    return left_jacobian_so3(-np.asarray(w, dtype=float))
+
+
+def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    """J_l(w)^-1 = I - w^/2 + (1/t^2 - (1+cos t)/(2 t sin t)) w^ w^ (Barfoot eq. 7.45)."""
+    _, _, _, d, *_ = _coefficients(float(np.linalg.norm(w)))
+    W = hat3(w)
+    return np.eye(3) - 0.5 * W + d * (W @ W)
+
+
+# ---------------------------------------------------------------- SE(3)
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)."""
+    xi = np.asarray(xi, dtype=float)
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(xi[3:])
+    T[:3, 3] = left_jacobian_so3(xi[3:]) @ xi[:3]
+    return T
+
+
+def log_se3(T: np.ndarray) -> np.ndarray:
+    """[J_l(theta)^-1 p, theta] with theta = log_so3(R) (inverse of Barfoot eq. 7.39)."""
+    T = np.asarray(T, dtype=float)
+    theta = log_so3(T[:3, :3])
+    return np.concatenate([_inv_left_jacobian_so3(theta) @ T[:3, 3], theta])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Ad(T) = [[R, p^ R], [0, R]] (Barfoot eq. 7.48)."""
+    T = np.asarray(T, dtype=float)
+    R = T[:3, :3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = R
+    A[:3, 3:] = hat3(T[:3, 3]) @ R
+    return A
+
+
+def exp_curly(xi: np.ndarray) -> np.ndarray:
+    """exp(xi^curly) = Ad(exp(xi^)) (Barfoot eq. 7.50)."""
+    return adjoint(exp_se3(xi))
+
+
+def _q_matrix(xi: np.ndarray) -> np.ndarray:
+    """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86)."""
+    P, W = hat3(xi[:3]), hat3(xi[3:])
+    _, _, c, _, e, f = _coefficients(float(np.linalg.norm(xi[3:])))
+    WP, PW, WW = W @ P, P @ W, W @ W
+    WPW = WP @ W
+    return (
+        0.5 * P
+        + c * (WP + PW + WPW)
+        + e * (WW @ P + PW @ W - 3.0 * WPW)
+        + f * (WPW @ W + WW @ PW)
+    )
+
+
+def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
+    """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85)."""
+    xi = np.asarray(xi, dtype=float)
+    J = np.zeros((6, 6))
+    J[:3, :3] = J[3:, 3:] = left_jacobian_so3(xi[3:])
+    J[:3, 3:] = _q_matrix(xi)
+    return J
+
+
+def right_jacobian_se3(xi: np.ndarray) -> np.ndarray:
+    """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87)."""
+    return left_jacobian_se3(-np.asarray(xi, dtype=float))
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Rigid inverse [[R^T, -R^T p], [0, 1]]; (..., 4, 4) -> (..., 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3:4])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def odot(s: np.ndarray) -> np.ndarray:
+    """s^odot = [[eta I, -eps^], [0, 0]] for s = [eps; eta] (Barfoot eq. 7.42).
+
+    ``hat(xi) @ s == odot(s) @ xi``. Accepts (..., 3) points (eta = 1) or (..., 4)
+    homogeneous points; returns (..., 4, 6).
+    """
+    s = np.asarray(s, dtype=float)
+    eps = s[..., :3]
+    eta = s[..., 3] if s.shape[-1] == 4 else np.ones(s.shape[:-1])
+    out = np.zeros(s.shape[:-1] + (4, 6))
+    out[..., :3, :3] = eta[..., None, None] * np.eye(3)
+    out[..., :3, 3:] = -hat3(eps)
+    return out
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-5) -> bool:
+    """True iff T is a finite 4x4 with last row [0,0,0,1], R^T R = I (to tol), det R > 0."""
+    T = np.asarray(T)
+    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3].astype(float)
+    return bool(
+        np.all(T[3] == [0.0, 0.0, 0.0, 1.0])
+        and np.max(np.abs(R.T @ R - np.eye(3))) <= tol
+        and np.linalg.det(R) > 0.0
+    )

@@ -1,0 +1,121 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from backend.camera import StereoCamera, dpi_dq, pi
+
+SETTINGS = settings(max_examples=60, deadline=None)
+
+K_KITTI = np.array([[718.856, 0.0, 607.1928], [0.0, 718.856, 185.2157], [0.0, 0.0, 1.0]])
+CAM = StereoCamera(K=K_KITTI, baseline=0.537)
+
+
+@st.composite
+def _points_in_front(draw, max_n: int = 20) -> np.ndarray:
+    """Points with depth 1-80 m inside a generous frustum around the image."""
+    n = draw(st.integers(1, max_n))
+    depth = draw(arrays(float, n, elements=st.floats(1.0, 80.0)))
+    lateral = draw(arrays(float, (n, 2), elements=st.floats(-1.0, 1.0)))
+    return np.column_stack([lateral * depth[:, None], depth])
+
+
+def _numeric_jacobian(f, x: np.ndarray, eps: float) -> np.ndarray:
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros_like(x)
+        dx[i] = eps
+        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
+    return np.stack(cols, axis=-1)
+
+
+def test_ks_structure():
+    fx, fy, cx, cy, b = 718.856, 718.856, 607.1928, 185.2157, 0.537
+    expected = np.array([[fx, 0, cx, 0], [0, fy, cy, 0], [fx, 0, cx, -fx * b], [0, fy, cy, 0]])
+    assert np.array_equal(CAM.Ks, expected)
+    assert (CAM.fx, CAM.fy, CAM.cx, CAM.cy) == (fx, fy, cx, cy)
+
+
+@SETTINGS
+@given(_points_in_front())
+def test_project_disparity_and_rows(p_in_cam):
+    z = CAM.project(p_in_cam)
+    assert z.shape == (len(p_in_cam), 4)
+    assert np.allclose(z[:, 0] - z[:, 2], CAM.fx * CAM.baseline / p_in_cam[:, 2], rtol=1e-12, atol=1e-9)
+    assert np.array_equal(z[:, 1], z[:, 3])
+    assert np.allclose(z[:, 0], CAM.fx * p_in_cam[:, 0] / p_in_cam[:, 2] + CAM.cx, rtol=1e-12, atol=1e-9)
+
+
+@SETTINGS
+@given(_points_in_front())
+def test_triangulate_inverts_project(p_in_cam):
+    assert np.allclose(CAM.triangulate(CAM.project(p_in_cam)), p_in_cam, rtol=1e-9, atol=1e-9)
+
+
+def test_single_point_shapes():
+    p = np.array([1.0, -0.5, 12.0])
+    z = CAM.project(p)
+    assert z.shape == (4,)
+    assert np.allclose(z, CAM.project(p[None])[0])
+    assert CAM.projection_jacobian(p).shape == (4, 3)
+    assert np.allclose(CAM.triangulate(z), p)
+    assert CAM.triangulation_jacobian(z).shape == (3, 4)
+    q = np.append(p, 1.0)
+    assert pi(q).shape == (4,)
+    assert dpi_dq(q).shape == (4, 4)
+
+
+@SETTINGS
+@given(_points_in_front(max_n=5))
+def test_projection_jacobian_finite_differences(p_in_cam):
+    J = CAM.projection_jacobian(p_in_cam)
+    assert J.shape == (len(p_in_cam), 4, 3)
+    for p, J_p in zip(p_in_cam, J):
+        numeric = _numeric_jacobian(CAM.project, p, eps=1e-5 * p[2])
+        assert np.allclose(J_p, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_p).max())
+
+
+@SETTINGS
+@given(_points_in_front(max_n=5))
+def test_triangulation_jacobian_finite_differences(p_in_cam):
+    z = CAM.project(p_in_cam)
+    J = CAM.triangulation_jacobian(z)
+    assert J.shape == (len(p_in_cam), 3, 4)
+    for z_i, J_i in zip(z, J):
+        numeric = _numeric_jacobian(CAM.triangulate, z_i, eps=1e-4)
+        assert np.allclose(J_i, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_i).max())
+
+
+@SETTINGS
+@given(_points_in_front(max_n=5), st.floats(-2.0, 2.0))
+def test_dpi_dq_finite_differences(p_in_cam, w):
+    q = np.column_stack([p_in_cam, np.full(len(p_in_cam), w)])
+    J = dpi_dq(q)
+    for q_i, J_i in zip(q, J):
+        numeric = _numeric_jacobian(pi, q_i, eps=1e-6 * q_i[2])
+        assert np.allclose(J_i, numeric, rtol=1e-6, atol=1e-8 * np.abs(J_i).max())
+
+
+def test_projection_jacobian_is_inverse_of_triangulation_jacobian():
+    p_in_cam = np.array([[1.0, -0.5, 12.0], [-3.0, 1.0, 40.0]])
+    product = CAM.triangulation_jacobian(CAM.project(p_in_cam)) @ CAM.projection_jacobian(p_in_cam)
+    assert np.allclose(product, np.eye(3), atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "K, baseline",
+    [(np.eye(2), 0.5), (K_KITTI, 0.0), (K_KITTI, -1.0), (K_KITTI, float("nan")), (-K_KITTI, 0.5)],
+)
+def test_invalid_camera_rejected(K, baseline):
+    with pytest.raises(ValueError):
+        StereoCamera(K=K, baseline=baseline)
+
+
+def test_camera_is_frozen():
+    with pytest.raises(AttributeError):
+        CAM.baseline = 1.0  # type: ignore[misc]
+    with pytest.raises(ValueError):
+        CAM.K[0, 0] = 1.0

@@ -1,0 +1,295 @@
+"""Tests of tools.outputs (file writers/readers) and tools.plots."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from backend.errors import InputError, VislamError
+from tools.outputs import (
+    atomic_write,
+    prepare_output_dir,
+    read_tum,
+    uncertainty_colors,
+    write_json,
+    write_map_npz,
+    write_map_ply,
+    write_trajectory_ply,
+    write_tum,
+)
+
+
+def random_poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = Rotation.random(n, random_state=rng.integers(1 << 31)).as_matrix()
+    poses[:, :3, 3] = rng.uniform(-50.0, 50.0, size=(n, 3))
+    return poses
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (rad) of a_i^T b_i, robust for tiny angles."""
+    return Rotation.from_matrix(np.swapaxes(a, 1, 2) @ b).magnitude()
+
+
+def listing(path) -> list[str]:
+    return sorted(os.listdir(path))
+
+
+# ---------------------------------------------------------------- atomic_write
+
+
+def test_atomic_write_success_replaces_target(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with atomic_write(target) as tmp:
+        assert tmp.parent == tmp_path
+        assert tmp.name.startswith(".out.tmp-") and tmp.suffix == ".txt"
+        tmp.write_text("new")
+        assert target.read_text() == "old"  # not replaced before success
+    assert target.read_text() == "new"
+    assert listing(tmp_path) == ["out.txt"]
+
+
+@pytest.mark.parametrize("exc_type", [RuntimeError, KeyboardInterrupt])
+def test_atomic_write_failure_leaves_no_files(tmp_path, exc_type):
+    target = tmp_path / "map.ply"
+    with pytest.raises(exc_type):
+        with atomic_write(target) as tmp:
+            assert tmp.suffix == ".ply"
+            tmp.write_bytes(b"half")
+            raise exc_type("interrupted")
+    assert listing(tmp_path) == []
+
+
+def test_atomic_write_failure_keeps_existing_target(tmp_path):
+    target = tmp_path / "traj.txt"
+    target.write_text("previous")
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_write(target) as tmp:
+            tmp.write_text("partial")
+            raise KeyboardInterrupt
+    assert target.read_text() == "previous"
+    assert listing(tmp_path) == ["traj.txt"]
+
+
+# ---------------------------------------------------------------- prepare_output_dir
+
+
+def test_prepare_output_dir(tmp_path):
+    out = prepare_output_dir(tmp_path / "a" / "b", force=False)
+    assert out.is_dir()
+    assert prepare_output_dir(out, force=False) == out  # empty: fine
+    (out / "x.txt").write_text("x")
+    with pytest.raises(VislamError, match="not empty; use --force"):
+        prepare_output_dir(out, force=False)
+    assert prepare_output_dir(out, force=True) == out
+    assert (out / "x.txt").exists()  # force does not delete anything
+    with pytest.raises(VislamError):
+        prepare_output_dir(out / "x.txt", force=True)
+
+
+# ---------------------------------------------------------------- TUM
+
+
+def test_tum_round_trip(tmp_path):
+    poses = random_poses(50)
+    t = 1403636579.763555 + 0.05 * np.arange(50)
+    path = tmp_path / "traj.txt"
+    write_tum(path, t, poses, header="vislam estimate\nworld_T_imu")
+    text = path.read_text().splitlines()
+    assert text[0] == "# vislam estimate" and text[1] == "# world_T_imu"
+    t2, poses2 = read_tum(path)
+    assert t2.shape == (50,) and poses2.shape == (50, 4, 4)
+    np.testing.assert_allclose(t2, t, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(poses2[:, :3, 3], poses[:, :3, 3], atol=1e-6, rtol=0)
+    assert rotation_angle(poses2[:, :3, :3], poses[:, :3, :3]).max() < 1e-8
+    np.testing.assert_array_equal(poses2[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (50, 1)))
+    assert listing(tmp_path) == ["traj.txt"]
+
+
+def test_evo_reads_what_write_tum_wrote(tmp_path):
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    poses = random_poses(20, seed=3)
+    t = np.arange(20) * 0.1
+    path = tmp_path / "traj.tum"
+    write_tum(path, t, poses, header="comment")
+    traj = read_tum_trajectory_file(str(path))
+    np.testing.assert_allclose(traj.positions_xyz, poses[:, :3, 3], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(traj.timestamps, t, atol=1e-6, rtol=0)
+    assert rotation_angle(np.array(traj.poses_se3)[:, :3, :3], poses[:, :3, :3]).max() < 1e-8
+
+
+GOOD = "1.0 0 0 0 0 0 0 1"
+
+
+@pytest.mark.parametrize(
+    "bad_line, lineno, fragment",
+    [
+        ("2.0 0 0 0 0 0 1", 4, "expected 8 columns"),
+        ("2.0 0 0 0 0 0 0 1 5", 4, "expected 8 columns"),
+        ("2.0 0 abc 0 0 0 0 1", 4, "not a number"),
+        ("2.0 0 nan 0 0 0 0 1", 4, "non-finite"),
+        ("2.0 0 0 0 0 0 0 0", 4, "zero norm"),
+        ("1.0 0 0 0 0 0 0 1", 4, "not greater than the previous"),
+    ],
+)
+def test_read_tum_errors_name_file_and_line(tmp_path, bad_line, lineno, fragment):
+    path = tmp_path / "bad.txt"
+    path.write_text(f"# header\n{GOOD}\n\n{bad_line}\n")
+    with pytest.raises(InputError) as info:
+        read_tum(path)
+    message = str(info.value)
+    assert f"{path}:{lineno}:" in message
+    assert fragment in message
+    assert "\n" not in message
+
+
+def test_read_tum_empty_and_missing(tmp_path):
+    path = tmp_path / "empty.txt"
+    path.write_text("# only a comment\n\n")
+    with pytest.raises(InputError, match="empty.txt"):
+        read_tum(path)
+    with pytest.raises(InputError, match="missing.txt"):
+        read_tum(tmp_path / "missing.txt")
+
+
+def test_read_tum_normalises_quaternion(tmp_path):
+    path = tmp_path / "t.txt"
+    path.write_text("0 1 2 3 0 0 0 2\n1 1 2 3 0 0 2 2\n")
+    _, poses = read_tum(path)
+    expected = np.eye(4)
+    expected[:3, 3] = [1.0, 2.0, 3.0]
+    np.testing.assert_allclose(poses[0], expected, atol=1e-12)
+    # (0, 0, 2, 2) normalised: 90 degrees about z
+    np.testing.assert_allclose(poses[1, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+
+
+# ---------------------------------------------------------------- map
+
+
+def make_map(k: int = 40, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    positions = rng.normal(scale=10.0, size=(k, 3))
+    sigmas = np.geomspace(0.01, 2.0, k)  # increasing uncertainty with the index
+    axes = Rotation.random(k, random_state=seed).as_matrix()
+    scales = np.stack([sigmas, 0.5 * sigmas, 0.2 * sigmas], axis=1) ** 2
+    covariances = axes @ (scales[:, :, None] * np.swapaxes(axes, 1, 2))
+    return np.arange(100, 100 + k), positions, covariances, sigmas
+
+
+def test_map_npz(tmp_path):
+    ids, pos, cov, _ = make_map()
+    path = tmp_path / "map.npz"
+    write_map_npz(path, ids, pos, cov)
+    with np.load(path) as data:
+        assert sorted(data.files) == ["covariances", "ids", "positions"]
+        assert data["ids"].shape == (40,) and data["positions"].shape == (40, 3)
+        assert data["covariances"].shape == (40, 3, 3)
+        np.testing.assert_array_equal(data["ids"], ids)
+        np.testing.assert_array_equal(data["positions"], pos)
+        np.testing.assert_array_equal(data["covariances"], cov)
+    assert listing(tmp_path) == ["map.npz"]
+
+
+def test_uncertainty_colors_monotonic():
+    _, _, cov, sigmas = make_map()
+    rgb, sigma, u = uncertainty_colors(cov)
+    np.testing.assert_allclose(sigma, sigmas, rtol=1e-9)  # sqrt of the largest eigenvalue
+    assert np.all(np.diff(u) >= 0) and u[0] == 0.0 and u[-1] == 1.0
+    assert np.all(np.diff(rgb[:, 1]) >= 0)  # viridis green channel grows with uncertainty
+    assert rgb[-1, 1] - rgb[0, 1] > 0.5
+
+
+def test_map_ply(tmp_path):
+    import open3d as o3d
+
+    _, pos, cov, _ = make_map()
+    path = tmp_path / "map.ply"
+    write_map_ply(path, pos, cov)
+    assert listing(tmp_path) == ["map.ply"]
+    cloud = o3d.io.read_point_cloud(str(path))
+    points = np.asarray(cloud.points)
+    colors = np.asarray(cloud.colors)
+    assert points.shape == (40, 3)
+    np.testing.assert_allclose(points, pos, atol=1e-9)
+    assert colors.shape == (40, 3) and colors.min() >= 0.0 and colors.max() <= 1.0
+    expected, _, _ = uncertainty_colors(cov)
+    np.testing.assert_allclose(colors, expected, atol=1.0 / 255.0)
+    assert np.abs(colors[-1] - colors[0]).max() > 0.3  # uncertain != certain
+    assert colors[-1, 1] > colors[20, 1] > colors[0, 1]
+
+
+def test_empty_map_ply(tmp_path):
+    import open3d as o3d
+
+    path = tmp_path / "map.ply"
+    write_map_ply(path, np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    assert len(o3d.io.read_point_cloud(str(path)).points) == 0
+
+
+def test_trajectory_ply(tmp_path):
+    import open3d as o3d
+
+    poses = random_poses(30, seed=5)
+    path = tmp_path / "trajectory.ply"
+    write_trajectory_ply(path, poses)
+    lines = o3d.io.read_line_set(str(path))
+    np.testing.assert_allclose(np.asarray(lines.points), poses[:, :3, 3], atol=1e-9)
+    edges = np.asarray(lines.lines)
+    np.testing.assert_array_equal(edges, np.column_stack([np.arange(29), np.arange(1, 30)]))
+    colors = np.asarray(lines.colors)
+    assert colors.shape == (29, 3) and np.abs(colors[0] - colors[-1]).max() > 0.3
+    assert listing(tmp_path) == ["trajectory.ply"]
+    write_trajectory_ply(tmp_path / "one.ply", poses[:1])  # open3d refuses 0 lines
+    one = o3d.io.read_point_cloud(str(tmp_path / "one.ply"))
+    np.testing.assert_allclose(np.asarray(one.points), poses[:1, :3, 3], atol=1e-9)
+
+
+# ---------------------------------------------------------------- JSON
+
+
+def test_write_json(tmp_path):
+    path = tmp_path / "r.json"
+    obj = {
+        "a": np.float32(1.5),
+        "b": np.arange(3),
+        "c": [np.nan, np.inf, 2.0],
+        "d": {"e": np.int64(7), "f": np.bool_(True)},
+        "g": (1, 2),
+        "h": tmp_path,
+    }
+    write_json(path, obj)
+    text = path.read_text()
+    assert text.startswith('{\n  "a": 1.5')
+    data = json.loads(text)
+    assert data == {
+        "a": 1.5, "b": [0, 1, 2], "c": [None, None, 2.0], "d": {"e": 7, "f": True},
+        "g": [1, 2], "h": str(tmp_path),
+    }
+
+
+# ---------------------------------------------------------------- plots
+
+
+def test_plots(tmp_path):
+    from tools.plots import plot_error_over_time, plot_trajectories_topdown
+
+    poses = random_poses(100, seed=2)
+    path = tmp_path / "topdown.png"
+    plot_trajectories_topdown(
+        path,
+        {"ground truth": poses, "estimate": poses[:, :3, 3] + 0.1, "other": poses[:, :3, 3] * 2},
+        landmarks=np.random.default_rng(0).normal(size=(25000, 3)),
+        title="test",
+    )
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    errors_path = tmp_path / "ate.png"
+    plot_error_over_time(errors_path, np.arange(100) * 0.1, np.abs(np.sin(np.arange(100))), "ATE")
+    assert errors_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert listing(tmp_path) == ["ate.png", "topdown.png"]

@@ -1,0 +1,229 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.linalg import expm
+
+from backend import se3
+
+SETTINGS = settings(max_examples=60, deadline=None)
+
+_coord = st.floats(-1.0, 1.0, allow_nan=False)
+_direction = st.tuples(_coord, _coord, _coord).map(np.array).filter(lambda v: np.linalg.norm(v) > 0.1)
+
+
+def _rotvec(max_angle: float, min_angle: float = 0.0):
+    return st.builds(
+        lambda d, a: a * d / np.linalg.norm(d), _direction, st.floats(min_angle, max_angle)
+    )
+
+
+def _twist(max_angle: float = 3.0, max_translation: float = 10.0):
+    rho = st.tuples(*[st.floats(-max_translation, max_translation)] * 3).map(np.array)
+    return st.builds(np.concatenate, st.tuples(rho, _rotvec(max_angle)))
+
+
+def _pose():
+    return _twist().map(se3.exp_se3)
+
+
+def _numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros_like(x)
+        dx[i] = eps
+        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
+    return np.stack(cols, axis=-1)
+
+
+@SETTINGS
+@given(_twist())
+def test_hat_vee_are_inverse(xi):
+    assert np.array_equal(se3.vee(se3.hat(xi)), xi)
+    assert np.array_equal(se3.vee3(se3.hat3(xi[3:])), xi[3:])
+    assert np.allclose(se3.hat3(xi[3:]) @ xi[:3], np.cross(xi[3:], xi[:3]))
+
+
+def test_hat3_batched():
+    w = np.arange(12.0).reshape(4, 3)
+    W = se3.hat3(w)
+    assert W.shape == (4, 3, 3)
+    for i in range(4):
+        assert np.array_equal(W[i], se3.hat3(w[i]))
+        assert np.array_equal(W[i], -W[i].T)
+
+
+@SETTINGS
+@given(_twist())
+def test_exp_se3_matches_expm(xi):
+    assert np.allclose(se3.exp_se3(xi), expm(se3.hat(xi)), atol=1e-10, rtol=0)
+
+
+@SETTINGS
+@given(_twist(max_angle=np.pi - 0.1))
+def test_log_exp_se3_roundtrip(xi):
+    assert np.allclose(se3.log_se3(se3.exp_se3(xi)), xi, atol=1e-9, rtol=0)
+
+
+@SETTINGS
+@given(_pose())
+def test_exp_log_se3_roundtrip(T):
+    assert np.allclose(se3.exp_se3(se3.log_se3(T)), T, atol=1e-10, rtol=0)
+
+
+@SETTINGS
+@given(_rotvec(np.pi - 1e-3))
+def test_exp_so3_matches_expm_and_log_roundtrip(w):
+    R = se3.exp_so3(w)
+    assert np.allclose(R, expm(se3.hat3(w)), atol=1e-12, rtol=0)
+    assert np.allclose(se3.log_so3(R), w, atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.0999, 0.1001, 1.0, np.pi - 0.0101,
+                                   np.pi - 0.0099, np.pi - 1e-6, np.pi - 1e-9])
+@pytest.mark.parametrize("axis", [[1, 0, 0], [0, 0, 1], [0.3, -0.5, 0.8], [-0.9, 0.1, -0.2]])
+def test_so3_edge_angles(angle, axis):
+    w = angle * np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    R = se3.exp_so3(w)
+    assert np.allclose(R, expm(se3.hat3(w)), atol=1e-14, rtol=0)
+    assert se3.is_rigid(R_to_T(R), tol=1e-14)
+    assert np.allclose(se3.log_so3(R), w, atol=1e-12, rtol=0)
+    xi = np.concatenate([[1.0, -2.0, 0.5], w])
+    assert np.allclose(se3.exp_se3(xi), expm(se3.hat(xi)), atol=1e-13, rtol=0)
+    # J_l^-1 grows like 1/(pi - angle) near pi, amplifying the rounding of p
+    assert np.allclose(se3.log_se3(se3.exp_se3(xi)), xi, atol=1e-12 / (np.pi - angle), rtol=0)
+
+
+@pytest.mark.parametrize("axis", [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0.3, -0.5, 0.8]])
+def test_log_so3_at_pi(axis):
+    w = np.pi * np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    R = se3.exp_so3(w)
+    w_back = se3.log_so3(R)
+    assert np.isclose(np.linalg.norm(w_back), np.pi)
+    assert np.allclose(np.abs(w_back), np.abs(w), atol=1e-7)
+    assert np.allclose(se3.exp_so3(w_back), R, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("angle", [0.05, 0.0999, 0.15])
+def test_series_coefficients_match_closed_forms(angle, monkeypatch):
+    monkeypatch.setattr(se3, "_SMALL_ANGLE", 1.0)
+    series = se3._coefficients(angle)
+    monkeypatch.setattr(se3, "_SMALL_ANGLE", 0.0)
+    closed_form = se3._coefficients(angle)
+    assert np.allclose(series, closed_form, rtol=1e-8, atol=0)
+
+
+def R_to_T(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+@SETTINGS
+@given(_twist())
+def test_exp_curly_matches_expm_and_adjoint(xi):
+    A = se3.exp_curly(xi)
+    assert np.allclose(A, expm(se3.curly_hat(xi)), atol=1e-9, rtol=0)
+    assert np.allclose(A, se3.adjoint(se3.exp_se3(xi)), atol=1e-12, rtol=0)
+
+
+@SETTINGS
+@given(_pose(), _twist())
+def test_adjoint_identity(T, xi):
+    lhs = T @ se3.exp_se3(xi) @ se3.inverse(T)
+    assert np.allclose(lhs, se3.exp_se3(se3.adjoint(T) @ xi), atol=1e-9, rtol=0)
+
+
+@SETTINGS
+@given(_twist(), st.tuples(*[st.floats(-50, 50)] * 3).map(np.array), st.floats(-2, 2))
+def test_odot(xi, p, eta):
+    s = np.append(p, 1.0)
+    assert np.allclose(se3.hat(xi) @ s, se3.odot(s) @ xi, atol=1e-12, rtol=0)
+    assert np.array_equal(se3.odot(p), se3.odot(s))
+    s_general = np.append(p, eta)
+    assert np.allclose(se3.hat(xi) @ s_general, se3.odot(s_general) @ xi, atol=1e-12, rtol=0)
+
+
+def test_odot_batched():
+    p = np.arange(15.0).reshape(5, 3)
+    batched = se3.odot(p)
+    assert batched.shape == (5, 4, 6)
+    for i in range(5):
+        assert np.array_equal(batched[i], se3.odot(p[i]))
+    homogeneous = np.concatenate([p, np.ones((5, 1))], axis=1)
+    assert np.array_equal(se3.odot(homogeneous), batched)
+
+
+@SETTINGS
+@given(_twist(), _twist())
+def test_curly_hat_anticommutes(xi, eta):
+    assert np.allclose(se3.curly_hat(xi) @ eta, -se3.curly_hat(eta) @ xi, atol=1e-12, rtol=0)
+    # the curly hat is the Lie bracket: [xi^, eta^] = (xi^curly eta)^
+    bracket = se3.hat(xi) @ se3.hat(eta) - se3.hat(eta) @ se3.hat(xi)
+    assert np.allclose(bracket, se3.hat(se3.curly_hat(xi) @ eta), atol=1e-12, rtol=0)
+
+
+@SETTINGS
+@given(_twist(max_angle=3.0, max_translation=5.0))
+def test_right_jacobian_se3_finite_differences(xi):
+    T_inv = se3.inverse(se3.exp_se3(xi))
+    numeric = _numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
+    # log(exp(xi)^-1 exp(xi + d)) ~ J_r(xi) d
+    assert np.allclose(se3.right_jacobian_se3(xi), numeric, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, 0.0999, 0.1001, 0.5, 3.0])
+def test_se3_jacobians_small_angles(angle):
+    xi = np.array([0.4, -1.2, 2.0, *(angle * np.array([0.6, 0.0, -0.8]))])
+    T_inv = se3.inverse(se3.exp_se3(xi))
+    numeric = _numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
+    assert np.allclose(se3.right_jacobian_se3(xi), numeric, atol=1e-8, rtol=0)
+    numeric_left = _numeric_jacobian(lambda x: se3.log_se3(se3.exp_se3(x) @ T_inv), xi)
+    assert np.allclose(se3.left_jacobian_se3(xi), numeric_left, atol=1e-8, rtol=0)
+
+
+@SETTINGS
+@given(_rotvec(3.0))
+def test_so3_jacobians_finite_differences(w):
+    R_t = se3.exp_so3(w).T
+    right = _numeric_jacobian(lambda x: se3.log_so3(R_t @ se3.exp_so3(x)), w)
+    left = _numeric_jacobian(lambda x: se3.log_so3(se3.exp_so3(x) @ R_t), w)
+    assert np.allclose(se3.right_jacobian_so3(w), right, atol=1e-7, rtol=0)
+    assert np.allclose(se3.left_jacobian_so3(w), left, atol=1e-7, rtol=0)
+    assert np.allclose(se3.right_jacobian_so3(w), se3.left_jacobian_so3(w).T, atol=1e-14, rtol=0)
+
+
+@SETTINGS
+@given(_pose())
+def test_inverse(T):
+    assert np.allclose(se3.inverse(T) @ T, np.eye(4), atol=1e-12, rtol=0)
+    assert np.allclose(se3.inverse(T), np.linalg.inv(T), atol=1e-10, rtol=0)
+
+
+@SETTINGS
+@given(st.lists(_pose(), min_size=1, max_size=5).map(np.stack))
+def test_inverse_batched(Ts):
+    inv = se3.inverse(Ts)
+    assert inv.shape == Ts.shape
+    assert np.allclose(inv @ Ts, np.eye(4), atol=1e-12, rtol=0)
+
+
+@SETTINGS
+@given(_pose())
+def test_is_rigid(T):
+    assert se3.is_rigid(T)
+    scaled = T.copy()
+    scaled[:3, :3] *= 1.01
+    assert not se3.is_rigid(scaled)
+    bad_row = T.copy()
+    bad_row[3, 0] = 0.5
+    assert not se3.is_rigid(bad_row)
+    reflection = T.copy()
+    reflection[:3, :3] = -reflection[:3, :3]
+    assert not se3.is_rigid(reflection)
+    nan = T.copy()
+    nan[1, 3] = np.nan
+    assert not se3.is_rigid(nan)
+    assert not se3.is_rigid(T[:3])

@@ -1,0 +1,418 @@
+"""Writing (and reading back) the files a vislam run produces.
+
+Every writer goes through :func:`atomic_write`: the data is written to a temporary file in
+the target's directory and moved over the target only once it is complete, so an
+interrupted or failed run never leaves a half-written file behind.
+
+open3d is imported lazily (inside the PLY writers) because importing it takes over a second.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from contextlib import contextmanager
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from backend.errors import InputError, VislamError
+
+__all__ = [
+    "atomic_write",
+    "prepare_output_dir",
+    "write_tum",
+    "read_tum",
+    "write_map_npz",
+    "write_map_ply",
+    "uncertainty_colors",
+    "write_trajectory_ply",
+    "write_json",
+]
+
+MAP_COLORMAP = "viridis"
+TRAJECTORY_COLORMAP = "plasma"
+
+
+# --------------------------------------------------------------------------------------
+# atomic writes and the output directory
+# --------------------------------------------------------------------------------------
+
+
+def _temp_path(path: Path) -> Path:
+    """``dir/name.ext`` -> ``dir/.name.tmp-<pid>.ext`` (the suffix is kept for writers
+    such as open3d or matplotlib that choose the format by the file extension)."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+@contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; move it onto ``path`` on success.
+
+    The temporary name is ``.<stem>.tmp-<pid><suffix>`` in the same directory (so
+    ``os.replace`` is atomic and the extension is preserved). If the body raises anything,
+    ``KeyboardInterrupt`` included, the temporary file is removed, an existing ``path`` is
+    left untouched and the exception propagates.
+    """
+    target = Path(path)
+    tmp = _temp_path(target)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise
+
+
+def prepare_output_dir(path: str | os.PathLike, force: bool) -> Path:
+    """Create the output directory ``path`` (with parents) and return it.
+
+    An existing empty directory is fine. A non-empty one is refused unless ``force`` (its
+    files are then overwritten one by one as the run writes them; nothing is deleted).
+    A regular file at ``path`` is always refused.
+    """
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise VislamError(f"{path}: exists and is not a directory")
+    if out.is_dir() and not force and any(out.iterdir()):
+        raise VislamError(
+            f"{path}: output directory exists and is not empty; use --force to overwrite"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise VislamError(f"{path}: cannot create output directory: {exc.strerror}") from exc
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# TUM trajectories
+# --------------------------------------------------------------------------------------
+
+
+def _check_poses(world_T_imu: Any, what: str = "world_T_imu") -> np.ndarray:
+    poses = np.asarray(world_T_imu, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{what} must have shape (N, 4, 4), got {poses.shape}")
+    return poses
+
+
+def write_tum(
+    path: str | os.PathLike,
+    time_stamps: Any,
+    world_T_imu: Any,
+    header: str | None = None,
+) -> None:
+    """Write a trajectory in TUM format: ``t tx ty tz qx qy qz qw`` per line.
+
+    Time and translation are written with ``%.6f``, the unit quaternion (scalar last, sign
+    chosen so that ``qw >= 0``) with ``%.9f``. ``header`` (may span several lines) is
+    written first as ``#`` comment lines.
+    """
+    from scipy.spatial.transform import Rotation
+
+    t = np.asarray(time_stamps, dtype=float)
+    poses = _check_poses(world_T_imu)
+    if t.ndim != 1 or t.shape[0] != poses.shape[0]:
+        raise ValueError(
+            f"time_stamps must have shape ({poses.shape[0]},) to match the poses, got {t.shape}"
+        )
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(poses))):
+        bad = np.flatnonzero(~(np.isfinite(t) & np.isfinite(poses).all(axis=(1, 2))))
+        raise ValueError(f"non-finite time stamp or pose at index {int(bad[0])}")
+
+    lines: list[str] = []
+    if header:
+        for line in header.splitlines():
+            lines.append(line if line.startswith("#") else f"# {line}")
+    if len(poses):
+        quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+        quat[quat[:, 3] < 0] *= -1.0
+        trans = poses[:, :3, 3]
+        for ti, p, q in zip(t, trans, quat):
+            lines.append(
+                f"{ti:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+                f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+            )
+    text = "\n".join(lines) + ("\n" if lines else "")
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file; return ``(time_stamps (N,), world_T_imu (N, 4, 4))``.
+
+    Blank lines and lines starting with ``#`` are skipped; quaternions are normalised.
+    Raises :class:`InputError` with a one-line ``<file>:<line>: <problem>`` message for a
+    line without 8 columns, a non-numeric or non-finite value, a zero-norm quaternion or a
+    time stamp not greater than the previous one, and for a file without any pose.
+    """
+    from scipy.spatial.transform import Rotation
+
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text file ({exc.reason})") from exc
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+
+    stamps: list[float] = []
+    rows: list[list[float]] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        tokens = line.split()
+        if len(tokens) != 8:
+            raise InputError(
+                f"{path}:{lineno}: expected 8 columns (t tx ty tz qx qy qz qw), "
+                f"found {len(tokens)}"
+            )
+        values: list[float] = []
+        for token in tokens:
+            try:
+                value = float(token)
+            except ValueError:
+                raise InputError(f"{path}:{lineno}: not a number: {token!r}") from None
+            if not math.isfinite(value):
+                raise InputError(f"{path}:{lineno}: non-finite value {token!r}")
+            values.append(value)
+        norm = math.sqrt(sum(v * v for v in values[4:]))
+        if norm < 1e-12:
+            raise InputError(f"{path}:{lineno}: quaternion has zero norm")
+        if stamps and values[0] <= stamps[-1]:
+            raise InputError(
+                f"{path}:{lineno}: time stamp {tokens[0]} is not greater than the "
+                f"previous one ({stamps[-1]:.9g})"
+            )
+        stamps.append(values[0])
+        rows.append(values)
+
+    if not rows:
+        raise InputError(f"{path}: no poses found (empty trajectory file)")
+    data = np.asarray(rows, dtype=float)
+    quat = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    poses[:, :3, 3] = data[:, 1:4]
+    return data[:, 0].copy(), poses
+
+
+# --------------------------------------------------------------------------------------
+# landmark map
+# --------------------------------------------------------------------------------------
+
+
+def _check_map(positions: Any, covariances: Any) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.asarray(positions, dtype=float)
+    cov = np.asarray(covariances, dtype=float)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions must have shape (K, 3), got {pos.shape}")
+    if cov.shape != (pos.shape[0], 3, 3):
+        raise ValueError(f"covariances must have shape ({pos.shape[0]}, 3, 3), got {cov.shape}")
+    return pos, cov
+
+
+def write_map_npz(path: str | os.PathLike, ids: Any, positions: Any, covariances: Any) -> None:
+    """Save the landmark map as ``.npz`` with the keys ``ids`` (K,), ``positions`` (K, 3)
+    and ``covariances`` (K, 3, 3) (world frame, metres / square metres)."""
+    pos, cov = _check_map(positions, covariances)
+    ids_arr = np.asarray(ids)
+    if ids_arr.shape != (pos.shape[0],):
+        raise ValueError(f"ids must have shape ({pos.shape[0]},), got {ids_arr.shape}")
+    with atomic_write(path) as tmp:
+        # A file object: np.savez would otherwise append ".npz" to a name not ending in it.
+        with open(tmp, "wb") as fh:
+            np.savez(fh, ids=ids_arr, positions=pos, covariances=cov)
+
+
+def uncertainty_colors(covariances: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Colours of landmarks by position uncertainty: returns ``(rgb (K,3), sigma (K,), u (K,))``.
+
+    * ``sigma = sqrt(largest eigenvalue of the 3x3 position covariance)``: the standard
+      deviation (metres) along the least certain direction.
+    * ``u = clip((log10 sigma - log10 s5) / (log10 s95 - log10 s5), 0, 1)`` where ``s5`` and
+      ``s95`` are the 5th and 95th percentiles of sigma over the map (``u = 0.5`` for all
+      points when they are equal), so a few outliers do not wash out the scale.
+    * ``rgb = viridis(u)``: dark blue/purple = most certain, green = middle, yellow = least
+      certain. Viridis' green channel (and its brightness) increases monotonically with ``u``.
+    """
+    import matplotlib
+
+    cov = np.asarray(covariances, dtype=float)
+    if cov.ndim != 3 or cov.shape[1:] != (3, 3):
+        raise ValueError(f"covariances must have shape (K, 3, 3), got {cov.shape}")
+    if cov.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+    sym = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    sigma = np.sqrt(np.clip(np.linalg.eigvalsh(sym)[:, -1], 0.0, None))
+    log_s = np.log10(np.maximum(sigma, 1e-12))
+    finite = np.isfinite(log_s)
+    if finite.any():
+        lo, hi = np.percentile(log_s[finite], [5.0, 95.0])
+    else:
+        lo = hi = 0.0
+    if hi - lo > 1e-12:
+        u = np.clip((log_s - lo) / (hi - lo), 0.0, 1.0)
+    else:
+        u = np.full(sigma.shape, 0.5)
+    u = np.where(finite, u, 1.0)  # non-finite covariance: as uncertain as it gets
+    rgb = matplotlib.colormaps[MAP_COLORMAP](u)[:, :3]
+    return rgb, sigma, u
+
+
+def _write_ply_by_hand(
+    tmp: Path, points: np.ndarray, colors: np.ndarray, edges: np.ndarray | None
+) -> None:
+    """Binary PLY for the cases open3d refuses (no points / no lines)."""
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment Created by vislam",
+        f"element vertex {len(points)}",
+        "property double x",
+        "property double y",
+        "property double z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+    ]
+    if edges is not None:
+        header += [f"element edge {len(edges)}", "property int vertex1", "property int vertex2"]
+    header.append("end_header")
+    vertex = np.zeros(
+        len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("rgb", "u1", (3,))]
+    )
+    vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
+    vertex["rgb"] = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
+    with open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vertex.tobytes())
+        if edges is not None:
+            fh.write(np.asarray(edges, dtype="<i4").tobytes())
+
+
+def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> None:
+    """Save the landmark positions as a binary PLY point cloud coloured by uncertainty.
+
+    The colour mapping is the one of :func:`uncertainty_colors`: sigma = square root of the
+    largest covariance eigenvalue, on a log scale clipped to its 5th..95th percentile,
+    through matplotlib's ``viridis`` (dark blue/purple = certain, yellow = uncertain).
+    ``path`` should end in ``.ply`` (open3d picks the format by extension).
+    """
+    pos, cov = _check_map(positions, covariances)
+    rgb, _, _ = uncertainty_colors(cov)
+    with atomic_write(path) as tmp:
+        if len(pos) == 0:
+            _write_ply_by_hand(tmp, pos, rgb, None)
+            return
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud()
+        cloud.points = o3d.utility.Vector3dVector(pos)
+        cloud.colors = o3d.utility.Vector3dVector(rgb)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            ok = o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False)
+        if not ok:
+            raise VislamError(f"{path}: open3d could not write the point cloud")
+
+
+def write_trajectory_ply(
+    path: str | os.PathLike, world_T_imu: Any, time_stamps: Any | None = None
+) -> None:
+    """Save the trajectory as a PLY line set (open3d ``LineSet``: the positions as vertices,
+    consecutive ones joined by edges), coloured by time through matplotlib's ``plasma``:
+    dark blue = start, yellow = end. Without ``time_stamps`` the pose index stands for time.
+    With fewer than 2 poses (no line) the file holds just the vertices (a point cloud).
+    ``world_T_imu`` is ``(N, 4, 4)`` (or ``(N, 3)`` positions).
+    """
+    import matplotlib
+
+    arr = np.asarray(world_T_imu, dtype=float)
+    if arr.ndim == 3 and arr.shape[1:] == (4, 4):
+        pts = arr[:, :3, 3].copy()
+    elif arr.ndim == 2 and arr.shape[1] == 3:
+        pts = arr.copy()
+    else:
+        raise ValueError(f"world_T_imu must have shape (N, 4, 4) or (N, 3), got {arr.shape}")
+    n = len(pts)
+    if time_stamps is None:
+        tt = np.arange(n, dtype=float)
+    else:
+        tt = np.asarray(time_stamps, dtype=float)
+        if tt.shape != (n,):
+            raise ValueError(f"time_stamps must have shape ({n},), got {tt.shape}")
+    span = float(tt[-1] - tt[0]) if n > 1 else 0.0
+    frac = (tt - tt[0]) / span if span > 0 else np.zeros(n)  # n == 0: span == 0
+    point_rgb = matplotlib.colormaps[TRAJECTORY_COLORMAP](np.clip(frac, 0, 1))[:, :3]
+    edges = np.column_stack([np.arange(n - 1), np.arange(1, n)]) if n > 1 else np.zeros((0, 2))
+    edge_rgb = 0.5 * (point_rgb[:-1] + point_rgb[1:]) if n > 1 else np.zeros((0, 3))
+
+    with atomic_write(path) as tmp:
+        if n < 2:  # open3d writes no line set without lines: a plain 0/1-vertex PLY
+            _write_ply_by_hand(tmp, pts, point_rgb, None)
+            return
+        import open3d as o3d
+
+        lines = o3d.geometry.LineSet()
+        lines.points = o3d.utility.Vector3dVector(pts)
+        lines.lines = o3d.utility.Vector2iVector(edges.astype(np.int32))
+        lines.colors = o3d.utility.Vector3dVector(edge_rgb)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            ok = o3d.io.write_line_set(str(tmp), lines, write_ascii=False)
+        if not ok:
+            raise VislamError(f"{path}: open3d could not write the trajectory line set")
+
+
+# --------------------------------------------------------------------------------------
+# JSON
+# --------------------------------------------------------------------------------------
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain-Python copy of ``obj``: numpy scalars/arrays -> numbers/lists, NaN/inf -> None."""
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+        if not isinstance(obj, (bool, int, float, str)):
+            return str(obj)
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, int):
+        return obj
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, dict):
+        out = {}
+        for key, value in obj.items():
+            if isinstance(key, np.generic):
+                key = key.item()
+            if not isinstance(key, (str, int, float, bool)) and key is not None:
+                key = str(key)
+            out[key] = _jsonable(value)
+        return out
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if hasattr(obj, "as_dict"):
+        return _jsonable(obj.as_dict())
+    if is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(asdict(obj))
+    raise TypeError(f"cannot write an object of type {type(obj).__name__} as JSON")
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Write ``obj`` as JSON (indent 2, trailing newline). numpy scalars and arrays become
+    plain numbers and lists, paths strings, objects with ``as_dict()`` and dataclasses
+    dicts; NaN and +-inf become ``null`` (so the file is strict JSON)."""
+    text = json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n"
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")

@@ -1,0 +1,139 @@
+"""Figures of a vislam run (PNG, 150 dpi), written through :func:`tools.outputs.atomic_write`.
+
+Only matplotlib's object-oriented API is used (``matplotlib.figure.Figure`` rendered by the
+Agg canvas); pyplot is never imported, so no display or GUI backend is needed, no global
+figure state is kept and importing this module does not change the caller's backend.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Mapping
+
+import numpy as np
+
+from tools.outputs import atomic_write
+
+__all__ = ["plot_trajectories_topdown", "plot_error_over_time"]
+
+DPI = 150
+MAX_LANDMARKS_PLOTTED = 20000
+
+# Fixed looks for the trajectory names a run produces; other names cycle through tab10.
+_STYLES = {
+    "ground truth": dict(color="black", linestyle="--", linewidth=1.2),
+    "estimate": dict(color="tab:blue", linestyle="-", linewidth=1.5),
+    "dead reckoning": dict(color="tab:orange", linestyle="-", linewidth=1.0),
+}
+
+
+def _new_figure(figsize: tuple[float, float]):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path: str | os.PathLike) -> None:
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, dpi=DPI, format="png")
+
+
+def _xy(traj: Any, name: str) -> np.ndarray:
+    arr = np.asarray(traj, dtype=float)
+    if arr.ndim == 3 and arr.shape[1:] == (4, 4):
+        return arr[:, :2, 3]
+    if arr.ndim == 2 and arr.shape[1] in (2, 3):
+        return arr[:, :2]
+    raise ValueError(f"trajectory {name!r} must have shape (N, 4, 4), (N, 3) or (N, 2), got {arr.shape}")
+
+
+def plot_trajectories_topdown(
+    path: str | os.PathLike,
+    trajectories: Mapping[str, Any],
+    landmarks: np.ndarray | None = None,
+    title: str = "",
+) -> None:
+    """Top-down (x-y, equal axes) plot of named trajectories and optionally the landmarks.
+
+    ``trajectories`` maps a legend name (e.g. ``"dead reckoning"``, ``"estimate"``,
+    ``"ground truth"``) to ``(N, 4, 4)`` poses or ``(N, 3)`` positions. Each start is marked
+    with a circle, each end with a cross. ``landmarks`` ``(K, 3)`` are drawn as small grey
+    dots, a fixed random subset of at most 20000 if there are more.
+    """
+    fig = _new_figure((8.0, 8.0))
+    ax = fig.add_subplot(1, 1, 1)
+    if landmarks is not None:
+        lm = np.asarray(landmarks, dtype=float)
+        if lm.ndim != 2 or lm.shape[1] not in (2, 3):
+            raise ValueError(f"landmarks must have shape (K, 3), got {lm.shape}")
+        lm = lm[np.all(np.isfinite(lm[:, :2]), axis=1)]
+        if len(lm) > MAX_LANDMARKS_PLOTTED:
+            keep = np.random.default_rng(0).choice(len(lm), MAX_LANDMARKS_PLOTTED, replace=False)
+            lm = lm[np.sort(keep)]
+        if len(lm):
+            ax.scatter(
+                lm[:, 0], lm[:, 1], s=1.0, c="0.6", alpha=0.5, linewidths=0,
+                label=f"landmarks ({len(lm)})", zorder=1, rasterized=True,
+            )
+    others = iter(f"C{i}" for i in range(2, 1000))
+    start_labelled = False
+    for name, traj in trajectories.items():
+        xy = _xy(traj, name)
+        if len(xy) == 0:
+            continue
+        style = dict(_STYLES.get(name, {}))
+        style.setdefault("color", next(others))
+        style.setdefault("linewidth", 1.2)
+        ax.plot(xy[:, 0], xy[:, 1], label=name, zorder=3, **style)
+        ax.plot(
+            xy[0, 0], xy[0, 1], marker="o", markersize=7, color=style["color"],
+            markerfacecolor="none", linestyle="none", zorder=4,
+            label=None if start_labelled else "start (o) / end (x)",
+        )
+        ax.plot(xy[-1, 0], xy[-1, 1], marker="x", markersize=7, color=style["color"],
+                linestyle="none", zorder=4)
+        start_labelled = True
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(True, linewidth=0.3)
+    if title:
+        ax.set_title(title)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize="small", markerscale=1.0)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_error_over_time(
+    path: str | os.PathLike,
+    time_stamps: Any,
+    errors: Any,
+    title: str,
+    ylabel: str = "error [m]",
+) -> None:
+    """Line plot of ``errors`` (N,) over time since the first stamp (seconds), with the
+    RMSE as a horizontal dashed line."""
+    t = np.asarray(time_stamps, dtype=float)
+    e = np.asarray(errors, dtype=float)
+    if t.ndim != 1 or e.shape != t.shape:
+        raise ValueError(f"time_stamps and errors must have the same shape (N,), got {t.shape} and {e.shape}")
+    fig = _new_figure((9.0, 4.0))
+    ax = fig.add_subplot(1, 1, 1)
+    if len(t):
+        ax.plot(t - t[0], e, color="tab:blue", linewidth=1.0, label="error")
+        finite = e[np.isfinite(e)]
+        if len(finite):
+            rmse = float(np.sqrt(np.mean(finite**2)))
+            ax.axhline(rmse, color="tab:red", linestyle="--", linewidth=1.0, label=f"RMSE {rmse:.3g}")
+        ax.legend(loc="best", fontsize="small")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, linewidth=0.3)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
