@@ -24,6 +24,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 MODES = ("slam", "mapping", "dead-reckoning")
 IMU_FLIP_CHOICES = ("auto", "yes", "no")
 VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
+REPEATED_FRAME_CHOICES = ("cut", "retime", "skip", "use")
 
 
 @dataclass
@@ -46,7 +47,7 @@ class FilterConfig:
     angular_velocity_sigma: Optional[float] = None  # rad/s
     linear_velocity_sigma_floor: float = 0.05  # m/s: model error kept even for clean velocities
     angular_velocity_sigma_floor: float = 0.002  # rad/s
-    gyro_bias_sigma0: float = 0.02  # rad/s: prior standard deviation of the gyro bias
+    gyro_bias_sigma0: float = 0.005  # rad/s: prior standard deviation of the gyro bias
     gyro_bias_random_walk: float = 1e-4  # rad/s/sqrt(s)
     initial_pose_sigma: float = 1e-6  # the world frame is the first pose
 
@@ -59,7 +60,10 @@ class FilterConfig:
     min_disparity: float = 1.0  # px: a landmark is initialized only from an observation with larger disparity
     max_depth: float = 80.0  # m: ... and nearer than this
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
+    ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
+    loo_gate: bool = True  # leave-one-out chi-square test of the observations kept
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    repeated_frames: str = "use"  # cut | retime | skip | use: steps repeating the previous step's pixels (backend.timing)
     max_track_age: int = 0  # steps; older landmarks are marginalized and re-triangulated (0: never)
 
     # --- health checks
@@ -74,6 +78,7 @@ class FilterConfig:
         _choice("mode", self.mode, MODES)
         _choice("imu_flip", self.imu_flip, IMU_FLIP_CHOICES)
         _choice("velocity_index", self.velocity_index, VELOCITY_INDEX_CHOICES)
+        _choice("repeated_frames", self.repeated_frames, REPEATED_FRAME_CHOICES)
         positive = [
             "pixel_sigma", "linear_velocity_sigma_floor", "angular_velocity_sigma_floor",
             "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma", "max_depth",

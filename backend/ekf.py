@@ -258,7 +258,8 @@ class VisualInertialEKF:
         residual = pixels - self.camera.project(p_cam)
         return residual, H_xi, H_m, in_front
 
-    def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+    def _innovation(self, slots: np.ndarray, pixels: np.ndarray):
+        """Residuals r (k,4), P H^T (D,4k), S = H P H^T + R (4k,4k), per-observation NIS (k,), in-front mask."""
         residual, H_xi, H_m, in_front = self._observation_model(slots, pixels)
         k = slots.size
         P = self.P
@@ -267,32 +268,55 @@ class VisualInertialEKF:
         PHt = P[:, :6] @ H_xi.reshape(4 * k, 6).T  # (D,4k)
         P_cols = P[:, cols].transpose(1, 0, 2)  # (k,D,3)
         PHt += (P_cols @ H_m.transpose(0, 2, 1)).transpose(1, 0, 2).reshape(-1, 4 * k)
-        # S = H P H^T + R
         S = H_xi.reshape(4 * k, 6) @ PHt[:6]
         S += (H_m @ PHt[cols]).reshape(4 * k, 4 * k)
         S[np.diag_indices_from(S)] += self._R_pix
-        # per-observation Mahalanobis gate on the 4x4 diagonal blocks
         idx = np.arange(k)
-        blocks = S.reshape(k, 4, k, 4)[idx, :, idx, :]  # (k,4,4)
+        blocks = S.reshape(k, 4, k, 4)[idx, :, idx, :]  # (k,4,4) diagonal blocks
         nis = np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
-        inlier = in_front & (nis <= self._gate)
-        if inlier.any():
+        return residual, PHt, S, nis, in_front
+
+    def _kalman_update(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray) -> None:
+        """dx = P H^T S^-1 r,  P <- P - (L^-1 H P)^T (L^-1 H P) with S = L L^T, over the selected observations."""
+        rows = (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
+        L = self._cholesky(S[np.ix_(rows, rows)])
+        A = solve_triangular(L, PHt[:, rows].T, lower=True, check_finite=False)  # L^-1 H P
+        w = solve_triangular(L, residual[select].ravel(), lower=True, check_finite=False)
+        P = self.P
+        P -= A.T @ A
+        P += P.T
+        P *= 0.5
+        self._apply_correction(A.T @ w)
+
+    def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+        """Gate, select a consistent set (1-point RANSAC), update, then rescue the rest."""
+        residual, PHt, S, nis, in_front = self._innovation(slots, pixels)
+        candidates = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
+        rest = np.zeros_like(candidates)
+        inlier = candidates
+        if self.config.ransac_threshold_px > 0 and candidates.sum() >= 3:
+            inlier = self._one_point_ransac(S, residual, candidates)
+            rest = candidates & ~inlier
+        if self.config.loo_gate and inlier.sum() >= 3:
             inlier = self._posterior_gate(S, residual, inlier)
-            stats.used = int(inlier.sum())
-            stats.gated = int(k - stats.used)
-            stats.nis_sum = float(nis[inlier].sum())
-        self._gated_run[slots[inlier]] = 0
-        self._gated_run[slots[~inlier]] += 1
-        if stats.used:
-            rows = (4 * np.flatnonzero(inlier)[:, None] + np.arange(4)).ravel()
-            L = self._cholesky(S[np.ix_(rows, rows)])
-            A = solve_triangular(L, PHt[:, rows].T, lower=True, check_finite=False)  # L^-1 H P
-            w = solve_triangular(L, residual[inlier].ravel(), lower=True, check_finite=False)
-            dx = A.T @ w
-            P -= A.T @ A
-            P += P.T
-            P *= 0.5
-            self._apply_correction(dx)
+        used = inlier.copy()
+        nis_sum = float(nis[inlier].sum())
+        if inlier.any():
+            self._kalman_update(PHt, S, residual, inlier)
+        if rest.any():
+            # rescue (Civera et al.): re-gate the others against the updated state and covariance
+            rest_idx = np.flatnonzero(rest)
+            r2, PHt2, S2, nis2, front2 = self._innovation(slots[rest_idx], pixels[rest_idx])
+            ok = front2 & (nis2 <= self._gate)
+            if ok.any():
+                self._kalman_update(PHt2, S2, r2, ok)
+                used[rest_idx[ok]] = True
+                nis_sum += float(nis2[ok].sum())
+        stats.used = int(used.sum())
+        stats.gated = int(slots.size - stats.used)
+        stats.nis_sum = nis_sum
+        self._gated_run[slots[used]] = 0
+        self._gated_run[slots[~used]] += 1
         bad = self._gated_run >= self.config.max_consecutive_gated
         if bad.any():
             stats.dropped = int(bad.sum())
@@ -302,6 +326,33 @@ class VisualInertialEKF:
     def _cholesky(S: np.ndarray) -> np.ndarray:
         L, _ = cho_factor(S, lower=True, check_finite=False)
         return np.tril(L)
+
+    def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.
+
+        Hypothesis j: the EKF update with observation j alone, dx_j = P H_j^T S_jj^-1 r_j. It changes
+        every residual by  H dx_j = (S - R)_{:,j} S_jj^-1 r_j,  so all hypotheses cost one product
+        with the S already formed. The hypothesis whose updated residuals leave the most observations
+        within ``ransac_threshold_px`` (4-vector norm) wins; its supporters are the inliers. A moving
+        car ahead, tracked by many features that agree with each other but not with the scene, loses.
+        """
+        idx = np.flatnonzero(candidates)
+        m = idx.size
+        rows = (4 * idx[:, None] + np.arange(4)).ravel()
+        S_c = S[np.ix_(rows, rows)]
+        r_c = residual[idx]
+        blocks = S_c.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
+        a = np.linalg.solve(blocks, r_c[:, :, None])[:, :, 0]  # (m,4): S_jj^-1 r_j
+        HPH = S_c - self._R_pix * np.eye(4 * m)
+        change = np.einsum("pjq,jq->pj", HPH.reshape(4 * m, m, 4), a)  # (4m obs rows, m hypotheses)
+        post = r_c.reshape(4 * m, 1) - change
+        err = np.sqrt((post.reshape(m, 4, m) ** 2).sum(axis=1))  # (m obs, m hypotheses)
+        within = err <= self.config.ransac_threshold_px
+        support = within.sum(axis=0)
+        best = int(np.argmax(support - 1e-6 * np.minimum(err, 1e6).sum(axis=0) / (m * 1e3)))
+        out = np.zeros_like(candidates)
+        out[idx[within[:, best]]] = True
+        return out
 
     def _posterior_gate(self, S: np.ndarray, residual: np.ndarray, inlier: np.ndarray) -> np.ndarray:
         """Leave-one-out test of the prior-gated observations (one pass).
@@ -403,7 +454,8 @@ class VisualInertialEKF:
     def landmark_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (K,), positions (K,3), covariances (K,3,3)) of mapped and active landmarks, by id.
 
-        A landmark re-initialized after its track ended keeps its latest estimate.
+        A landmark estimated more than once (its track was cut and re-initialized) keeps the
+        estimate with the smallest covariance trace.
         """
         ids = self._map_ids + [self._ids]
         pos = self._map_pos + [self._m]
@@ -412,11 +464,12 @@ class VisualInertialEKF:
         ids_all = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
         pos_all = np.concatenate(pos) if pos else np.zeros((0, 3))
         cov_all = np.concatenate(cov) if cov else np.zeros((0, 3, 3))
-        # keep the last entry of each id, sorted by id
-        rev = ids_all[::-1]
-        _, first_in_rev = np.unique(rev, return_index=True)
-        last = ids_all.size - 1 - first_in_rev
-        return ids_all[last], pos_all[last], cov_all[last]
+        trace = np.trace(cov_all, axis1=1, axis2=2)
+        order = np.lexsort((trace, ids_all))  # by id, then most certain first
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = ids_all[order][1:] != ids_all[order][:-1]
+        best = order[first]
+        return ids_all[best], pos_all[best], cov_all[best]
 
     # ------------------------------------------------------------------ health
     def _check_covariance(self) -> None:
