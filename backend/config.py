@@ -61,7 +61,7 @@ class FilterConfig:
     max_depth: float = 80.0  # m: ... and nearer than this
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
-    loo_gate: bool = True  # leave-one-out chi-square test of the observations kept
+    loo_gate: bool = False  # leave-one-out chi-square test of the observations kept
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
     repeated_frames: str = "use"  # cut | retime | skip | use: steps repeating the previous step's pixels (backend.timing)
     max_track_age: int = 0  # steps; older landmarks are marginalized and re-triangulated (0: never)

@@ -43,13 +43,30 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_factor, solve_triangular
+from scipy.linalg import get_lapack_funcs, solve_triangular
 from scipy.stats import chi2
 
 from backend import se3
 from backend.camera import StereoCamera
 from backend.config import FilterConfig
 from backend.errors import FilterError
+
+_potrf = get_lapack_funcs("potrf", dtype=np.float64)
+_trtrs = get_lapack_funcs("trtrs", dtype=np.float64)
+
+
+def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """L^-1 B for lower-triangular L (LAPACK trtrs, no input checks: this is the hot path)."""
+    X, info = _trtrs(L, B, lower=True)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular triangular factor (trtrs info {info})")
+    return X
+
+
+def _rows(select: np.ndarray) -> np.ndarray:
+    """Rows of the stacked 4-vectors of the selected observations."""
+    return (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
+
 
 POSE = slice(0, 6)
 BIAS = slice(6, 9)
@@ -278,54 +295,66 @@ class VisualInertialEKF:
 
     def _kalman_update(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray) -> None:
         """dx = P H^T S^-1 r,  P <- P - (L^-1 H P)^T (L^-1 H P) with S = L L^T, over the selected observations."""
-        rows = (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
+        rows = _rows(select)
         L = self._cholesky(S[np.ix_(rows, rows)])
-        A = solve_triangular(L, PHt[:, rows].T, lower=True, check_finite=False)  # L^-1 H P
-        w = solve_triangular(L, residual[select].ravel(), lower=True, check_finite=False)
+        A = _solve_lower(L, PHt[:, rows].T)  # L^-1 H P
+        w = _solve_lower(L, residual[select].reshape(-1, 1))
         P = self.P
         P -= A.T @ A
         P += P.T
         P *= 0.5
-        self._apply_correction(A.T @ w)
+        self._apply_correction((A.T @ w)[:, 0])
 
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
-        """Gate, select a consistent set (1-point RANSAC), update, then rescue the rest."""
+        """Gate, select a consistent set (1-point RANSAC), rescue the rest, then one joint update."""
         residual, PHt, S, nis, in_front = self._innovation(slots, pixels)
-        candidates = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
-        rest = np.zeros_like(candidates)
-        inlier = candidates
-        if self.config.ransac_threshold_px > 0 and candidates.sum() >= 3:
-            inlier = self._one_point_ransac(S, residual, candidates)
-            rest = candidates & ~inlier
-        if self.config.loo_gate and inlier.sum() >= 3:
-            inlier = self._posterior_gate(S, residual, inlier)
-        used = inlier.copy()
-        nis_sum = float(nis[inlier].sum())
-        if inlier.any():
-            self._kalman_update(PHt, S, residual, inlier)
-        if rest.any():
-            # rescue (Civera et al.): re-gate the others against the updated state and covariance
-            rest_idx = np.flatnonzero(rest)
-            r2, PHt2, S2, nis2, front2 = self._innovation(slots[rest_idx], pixels[rest_idx])
-            ok = front2 & (nis2 <= self._gate)
-            if ok.any():
-                self._kalman_update(PHt2, S2, r2, ok)
-                used[rest_idx[ok]] = True
-                nis_sum += float(nis2[ok].sum())
-        stats.used = int(used.sum())
+        use = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
+        if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
+            inlier = self._one_point_ransac(S, residual, use)
+            rest = use & ~inlier
+            if rest.any() and inlier.any():
+                use = inlier
+                use[np.flatnonzero(rest)[self._rescue(S, residual, inlier, rest)]] = True
+            else:
+                use = inlier
+        if self.config.loo_gate and use.sum() >= 3:
+            use = self._posterior_gate(S, residual, use)
+        stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
-        stats.nis_sum = nis_sum
-        self._gated_run[slots[used]] = 0
-        self._gated_run[slots[~used]] += 1
+        stats.nis_sum = float(nis[use].sum())
+        if stats.used:
+            self._kalman_update(PHt, S, residual, use)
+        self._gated_run[slots[use]] = 0
+        self._gated_run[slots[~use]] += 1
         bad = self._gated_run >= self.config.max_consecutive_gated
         if bad.any():
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
+    def _rescue(self, S: np.ndarray, residual: np.ndarray, inlier: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """Chi-square test of the ``rest`` after the update with the ``inlier`` (Civera et al.'s rescue).
+
+        The update with the inliers, to first order, leaves the others the residual and covariance
+        r_r - S_ri S_ii^-1 r_i  and  S_rr - S_ri S_ii^-1 S_ir  (S_ri = H_r P H_i^T): no second
+        linearization, and one joint update afterwards equals the two sequential ones.
+        """
+        ri, rr = _rows(inlier), _rows(rest)
+        L = self._cholesky(S[np.ix_(ri, ri)])
+        X = _solve_lower(L, S[np.ix_(ri, rr)])
+        y = _solve_lower(L, residual[inlier].reshape(-1, 1))
+        r_post = (residual[rest].reshape(-1, 1) - X.T @ y).reshape(-1, 4)
+        S_post = S[np.ix_(rr, rr)] - X.T @ X
+        m = r_post.shape[0]
+        blocks = S_post.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
+        nis = np.einsum("ki,ki->k", r_post, np.linalg.solve(blocks, r_post[:, :, None])[:, :, 0])
+        return nis <= self._gate
+
     @staticmethod
     def _cholesky(S: np.ndarray) -> np.ndarray:
-        L, _ = cho_factor(S, lower=True, check_finite=False)
-        return np.tril(L)
+        L, info = _potrf(S, lower=True, clean=True)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {info})")
+        return L
 
     def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.

@@ -1,0 +1,126 @@
+"""Everything `vislam run` writes into its output directory, and the summary it prints.
+
+| file | content |
+|---|---|
+| trajectory.txt | TUM `t tx ty tz qx qy qz qw`, world_T_imu, the data's own stamps (evo reads it) |
+| dead_reckoning.txt | the same for IMU-only dead reckoning |
+| map.npz | `ids`, `positions` (K,3), `covariances` (K,3,3) |
+| map.ply | landmarks coloured by uncertainty (viridis on log10 of the largest sigma: dark = certain, yellow = uncertain) |
+| trajectory.ply | the path as a line set coloured by time |
+| trajectory.png | top-down plot: dead reckoning, estimate, ground truth, landmarks |
+| summary.json | counts, timings, decisions, configuration and (with ground truth) errors |
+| config.toml | the configuration used, loadable with --config |
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from backend.config import to_toml
+from backend.metrics import trajectory_errors
+from backend.pipeline import RunResult
+from tools import outputs, plots
+
+
+def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
+    """ATE (SE(3)-aligned) and RPE of the estimate and of dead reckoning against ground truth."""
+    est = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt_poses)
+    dr = trajectory_errors(result.time_stamps, result.dead_reckoning, gt_t, gt_poses)
+    return {"estimate": est.as_dict(), "dead_reckoning": dr.as_dict()}
+
+
+def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) -> dict:
+    stats = result.stats
+    summary = {
+        "input": source,
+        "mode": result.config.mode,
+        "steps": stats.steps,
+        "observations": {
+            "valid": stats.observations,
+            "used": stats.observations_used,
+            "gated": stats.observations_gated,
+            "gated_share": stats.gated_share,
+            "dropped_by_loader": stats.observations_dropped_input,
+            "repeated_frames": stats.repeated_frames,
+        },
+        "landmarks": {
+            "initialized": stats.landmarks_initialized,
+            "dropped_as_outliers": stats.landmarks_dropped,
+            "mapped": stats.landmarks_mapped,
+            "active_mean": stats.active_landmarks_mean,
+            "active_max": stats.active_landmarks_max,
+        },
+        "mean_nis_per_observation": stats.mean_nis,
+        "gyro_bias_final": result.gyro_bias,
+        "timing": {
+            "wall_seconds": stats.wall_seconds + stats.setup_seconds,
+            "filter_seconds": stats.wall_seconds,
+            "setup_seconds": stats.setup_seconds,
+            "predict_seconds": stats.seconds_predict,
+            "update_seconds": stats.seconds_update,
+            "sequence_seconds": stats.sequence_seconds,
+            "real_time_factor": stats.real_time_factor,
+        },
+        "conventions": result.conventions.as_dict(),
+        "imu_noise": result.imu_noise.as_dict(),
+        "health": stats.health_messages,
+        "config": result.config.as_dict(),
+    }
+    if errors is not None:
+        summary["errors"] = errors
+    return summary
+
+
+def write_run_outputs(
+    result: RunResult,
+    out_dir: Path,
+    source: str,
+    gt: Optional[tuple[np.ndarray, np.ndarray]] = None,
+) -> dict:
+    """Write every output file (each atomically) and return the summary dict."""
+    errors = evaluate(result, *gt) if gt is not None else None
+    outputs.write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
+                      header="world_T_imu estimated by vislam")
+    outputs.write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
+                      header="world_T_imu by IMU dead reckoning")
+    outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
+    outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances)
+    outputs.write_trajectory_ply(out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps)
+    curves = {"dead reckoning": result.dead_reckoning, "estimate": result.world_T_imu}
+    if gt is not None:
+        curves["ground truth"] = gt[1]
+    plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, landmarks=result.map_positions,
+                                    title=f"{Path(source).name}: {result.config.mode}")
+    summary = summary_dict(result, source, errors)
+    outputs.write_json(out_dir / "summary.json", summary)
+    with outputs.atomic_write(out_dir / "config.toml") as tmp:
+        tmp.write_text(to_toml(result.config))
+    return summary
+
+
+def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
+    """A few lines for the terminal."""
+    t = summary["timing"]
+    obs = summary["observations"]
+    lm = summary["landmarks"]
+    lines = [
+        f"steps {summary['steps']}, observations used {obs['used']} (gated {100 * obs['gated_share']:.1f} %), "
+        f"landmarks mapped {lm['mapped']} (active mean {lm['active_mean']:.1f}, max {lm['active_max']})",
+        f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
+        f"({t['real_time_factor']:.0f}x real time); mean NIS per observation {summary['mean_nis_per_observation']:.2f}",
+    ]
+    if "errors" in summary:
+        e, d = summary["errors"]["estimate"], summary["errors"]["dead_reckoning"]
+        lines.append(
+            f"ATE RMSE (SE(3)-aligned): estimate {e['ate_rmse']:.2f} m, dead reckoning {d['ate_rmse']:.2f} m "
+            f"over {e['path_length']:.0f} m; RPE per {e['rpe_delta']:g} {e['rpe_unit']}: "
+            f"{e['rpe_trans_rmse']:.2f} m / {e['rpe_rot_rmse_deg']:.2f} deg"
+        )
+    for message in summary["health"]:
+        lines.append(f"warning: {message}")
+    if out_dir is not None:
+        lines.append(f"outputs in {out_dir}/")
+    return "\n".join(lines)
