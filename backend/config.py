@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from backend.errors import ConfigError
+from backend.landmarks import PARAMETRIZATIONS
 
 try:  # Python >= 3.11
     import tomllib
@@ -57,8 +58,9 @@ class FilterConfig:
     image_height: Optional[float] = None  # px; None: 2.5 cy
 
     # --- landmarks
-    min_disparity: float = 1.0  # px: a landmark is initialized only from an observation with larger disparity
-    max_depth: float = 80.0  # m: ... and nearer than this
+    landmark_parametrization: str = "inverse-depth"  # inverse-depth (anchored) | xyz (backend.landmarks)
+    min_disparity: float = 0.0  # px: a landmark is initialized only from an observation with larger disparity
+    max_depth: Optional[float] = None  # m: ... and nearer than this (None: no limit)
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     loo_gate: bool = False  # leave-one-out chi-square test of the observations kept
@@ -78,17 +80,18 @@ class FilterConfig:
         _choice("mode", self.mode, MODES)
         _choice("imu_flip", self.imu_flip, IMU_FLIP_CHOICES)
         _choice("velocity_index", self.velocity_index, VELOCITY_INDEX_CHOICES)
+        _choice("landmark_parametrization", self.landmark_parametrization, PARAMETRIZATIONS)
         _choice("repeated_frames", self.repeated_frames, REPEATED_FRAME_CHOICES)
         positive = [
             "pixel_sigma", "linear_velocity_sigma_floor", "angular_velocity_sigma_floor",
-            "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma", "max_depth",
+            "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma",
             "nis_warn_factor", "max_state_mib",
         ]
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"config key '{name}': must be a finite number > 0, got {value!r}")
-        for name in ("linear_velocity_sigma", "angular_velocity_sigma", "image_width", "image_height"):
+        for name in ("linear_velocity_sigma", "angular_velocity_sigma", "image_width", "image_height", "max_depth"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"config key '{name}': must be > 0 or unset, got {value!r}")

@@ -46,8 +46,8 @@ import numpy as np
 from scipy.linalg import get_lapack_funcs, solve_triangular
 from scipy.stats import chi2
 
-from backend import se3
-from backend.camera import StereoCamera
+from backend import landmarks, se3
+from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
 
@@ -148,11 +148,7 @@ class VisualInertialEKF:
         self.camera = camera
         self.config = config.validate()
         self.imu_T_cam = np.array(imu_T_cam, dtype=float)
-        cam_T_imu = se3.inverse(self.imu_T_cam)
-        self._R_ci = cam_T_imu[:3, :3].copy()
-        self._t_ci = cam_T_imu[:3, 3].copy()
-        self._R_ic = self.imu_T_cam[:3, :3].copy()
-        self._t_ic = self.imu_T_cam[:3, 3].copy()
+        self._cam_T_imu = se3.inverse(self.imu_T_cam)
         self.imu_noise = imu_noise
         self._estimate_pose = config.mode == "slam"
         self._use_vision = config.mode != "dead-reckoning"
@@ -171,7 +167,9 @@ class VisualInertialEKF:
 
         # active landmarks, in state order
         self._ids = np.zeros(0, dtype=np.int64)
-        self._m = np.zeros((0, 3))
+        self._kind = config.landmark_parametrization
+        self._theta = np.zeros((0, 3))  # landmark parameters (backend.landmarks)
+        self._anchors = np.zeros((0, 4, 4))
         self._gated_run = np.zeros(0, dtype=np.int64)
         self._born = np.zeros(0, dtype=np.int64)  # step of (re-)initialization
         self._slot: dict[int, int] = {}
@@ -259,21 +257,26 @@ class VisualInertialEKF:
         return stats
 
     def _observation_model(self, slots: np.ndarray, pixels: np.ndarray):
-        """Innovations (k,4), H_xi (k,4,6), H_m (k,4,3) and a mask of points in front of the camera."""
-        R_wi = self.mu[:3, :3]
-        p_wi = self.mu[:3, 3]
-        p_imu = (self._m[slots] - p_wi) @ R_wi
-        p_cam = p_imu @ self._R_ci.T + self._t_ci
-        in_front = p_cam[:, 2] > 0.1
-        p_cam[~in_front, 2] = 1.0  # placeholder, those rows are gated out
-        J_cam = self.camera.projection_jacobian(p_cam) @ self._R_ci  # (k,4,3) dz/dp_imu
-        H_m = J_cam @ R_wi.T
+        """Innovations (k,4), H_xi (k,4,6), H_theta (k,4,3) and a mask of points in front of the camera.
+
+        Homogeneous form of backend.landmarks: q = cam_T_imu mu^-1 A (e + B theta), z = Ks pi(q).
+        """
+        w_world = np.einsum("kij,kj->ki", self._anchors[slots], landmarks.local_point(self._kind, self._theta[slots]))
+        mu_inv = se3.inverse(self.mu)
+        s_imu = w_world @ mu_inv.T  # (k,4) homogeneous point in the IMU frame
+        q = s_imu @ self._cam_T_imu.T
+        in_front = q[:, 2] > 0.1 * np.abs(q[:, 3])
+        q[~in_front, 2] = np.abs(q[~in_front, 3]) + 1.0  # placeholder, those rows are gated out
+        Ks = self.camera.Ks
+        dz_dq = Ks @ dpi_dq(q)  # (k,4,4)
+        dz_dimu = dz_dq @ self._cam_T_imu  # (k,4,4): d z / d s_imu
+        H_theta = dz_dimu @ (mu_inv @ self._anchors[slots] @ landmarks.basis(self._kind))
         if self._estimate_pose:
-            H_xi = np.concatenate([-J_cam, J_cam @ se3.hat3(p_imu)], axis=2)
+            H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
             H_xi = np.zeros((slots.size, 4, 6))
-        residual = pixels - self.camera.project(p_cam)
-        return residual, H_xi, H_m, in_front
+        residual = pixels - pi(q) @ Ks.T
+        return residual, H_xi, H_theta, in_front
 
     def _innovation(self, slots: np.ndarray, pixels: np.ndarray):
         """Residuals r (k,4), P H^T (D,4k), S = H P H^T + R (4k,4k), per-observation NIS (k,), in-front mask."""
@@ -410,27 +413,23 @@ class VisualInertialEKF:
         if self._estimate_pose:
             self.mu = self.mu @ se3.exp_se3(dx[POSE])
             self.gyro_bias = self.gyro_bias + dx[BIAS]
-        self._m += dx[CORE:].reshape(-1, 3)
+        self._theta += dx[CORE:].reshape(-1, 3)
 
     # ------------------------------------------------------------------ landmarks
     def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
-        """Stereo triangulation and state augmentation with the pose cross covariance."""
+        """Stereo triangulation and state augmentation with the pose cross covariance:
+        P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x  (backend.landmarks.initialize)."""
         cfg = self.config
         disparity = pixels[:, 0] - pixels[:, 2]
-        ok = disparity >= max(cfg.min_disparity, 1e-9)
-        depth = np.full(ids.size, np.inf)
-        depth[ok] = self.camera.fx * self.camera.baseline / disparity[ok]
-        ok &= depth <= cfg.max_depth
+        ok = disparity > cfg.min_disparity
+        if cfg.max_depth is not None:
+            ok &= self.camera.fx * self.camera.baseline / np.where(ok, disparity, 1.0) <= cfg.max_depth
         stats.deferred = int(ids.size - ok.sum())
         if not ok.any():
             return
         ids, pixels = ids[ok], pixels[ok]
         n = ids.size
-        R_wi = self.mu[:3, :3]
-        p_cam = self.camera.triangulate(pixels)
-        p_imu = p_cam @ self._R_ic.T + self._t_ic
-        m = p_imu @ R_wi.T + self.mu[:3, 3]
-        J_z = (R_wi @ self._R_ic) @ self.camera.triangulation_jacobian(pixels)  # (n,3,4)
+        theta, anchors, J_z, J_xi = landmarks.initialize(self._kind, self.camera, pixels, self.mu, self.imu_T_cam)
         new_cov = self._R_pix * (J_z @ J_z.transpose(0, 2, 1))  # (n,3,3) pixel part
         D = self.P.shape[0]
         P_new = np.zeros((D + 3 * n, D + 3 * n))
@@ -439,9 +438,7 @@ class VisualInertialEKF:
         for i in range(n):  # block diagonal pixel part
             block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = new_cov[i]
         if self._estimate_pose:
-            J_xi = np.concatenate(
-                [np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2
-            ).reshape(3 * n, 6)
+            J_xi = J_xi.reshape(3 * n, 6)
             cross = J_xi @ self.P[POSE, :]  # (3n, D)
             block += cross[:, POSE] @ J_xi.T
             P_new[D:, :D] = cross
@@ -449,25 +446,36 @@ class VisualInertialEKF:
         P_new[D:, D:] = block
         self.P = P_new
         self._ids = np.concatenate([self._ids, ids])
-        self._m = np.concatenate([self._m, m])
+        self._theta = np.concatenate([self._theta, theta])
+        self._anchors = np.concatenate([self._anchors, anchors])
         self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
         self._born = np.concatenate([self._born, np.full(n, self.step_index, dtype=np.int64)])
         self._reindex()
         stats.initialized = n
 
+    def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
+        diag = CORE + 3 * slots[:, None] + np.arange(3)
+        return self.P[diag[:, :, None], diag[:, None, :]]
+
+    def _to_map(self, slots: np.ndarray) -> None:
+        """Append the world-frame estimates of ``slots`` to the map (points at infinity are left out)."""
+        pos, cov, finite = landmarks.to_world(
+            self._kind, self._theta[slots], self._anchors[slots], self._landmark_covariances(slots)
+        )
+        self._map_ids.append(self._ids[slots][finite])
+        self._map_pos.append(pos[finite])
+        self._map_cov.append(cov[finite])
+
     def _remove(self, mask: np.ndarray, to_map: bool) -> None:
         """Marginalize the landmarks in ``mask`` (drop their rows and columns)."""
-        gone = np.flatnonzero(mask)
         if to_map:
-            diag = CORE + 3 * gone[:, None] + np.arange(3)
-            self._map_ids.append(self._ids[gone].copy())
-            self._map_pos.append(self._m[gone].copy())
-            self._map_cov.append(self.P[diag[:, :, None], diag[:, None, :]].copy())
+            self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
         keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
         self.P = self.P[np.ix_(keep, keep)]
         self._ids = self._ids[keep_lm]
-        self._m = self._m[keep_lm]
+        self._theta = self._theta[keep_lm]
+        self._anchors = self._anchors[keep_lm]
         self._gated_run = self._gated_run[keep_lm]
         self._born = self._born[keep_lm]
         self._reindex()
@@ -486,10 +494,13 @@ class VisualInertialEKF:
         A landmark estimated more than once (its track was cut and re-initialized) keeps the
         estimate with the smallest covariance trace.
         """
-        ids = self._map_ids + [self._ids]
-        pos = self._map_pos + [self._m]
-        diag = CORE + 3 * np.arange(self._ids.size)[:, None] + np.arange(3)
-        cov = self._map_cov + [self.P[diag[:, :, None], diag[:, None, :]]]
+        ids, pos, cov = list(self._map_ids), list(self._map_pos), list(self._map_cov)
+        if self._ids.size:
+            slots = np.arange(self._ids.size)
+            p, c, finite = landmarks.to_world(self._kind, self._theta, self._anchors, self._landmark_covariances(slots))
+            ids.append(self._ids[finite])
+            pos.append(p[finite])
+            cov.append(c[finite])
         ids_all = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
         pos_all = np.concatenate(pos) if pos else np.zeros((0, 3))
         cov_all = np.concatenate(cov) if cov else np.zeros((0, 3, 3))
