@@ -32,36 +32,54 @@ def flipped_extrinsic(imu_T_cam: np.ndarray) -> np.ndarray:
     return IMU_FLIP @ imu_T_cam
 
 
+@dataclass
+class MatchedPairs:
+    """Features seen at step k and at k+horizon: the data of the reprojection test (variant-free)."""
+
+    step: np.ndarray  # (P,) k
+    p_cam: np.ndarray  # (P,3) triangulated at k
+    z_later: np.ndarray  # (P,2) left pixel at k+horizon
+    horizon: int
+
+
+def matched_pairs(seq: Sequence, horizon: int = 3, min_disparity: float = 1.0) -> MatchedPairs:
+    """Stereo points triangulated at k with their left pixels at k+horizon (same id)."""
+    camera = StereoCamera(seq.K, seq.baseline)
+    steps, z_a, z_b = [], [], []
+    for k in range(seq.num_steps - horizon):
+        ids_a, px_a = seq.observations(k)
+        ids_b, px_b = seq.observations(k + horizon)
+        _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
+        keep = (px_a[ia, 0] - px_a[ia, 2]) >= min_disparity
+        if keep.any():
+            steps.append(np.full(int(keep.sum()), k))
+            z_a.append(px_a[ia][keep])
+            z_b.append(px_b[ib][keep, :2])
+    if not steps:
+        return MatchedPairs(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2)), horizon)
+    z_a = np.concatenate(z_a)
+    return MatchedPairs(np.concatenate(steps), camera.triangulate(z_a), np.concatenate(z_b), horizon)
+
+
 def reprojection_error(
-    seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str, horizon: int = 3, min_disparity: float = 1.0
+    seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str, horizon: int = 3,
+    min_disparity: float = 1.0, pairs: MatchedPairs | None = None,
 ) -> float:
-    """Median left-image error (px) of points triangulated at k and reprojected at k+horizon."""
+    """Median left-image error (px) of points triangulated at k and reprojected at k+horizon,
+    carried by dead reckoning: p_b = cam_T_imu T_b^-1 T_a imu_T_cam p_a."""
+    pairs = pairs if pairs is not None else matched_pairs(seq, horizon, min_disparity)
+    if pairs.step.size == 0:
+        return float("nan")
     camera = StereoCamera(seq.K, seq.baseline)
     poses = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
-    cam_T_imu = se3.inverse(imu_T_cam)
-    errors = []
-    for k in range(seq.num_steps - horizon):
-        ids_a, z_a = seq.observations(k)
-        ids_b, z_b = seq.observations(k + horizon)
-        common, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
-        if common.size == 0:
-            continue
-        z_a, z_b = z_a[ia], z_b[ib]
-        keep = (z_a[:, 0] - z_a[:, 2]) >= min_disparity
-        if not keep.any():
-            continue
-        p_cam_a = camera.triangulate(z_a[keep])
-        # cam_b_T_cam_a = cam_T_imu (T_b^-1 T_a) imu_T_cam
-        b_T_a = cam_T_imu @ se3.inverse(poses[k + horizon]) @ poses[k] @ imu_T_cam
-        p_cam_b = p_cam_a @ b_T_a[:3, :3].T + b_T_a[:3, 3]
-        front = p_cam_b[:, 2] > 0.1
-        if not front.any():
-            continue
-        z_pred = camera.project(p_cam_b[front])
-        errors.append(np.linalg.norm(z_pred[:, :2] - z_b[keep][front][:, :2], axis=1))
-    if not errors:
+    b_T_a = se3.inverse(imu_T_cam) @ se3.inverse(poses[pairs.horizon :]) @ poses[: -pairs.horizon] @ imu_T_cam
+    T = b_T_a[pairs.step]
+    p_b = np.einsum("pij,pj->pi", T[:, :3, :3], pairs.p_cam) + T[:, :3, 3]
+    front = p_b[:, 2] > 0.1
+    if not front.any():
         return float("nan")
-    return float(np.median(np.concatenate(errors)))
+    z_pred = camera.project(p_b[front])
+    return float(np.median(np.linalg.norm(z_pred[:, :2] - pairs.z_later[front], axis=1)))
 
 
 @dataclass
@@ -110,9 +128,10 @@ def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: st
     indices = ["this", "next"] if velocity_index == "auto" else [velocity_index]
     errors: dict[str, float] = {}
     if len(flips) * len(indices) > 1:
+        pairs = matched_pairs(seq, horizon)
         for flip, index in itertools.product(flips, indices):
             extrinsic = flipped_extrinsic(seq.imu_T_cam) if flip else seq.imu_T_cam
-            errors[_key(flip, index)] = reprojection_error(seq, extrinsic, index, horizon)
+            errors[_key(flip, index)] = reprojection_error(seq, extrinsic, index, horizon, pairs=pairs)
         finite = {k: v for k, v in errors.items() if np.isfinite(v)}
         best = min(finite, key=finite.get) if finite else _key(flips[0], indices[0])
     else:

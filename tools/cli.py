@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +69,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         bar = tqdm(total=seq.num_steps, unit="step", file=sys.stderr, desc="filter")
         progress = lambda k: bar.update(1)  # noqa: E731
     try:
-        result = run_sequence(seq, config, progress=progress, decisions=decisions)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
+            result = run_sequence(seq, config, progress=progress, decisions=decisions)
     finally:
         if bar is not None:
             bar.close()

@@ -1,0 +1,219 @@
+"""Synthetic feature scenes with ground truth: configuration, assembly and writing.
+
+``make_scene(SceneConfig(...))`` is a pure function of the configuration: the trajectory, the
+landmarks, the pixel noise, the track cuts, the outliers and the IMU noise each come from their
+own random stream of ``seed``, so e.g. changing the IMU noise leaves the map and the pixels as
+they are.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from backend.errors import ConfigError
+from backend.sequence import Sequence, save_sequence, validate_sequence
+from synth._random import generator
+from synth.imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
+from synth.landmarks import LANDMARKS
+from synth.observe import Calibration, kitti_calibration, observe
+from synth.trajectories import TRAJECTORIES
+
+__all__ = ["SceneConfig", "Scene", "make_scene", "write_scene", "write_tum_text"]
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Everything a synthetic scene depends on (same config -> identical arrays)."""
+
+    scenario: str = "street"  # "street" | "aerial"
+    steps: int = 500
+    dt: float = 0.1  # s
+    seed: int = 0
+    # IMU: white noise per axis (a number or 3 values), gyro bias (constant unless gyro_bias_walk > 0)
+    linear_sigma: float | tuple = DEFAULT_LINEAR_SIGMA  # m/s
+    angular_sigma: float | tuple = DEFAULT_ANGULAR_SIGMA  # rad/s
+    gyro_bias: tuple = DEFAULT_GYRO_BIAS  # rad/s at step 0
+    gyro_bias_walk: float | tuple = 0.0  # rad/s per sqrt(s)
+    velocity_index: str = "this"  # "this" | "next"
+    # camera
+    pixel_sigma: float = 0.5  # px, each of uL vL uR vR
+    outlier_share: float = 0.0
+    mean_track_length: float | None = 15.0  # steps (geometric); None: whole visible runs
+    min_depth: float = 2.0  # m
+    max_depth: float = 60.0  # m
+    landmark_density: float = 1.0  # multiplies the scenario's landmark density
+    calibration: Calibration = field(default_factory=kitti_calibration, compare=False)
+
+    def __post_init__(self) -> None:
+        def bad(key, what):
+            return ConfigError(f"synthetic scene: {key} {what}")
+
+        if self.scenario not in TRAJECTORIES:
+            raise bad("scenario", f"must be one of {sorted(TRAJECTORIES)}, got {self.scenario!r}")
+        if int(self.steps) != self.steps or self.steps < 2:
+            raise bad("steps", f"must be an integer >= 2, got {self.steps!r}")
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise bad("dt", f"must be > 0 seconds, got {self.dt!r}")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise bad("seed", f"must be a non-negative integer, got {self.seed!r}")
+        if self.velocity_index not in ("this", "next"):
+            raise bad("velocity_index", f"must be 'this' or 'next', got {self.velocity_index!r}")
+        for key in ("linear_sigma", "angular_sigma", "gyro_bias_walk"):
+            a = np.asarray(getattr(self, key), dtype=float)
+            if a.shape not in ((), (3,)) or not (np.all(np.isfinite(a)) and np.all(a >= 0)):
+                raise bad(key, f"must be >= 0 (a number or 3 values), got {getattr(self, key)!r}")
+        b = np.asarray(self.gyro_bias, dtype=float)
+        if b.shape not in ((), (3,)) or not np.all(np.isfinite(b)):
+            raise bad("gyro_bias", f"must be finite (a number or 3 values), got {self.gyro_bias!r}")
+        if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma >= 0):
+            raise bad("pixel_sigma", f"must be >= 0 px, got {self.pixel_sigma!r}")
+        if not 0.0 <= self.outlier_share <= 1.0:
+            raise bad("outlier_share", f"must be in [0, 1], got {self.outlier_share!r}")
+        if self.mean_track_length is not None and not self.mean_track_length >= 1:
+            raise bad("mean_track_length", f"must be >= 1 step (or None), got {self.mean_track_length!r}")
+        if not 0 < self.min_depth < self.max_depth:
+            raise bad("min_depth/max_depth", f"need 0 < min_depth < max_depth, got {self.min_depth}, {self.max_depth}")
+        if not (np.isfinite(self.landmark_density) and self.landmark_density >= 0):
+            raise bad("landmark_density", f"must be >= 0, got {self.landmark_density!r}")
+
+    @property
+    def source(self) -> str:
+        return f"synthetic:{self.scenario}:seed{self.seed}"
+
+
+@dataclass(eq=False)
+class Scene:
+    """A synthetic sequence and its ground truth (landmarks by track id)."""
+
+    config: SceneConfig
+    sequence: Sequence  # layout "2022", noisy velocities, noisy pixels
+    world_T_imu_true: np.ndarray  # (N,4,4)
+    twists_true: np.ndarray  # (N,6) [v, w]; row k drives step k -> k+1 (last row copies N-2)
+    landmark_ids: np.ndarray  # (K,) int64 = arange(K), every track id of the sequence
+    landmark_positions: np.ndarray  # (K,3) true world position of each id
+    landmark_point_index: np.ndarray  # (K,) int64 id -> row of ``points``
+    points: np.ndarray  # (P,3) every scene point (one point may carry several ids)
+    gyro_bias_true: np.ndarray  # (N,3) rad/s, bias contained in each angular velocity sample
+    outlier: np.ndarray  # (L,) bool, per observation of ``sequence`` (CSR order)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.config.calibration.image_size
+
+
+def make_scene(config: SceneConfig | None = None) -> Scene:
+    """Build the scene described by ``config`` (default: the 500-step street, seed 0)."""
+    cfg = SceneConfig() if config is None else config
+    seed = int(cfg.seed)
+    traj = TRAJECTORIES[cfg.scenario](int(cfg.steps), cfg.dt, generator(seed, "trajectory"))
+    points = LANDMARKS[cfg.scenario](traj.world_T_imu, generator(seed, "landmarks"), density=cfg.landmark_density)
+    obs = observe(
+        traj.world_T_imu,
+        points,
+        cfg.calibration,
+        pixel_sigma=cfg.pixel_sigma,
+        outlier_share=cfg.outlier_share,
+        mean_track_length=cfg.mean_track_length,
+        min_depth=cfg.min_depth,
+        max_depth=cfg.max_depth,
+        seed=seed,
+    )
+    imu = measure_velocities(
+        traj.twists,
+        traj.time_stamps,
+        generator(seed, "imu"),
+        linear_sigma=cfg.linear_sigma,
+        angular_sigma=cfg.angular_sigma,
+        gyro_bias=cfg.gyro_bias,
+        gyro_bias_walk=cfg.gyro_bias_walk,
+        velocity_index=cfg.velocity_index,
+    )
+    calib = cfg.calibration
+    num_tracks = obs.point_index.shape[0]
+    sequence = Sequence(
+        time_stamps=traj.time_stamps.copy(),
+        linear_velocity=np.ascontiguousarray(imu.linear_velocity),
+        angular_velocity=np.ascontiguousarray(imu.angular_velocity),
+        K=np.array(calib.K),
+        baseline=float(calib.baseline),
+        imu_T_cam=np.array(calib.imu_T_cam),
+        obs_ptr=obs.obs_ptr,
+        obs_ids=obs.obs_ids,
+        obs_pixels=obs.obs_pixels,
+        num_features=num_tracks,
+        source=cfg.source,
+        layout="2022",
+        dropped={"nonpositive_disparity": 0, "outside_image": 0},
+    )
+    validate_sequence(sequence)
+    return Scene(
+        config=cfg,
+        sequence=sequence,
+        world_T_imu_true=traj.world_T_imu,
+        twists_true=traj.twists,
+        landmark_ids=np.arange(num_tracks, dtype=np.int64),
+        landmark_positions=points[obs.point_index],
+        landmark_point_index=obs.point_index,
+        points=points,
+        gyro_bias_true=imu.gyro_bias,
+        outlier=obs.outlier,
+    )
+
+
+def _replace_text(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary file next to ``path``, then move it onto ``path``."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_tum_text(path, time_stamps: np.ndarray, world_T_imu: np.ndarray, header: str = "") -> None:
+    """TUM trajectory ``t tx ty tz qx qy qz qw`` (quaternion scalar last, qw >= 0), written atomically."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(world_T_imu, dtype=float)
+    quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+    quat[quat[:, 3] < 0] *= -1.0
+    lines = [f"# {line}" for line in header.splitlines()]
+    lines += [
+        f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+        for t, p, q in zip(np.asarray(time_stamps, dtype=float), poses[:, :3, 3], quat)
+    ]
+    _replace_text(Path(path), "\n".join(lines) + "\n")
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_scene(scene: Scene, out_dir) -> Path:
+    """Write ``data.npz`` (course 2022 layout), ``gt_tum.txt`` (world_T_imu) and ``landmarks.npz``
+    (``ids``, ``positions``) into ``out_dir`` (created if missing); returns the directory."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_sequence(scene.sequence, out / "data.npz")
+    write_tum_text(
+        out / "gt_tum.txt",
+        scene.sequence.time_stamps,
+        scene.world_T_imu_true,
+        header=f"{scene.config.source} ground truth world_T_imu: t tx ty tz qx qy qz qw",
+    )
+    _save_npz(out / "landmarks.npz", ids=scene.landmark_ids, positions=scene.landmark_positions)
+    return out

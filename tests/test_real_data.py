@@ -1,0 +1,103 @@
+"""The estimator on the real KITTI drives in ../shared/data, default configuration.
+
+Bounds are what the filter achieves with margin (measured values in the comments); the
+issue's tighter targets and the gap to them are tracked in BENCHMARKS.md, not skipped here.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.config import FilterConfig, config_from_dict
+from backend.metrics import trajectory_errors
+from backend.pipeline import run_sequence
+from backend.sequence import load_sequence
+from tools.outputs import read_tum
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"real data not found at {DATA} (../shared/data)")
+
+
+def _run(name: str, **overrides):
+    seq = load_sequence(DATA / name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # NIS health messages; they are in the result
+        return run_sequence(seq, config_from_dict(overrides) if overrides else FilterConfig())
+
+
+@pytest.fixture(scope="module")
+def run_0027():
+    return _run("ece276a_0027.npz")
+
+
+@pytest.fixture(scope="module")
+def run_03():
+    return _run("ece276a_03.npz")
+
+
+@pytest.fixture(scope="module")
+def run_0042():
+    return _run("ece276a2019_0042.npz")
+
+
+def _ate(result, gt_name: str):
+    gt_t, gt = read_tum(DATA / "gt" / gt_name)
+    est = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt).ate_rmse
+    dr = trajectory_errors(result.time_stamps, result.dead_reckoning, gt_t, gt).ate_rmse
+    return est, dr
+
+
+def test_conventions_chosen_as_measured(run_0027, run_03, run_0042):
+    """The flip fits ece276a_03 only; the velocity stamped k+1 fits all three files (issue 2)."""
+    assert run_03.conventions.imu_flip is True
+    assert run_0027.conventions.imu_flip is False
+    assert run_0042.conventions.imu_flip is False
+    for result in (run_0027, run_03, run_0042):
+        assert result.conventions.velocity_index == "next"
+    errs = run_03.conventions.errors_px
+    assert errs["flip=yes,velocity=next"] < 0.5 * errs["flip=no,velocity=next"]
+
+
+def test_0027_every_feature_beats_dead_reckoning(run_0027):
+    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 5.8 m vs 16.4 m."""
+    est, dr = _ate(run_0027, "ece276a_0027_gt_tum.txt")
+    assert dr == pytest.approx(16.4, abs=0.3)  # the documented dead-reckoning baseline
+    assert est <= 0.5 * dr
+    stats = run_0027.stats
+    assert stats.observations_used >= 0.8 * stats.observations  # every feature, not a sample
+    assert 1.0 <= stats.mean_nis <= 6.0
+
+
+def test_0042_dead_reckoning_baseline():
+    """With the velocity stamped k+1, dead reckoning reproduces the documented 1.6-1.7 m."""
+    result = _run("ece276a2019_0042.npz", mode="dead-reckoning")
+    est, dr = _ate(result, "ece276a2019_0042_gt_tum.txt")
+    assert est == pytest.approx(dr)
+    assert 1.5 <= dr <= 1.8
+    assert result.map_ids.size == 0
+
+
+def test_03_bias_state_keeps_the_car_upright(run_03):
+    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 16.5 deg with the filter."""
+    def max_tilt(poses):
+        z0 = poses[0, :3, 2]
+        return np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1, 1))).max()
+
+    assert max_tilt(run_03.dead_reckoning) > 45
+    assert max_tilt(run_03.world_T_imu) < 25
+    assert np.all(run_03.gyro_bias[:2] < -0.005)  # roll and pitch bias found, sign as documented
+
+
+def test_map_is_sane(run_0027):
+    """Mapped landmarks lie near the trajectory and have positive definite covariances."""
+    pos, cov = run_0027.map_positions, run_0027.map_covariances
+    assert pos.shape[0] == run_0027.map_ids.size > 1000
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    path = run_0027.world_T_imu[:, :3, 3]
+    # distance of each landmark to the nearest 10th pose: 90 % within 100 m
+    d = np.min(np.linalg.norm(pos[:, None, :] - path[None, ::10, :], axis=2), axis=1)
+    assert np.quantile(d, 0.9) < 100
