@@ -36,7 +36,7 @@ class FilterConfig:
     mode: str = "slam"  # slam | mapping (poses from dead reckoning held fixed) | dead-reckoning
     full_state: bool = False  # keep every landmark in the state (course formulation) instead of marginalizing ended tracks
     max_state_mib: float = 2048.0  # refuse --full-state when the dense covariance would exceed this
-    estimate_gyro_bias: bool = True
+    estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk)
 
     # --- data conventions (checked by backend.conventions)
     imu_flip: str = "auto"  # auto | yes | no: flip the IMU's y and z axes, diag(1,-1,-1,1) @ imu_T_cam
@@ -95,6 +95,8 @@ class FilterConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"config key '{name}': must be > 0 or unset, got {value!r}")
+        if (self.image_width is None) != (self.image_height is None):
+            raise ConfigError("config keys 'image_width' and 'image_height': set both or neither")
         if not 0.5 < self.gate_probability < 1.0:
             raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
         if self.min_disparity < 0:
@@ -103,6 +105,11 @@ class FilterConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"config key '{name}': must be an integer >= 1, got {getattr(self, name)!r}")
         return self
+
+    @property
+    def image_size(self) -> tuple[float, float] | None:
+        """(width, height) for the loader's outside-the-image check, or None to infer it from K."""
+        return None if self.image_width is None else (self.image_width, self.image_height)
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -296,37 +296,44 @@ class VisualInertialEKF:
         nis = np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
         return residual, PHt, S, nis, in_front
 
-    def _kalman_update(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray) -> None:
-        """dx = P H^T S^-1 r,  P <- P - (L^-1 H P)^T (L^-1 H P) with S = L L^T, over the selected observations."""
-        rows = _rows(select)
-        L = self._cholesky(S[np.ix_(rows, rows)])
-        A = _solve_lower(L, PHt[:, rows].T)  # L^-1 H P
-        w = _solve_lower(L, residual[select].reshape(-1, 1))
+    def _kalman_update(self, A: np.ndarray, w: np.ndarray) -> None:
+        """With S = L L^T, A = L^-1 H P and w = L^-1 r:  dx = A^T w,  P <- P - A^T A (symmetric form of
+        P - K S K^T, equal to the Joseph form for the optimal gain); P is re-symmetrized."""
         P = self.P
         P -= A.T @ A
         P += P.T
         P *= 0.5
-        self._apply_correction((A.T @ w)[:, 0])
+        self._apply_correction(A.T @ w)
+
+    def _whiten(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray):
+        """L, A = L^-1 H P and w = L^-1 r over the selected observations."""
+        rows = _rows(select)
+        L = self._cholesky(S[np.ix_(rows, rows)])
+        return L, _solve_lower(L, PHt[:, rows].T), _solve_lower(L, residual[select].reshape(-1, 1))[:, 0]
 
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
         """Gate, select a consistent set (1-point RANSAC), rescue the rest, then one joint update."""
         residual, PHt, S, nis, in_front = self._innovation(slots, pixels)
         use = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
+        if self.config.loo_gate and use.sum() >= 3:
+            use = self._posterior_gate(S, residual, use)
+        A = w = None
         if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
             inlier = self._one_point_ransac(S, residual, use)
             rest = use & ~inlier
-            if rest.any() and inlier.any():
-                use = inlier
-                use[np.flatnonzero(rest)[self._rescue(S, residual, inlier, rest)]] = True
-            else:
-                use = inlier
-        if self.config.loo_gate and use.sum() >= 3:
-            use = self._posterior_gate(S, residual, use)
+            use = inlier
+            if inlier.any():
+                L, A, w = self._whiten(PHt, S, residual, inlier)
+                if rest.any():
+                    rescued, A, w = self._rescue(L, A, w, PHt, S, residual, inlier, rest)
+                    use[rescued] = True
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(nis[use].sum())
         if stats.used:
-            self._kalman_update(PHt, S, residual, use)
+            if A is None:
+                _, A, w = self._whiten(PHt, S, residual, use)
+            self._kalman_update(A, w)
         self._gated_run[slots[use]] = 0
         self._gated_run[slots[~use]] += 1
         bad = self._gated_run >= self.config.max_consecutive_gated
@@ -334,23 +341,34 @@ class VisualInertialEKF:
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
-    def _rescue(self, S: np.ndarray, residual: np.ndarray, inlier: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    def _rescue(self, L, A, w, PHt, S, residual, inlier, rest):
         """Chi-square test of the ``rest`` after the update with the ``inlier`` (Civera et al.'s rescue).
 
-        The update with the inliers, to first order, leaves the others the residual and covariance
+        To first order, the update with the inliers leaves the others the residual and covariance
         r_r - S_ri S_ii^-1 r_i  and  S_rr - S_ri S_ii^-1 S_ir  (S_ri = H_r P H_i^T): no second
-        linearization, and one joint update afterwards equals the two sequential ones.
+        linearization. The joint factor of [inliers; rescued] is the block Cholesky
+        L = [[L_i, 0], [X^T, L_post]] with X = L_i^-1 S_ir, so the final whitened system extends
+        (A, w) of the inliers by  A_r = L_post^-1 (H_r P - X^T A),  w_r = L_post^-1 r_post.
+        Returns (indices rescued, A, w).
         """
         ri, rr = _rows(inlier), _rows(rest)
-        L = self._cholesky(S[np.ix_(ri, ri)])
         X = _solve_lower(L, S[np.ix_(ri, rr)])
-        y = _solve_lower(L, residual[inlier].reshape(-1, 1))
-        r_post = (residual[rest].reshape(-1, 1) - X.T @ y).reshape(-1, 4)
+        r_post = residual[rest].ravel() - X.T @ w
         S_post = S[np.ix_(rr, rr)] - X.T @ X
-        m = r_post.shape[0]
+        m = rr.size // 4
         blocks = S_post.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
-        nis = np.einsum("ki,ki->k", r_post, np.linalg.solve(blocks, r_post[:, :, None])[:, :, 0])
-        return nis <= self._gate
+        r4 = r_post.reshape(m, 4)
+        nis = np.einsum("ki,ki->k", r4, np.linalg.solve(blocks, r4[:, :, None])[:, :, 0])
+        ok = nis <= self._gate
+        rest_idx = np.flatnonzero(rest)
+        if not ok.any():
+            return rest_idx[ok], A, w
+        ok_rows = _rows(ok)
+        L_post = self._cholesky(S_post[np.ix_(ok_rows, ok_rows)])
+        X_ok = X[:, ok_rows]
+        A_r = _solve_lower(L_post, PHt[:, rr[ok_rows]].T - X_ok.T @ A)
+        w_r = _solve_lower(L_post, r_post[ok_rows].reshape(-1, 1))[:, 0]
+        return rest_idx[ok], np.vstack([A, A_r]), np.concatenate([w, w_r])
 
     @staticmethod
     def _cholesky(S: np.ndarray) -> np.ndarray:

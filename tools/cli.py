@@ -53,7 +53,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = _config_from_args(args)
     out_dir = outputs.prepare_output_dir(args.out, args.force)
     gt = outputs.read_tum(args.gt) if args.gt else None
-    seq = load_sequence(args.data)
+    seq = load_sequence(args.data, image_size=config.image_size)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
         f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))

@@ -1,0 +1,99 @@
+"""Speed and memory of `vislam run` (every feature) on the real drives; writes BENCHMARKS.md.
+
+    python benchmarks/run_benchmarks.py            # from the project root, needs ../shared/data
+
+Each file runs in a fresh subprocess (so peak RSS is that run's own), single BLAS thread as the
+filter configures itself. Reported: wall seconds of the filter loop and of the whole run
+(load + convention check + filter + outputs), real-time factor (sequence seconds / run
+seconds without output writing), peak RSS, and time per step split into predict / update.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+FILES = ["ece276a_03.npz", "ece276a_0027.npz", "ece276a2019_0042.npz"]
+
+CHILD = r"""
+import json, resource, sys, tempfile, time, warnings
+from pathlib import Path
+t0 = time.perf_counter()
+from backend.config import FilterConfig
+from backend.pipeline import run_sequence
+from backend.sequence import load_sequence
+from tools.report import write_run_outputs
+t_import = time.perf_counter() - t0
+t1 = time.perf_counter()
+seq = load_sequence(sys.argv[1])
+t_load = time.perf_counter() - t1
+warnings.simplefilter("ignore")
+result = run_sequence(seq, FilterConfig())
+t2 = time.perf_counter()
+with tempfile.TemporaryDirectory() as out:
+    write_run_outputs(result, Path(out), sys.argv[1])
+t_write = time.perf_counter() - t2
+s = result.stats
+print(json.dumps({
+    "steps": s.steps, "observations": s.observations, "used": s.observations_used,
+    "active_mean": s.active_landmarks_mean, "active_max": s.active_landmarks_max,
+    "sequence_s": s.sequence_seconds, "setup_s": s.setup_seconds, "filter_s": s.wall_seconds,
+    "predict_s": s.seconds_predict, "update_s": s.seconds_update,
+    "import_s": t_import, "load_s": t_load, "write_s": t_write,
+    "rtf": s.sequence_seconds / (t_load + s.setup_seconds + s.wall_seconds),
+    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+}))
+"""
+
+
+def measure(path: Path) -> dict:
+    out = subprocess.run([sys.executable, "-c", CHILD, str(path)], cwd=ROOT, check=True,
+                         capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    if not DATA.is_dir():
+        print(f"benchmarks need {DATA}", file=sys.stderr)
+        return 1
+    rows = []
+    for name in FILES:
+        r = measure(DATA / name)
+        rows.append((name, r))
+        print(name, json.dumps(r), file=sys.stderr)
+    lines = [
+        "| file | steps | obs used / valid | active mean / max | load s | conventions s | filter s | "
+        "predict ms/step | update ms/step | outputs s | real-time factor | peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows:
+        lines.append(
+            f"| {name} | {r['steps']} | {r['used']} / {r['observations']} | {r['active_mean']:.0f} / {r['active_max']} "
+            f"| {r['load_s']:.2f} | {r['setup_s']:.2f} | {r['filter_s']:.2f} "
+            f"| {1000 * r['predict_s'] / r['steps']:.2f} | {1000 * r['update_s'] / r['steps']:.2f} "
+            f"| {r['write_s']:.2f} | {r['rtf']:.0f}x | {r['peak_rss_mb']:.0f} |"
+        )
+    table = "\n".join(lines)
+    print(table)
+    machine = f"{platform.processor() or platform.machine()}, Python {platform.python_version()}"
+    bench = ROOT / "BENCHMARKS.md"
+    text = bench.read_text() if bench.exists() else ""
+    start, end = "<!-- speed:start -->", "<!-- speed:end -->"
+    block = f"{start}\nMachine: {machine}. Command: `python benchmarks/run_benchmarks.py`.\n\n{table}\n{end}"
+    if start in text and end in text:
+        text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
+    else:
+        text = (text or "# Benchmarks\n") + "\n## Speed and memory (every feature)\n\n" + block + "\n"
+    tmp = bench.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    tmp.replace(bench)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
