@@ -95,6 +95,10 @@ class FilterConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"config key '{name}': must be > 0 or unset, got {value!r}")
+        if self.max_track_age < 0:
+            raise ConfigError(f"config key 'max_track_age': must be >= 0 (0: never), got {self.max_track_age!r}")
+        if self.nis_warn_factor <= 1:
+            raise ConfigError(f"config key 'nis_warn_factor': must be > 1, got {self.nis_warn_factor!r}")
         if (self.image_width is None) != (self.image_height is None):
             raise ConfigError("config keys 'image_width' and 'image_height': set both or neither")
         if not 0.5 < self.gate_probability < 1.0:
@@ -197,6 +201,9 @@ def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterCon
     table = data.get("filter", data)
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: key 'filter' must be a table")
+    if "filter" in data and len(data) > 1:
+        others = ", ".join(sorted(k for k in data if k != "filter"))
+        raise ConfigError(f"{path}: keys outside the [filter] table ({others}); put every key inside it")
     try:
         return config_from_dict(table, base)
     except ConfigError as exc:

@@ -105,23 +105,32 @@ class HealthMonitor:
     messages: list[str] = field(default_factory=list)
     _nis: deque = field(default_factory=deque)
     _count: deque = field(default_factory=deque)
+    _gated: deque = field(default_factory=deque)
     _inconsistent: bool = False
 
-    def add_nis(self, step: int, nis_sum: float, count: int) -> None:
+    def add_nis(self, step: int, nis_sum: float, count: int, gated: int = 0) -> None:
+        """One step's NIS sum over ``count`` used observations, and how many were gated.
+
+        The NIS of used observations is truncated by the gate, so a far too small pixel_sigma
+        shows as a high gated share rather than a high NIS: both are watched.
+        """
         self._nis.append(nis_sum)
         self._count.append(count)
+        self._gated.append(gated)
         if len(self._nis) > self.window:
             self._nis.popleft()
             self._count.popleft()
+            self._gated.popleft()
         total = sum(self._count)
         if len(self._nis) < self.window or total < 20:
             return
         mean = sum(self._nis) / total
-        bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor
+        gated_share = sum(self._gated) / (total + sum(self._gated))
+        bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor or gated_share > 0.5
         if bad and not self._inconsistent:
             self.report(
-                f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} over the last "
-                f"{self.window} steps (expected about 4; tune pixel_sigma or the IMU noise)"
+                f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} (expected about 4) "
+                f"and {100 * gated_share:.0f} % gated over the last {self.window} steps; tune pixel_sigma or the IMU noise"
             )
         self._inconsistent = bad
 
@@ -221,6 +230,8 @@ class VisualInertialEKF:
         P = self.P
         P[:CORE, :] = Phi @ P[:CORE, :]
         P[:, :CORE] = P[:, :CORE] @ Phi.T
+        P[CORE:, :CORE] = P[:CORE, CORE:].T  # exact symmetry of the cross blocks
+        P[:CORE, :CORE] = 0.5 * (P[:CORE, :CORE] + P[:CORE, :CORE].T)
         noise = self.imu_noise
         diag = np.concatenate([noise.linear_sigma**2, noise.angular_sigma**2]) * dt * dt
         P[np.arange(6), np.arange(6)] += diag
@@ -250,8 +261,8 @@ class VisualInertialEKF:
         if (~known).any():
             self._initialize(ids[~known], pixels[~known], stats)
         stats.active = self._ids.size
-        if stats.used:
-            self.health.add_nis(self.step_index, stats.nis_sum, stats.used)
+        if stats.used or stats.gated:
+            self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)
         if self.step_index % 100 == 0:
             self._check_covariance()
         return stats
@@ -459,6 +470,7 @@ class VisualInertialEKF:
             J_xi = J_xi.reshape(3 * n, 6)
             cross = J_xi @ self.P[POSE, :]  # (3n, D)
             block += cross[:, POSE] @ J_xi.T
+            block = 0.5 * (block + block.T)
             P_new[D:, :D] = cross
             P_new[:D, D:] = cross.T
         P_new[D:, D:] = block
