@@ -69,7 +69,7 @@ def street_landmarks(
     road_halfwidth: float = 5.5,
     far_lateral=(14.0, 40.0),
     far_height: float = 25.0,
-    per_metre=(1.3, 0.6, 0.25),
+    per_metre=(0.75, 0.35, 0.15),
 ) -> np.ndarray:
     """Points (P,3) of a street along the path. ``per_metre`` = (each facade, road, far) times
     ``density``; facade |y| = setback +- jitter (6-12 m by default)."""
@@ -114,11 +114,11 @@ def aerial_landmarks(
     seed=0,
     *,
     density: float = 1.0,
-    radius: float = 25.0,
+    radius: float = 35.0,
     clearance: float = 3.0,
     spacing: float = 5.0,
-    ahead: float = 20.0,
-    per_cubic_metre: float = 0.01,
+    ahead: float = 40.0,
+    per_cubic_metre: float = 0.0016,
 ) -> np.ndarray:
     """Points (P,3) uniform (``per_cubic_metre * density``) in the union of balls of ``radius``
     around the path (centres every ``spacing`` m, the path extended ``ahead`` m straight on),

@@ -43,7 +43,7 @@ class SceneConfig:
     # camera
     pixel_sigma: float = 0.5  # px, each of uL vL uR vR
     outlier_share: float = 0.0
-    mean_track_length: float | None = 15.0  # steps (geometric); None: whole visible runs
+    mean_track_length: float | None = 20.0  # steps (geometric); None: whole visible runs
     min_depth: float = 2.0  # m
     max_depth: float = 60.0  # m
     landmark_density: float = 1.0  # multiplies the scenario's landmark density
