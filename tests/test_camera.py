@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from backend.camera import StereoCamera, dpi_dq, pi
+from helpers import numeric_jacobian
 
 SETTINGS = settings(max_examples=60, deadline=None)
 
@@ -23,13 +24,6 @@ def _points_in_front(draw, max_n: int = 20) -> np.ndarray:
     return np.column_stack([lateral * depth[:, None], depth])
 
 
-def _numeric_jacobian(f, x: np.ndarray, eps: float) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        dx = np.zeros_like(x)
-        dx[i] = eps
-        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
-    return np.stack(cols, axis=-1)
 
 
 def test_ks_structure():
@@ -74,7 +68,7 @@ def test_projection_jacobian_finite_differences(p_in_cam):
     J = CAM.projection_jacobian(p_in_cam)
     assert J.shape == (len(p_in_cam), 4, 3)
     for p, J_p in zip(p_in_cam, J):
-        numeric = _numeric_jacobian(CAM.project, p, eps=1e-5 * p[2])
+        numeric = numeric_jacobian(CAM.project, p, eps=1e-5 * p[2])
         assert np.allclose(J_p, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_p).max())
 
 
@@ -85,7 +79,7 @@ def test_triangulation_jacobian_finite_differences(p_in_cam):
     J = CAM.triangulation_jacobian(z)
     assert J.shape == (len(p_in_cam), 3, 4)
     for z_i, J_i in zip(z, J):
-        numeric = _numeric_jacobian(CAM.triangulate, z_i, eps=1e-4)
+        numeric = numeric_jacobian(CAM.triangulate, z_i, eps=1e-4)
         assert np.allclose(J_i, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_i).max())
 
 
@@ -95,7 +89,7 @@ def test_dpi_dq_finite_differences(p_in_cam, w):
     q = np.column_stack([p_in_cam, np.full(len(p_in_cam), w)])
     J = dpi_dq(q)
     for q_i, J_i in zip(q, J):
-        numeric = _numeric_jacobian(pi, q_i, eps=1e-6 * q_i[2])
+        numeric = numeric_jacobian(pi, q_i, eps=1e-6 * q_i[2])
         assert np.allclose(J_i, numeric, rtol=1e-6, atol=1e-8 * np.abs(J_i).max())
 
 

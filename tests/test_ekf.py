@@ -22,6 +22,7 @@ from backend.errors import FilterError
 from backend.imu import dead_reckoning
 from backend.pipeline import run_sequence
 from backend.sequence import Sequence
+from helpers import numeric_jacobian
 
 K_KITTI = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
 BASELINE = 0.537
@@ -163,13 +164,6 @@ def random_spd(rng, n: int, scale: float) -> np.ndarray:
     return scale * (A @ A.T / n + 0.2 * np.eye(n))
 
 
-def numeric_jacobian(f, x: np.ndarray, eps: float) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        dx = np.zeros_like(x, dtype=float)
-        dx[i] = eps
-        cols.append((f(x + dx) - f(x - dx)) / (2.0 * eps))
-    return np.stack(cols, axis=-1)
 
 
 def rel_err(a: np.ndarray, b: np.ndarray) -> float:

@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from scipy.linalg import expm
 
 from backend import se3
+from helpers import numeric_jacobian
 
 SETTINGS = settings(max_examples=60, deadline=None)
 
@@ -29,13 +30,6 @@ def _pose():
     return _twist().map(se3.exp_se3)
 
 
-def _numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    cols = []
-    for i in range(x.size):
-        dx = np.zeros_like(x)
-        dx[i] = eps
-        cols.append((f(x + dx) - f(x - dx)) / (2 * eps))
-    return np.stack(cols, axis=-1)
 
 
 @SETTINGS
@@ -169,7 +163,7 @@ def test_curly_hat_anticommutes(xi, eta):
 @given(_twist(max_angle=3.0, max_translation=5.0))
 def test_right_jacobian_se3_finite_differences(xi):
     T_inv = se3.inverse(se3.exp_se3(xi))
-    numeric = _numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
+    numeric = numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
     # log(exp(xi)^-1 exp(xi + d)) ~ J_r(xi) d
     assert np.allclose(se3.right_jacobian_se3(xi), numeric, atol=1e-6, rtol=0)
 
@@ -178,9 +172,9 @@ def test_right_jacobian_se3_finite_differences(xi):
 def test_se3_jacobians_small_angles(angle):
     xi = np.array([0.4, -1.2, 2.0, *(angle * np.array([0.6, 0.0, -0.8]))])
     T_inv = se3.inverse(se3.exp_se3(xi))
-    numeric = _numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
+    numeric = numeric_jacobian(lambda x: se3.log_se3(T_inv @ se3.exp_se3(x)), xi)
     assert np.allclose(se3.right_jacobian_se3(xi), numeric, atol=1e-8, rtol=0)
-    numeric_left = _numeric_jacobian(lambda x: se3.log_se3(se3.exp_se3(x) @ T_inv), xi)
+    numeric_left = numeric_jacobian(lambda x: se3.log_se3(se3.exp_se3(x) @ T_inv), xi)
     assert np.allclose(se3.left_jacobian_se3(xi), numeric_left, atol=1e-8, rtol=0)
 
 
@@ -188,8 +182,8 @@ def test_se3_jacobians_small_angles(angle):
 @given(_rotvec(3.0))
 def test_so3_jacobians_finite_differences(w):
     R_t = se3.exp_so3(w).T
-    right = _numeric_jacobian(lambda x: se3.log_so3(R_t @ se3.exp_so3(x)), w)
-    left = _numeric_jacobian(lambda x: se3.log_so3(se3.exp_so3(x) @ R_t), w)
+    right = numeric_jacobian(lambda x: se3.log_so3(R_t @ se3.exp_so3(x)), w)
+    left = numeric_jacobian(lambda x: se3.log_so3(se3.exp_so3(x) @ R_t), w)
     assert np.allclose(se3.right_jacobian_so3(w), right, atol=1e-7, rtol=0)
     assert np.allclose(se3.left_jacobian_so3(w), left, atol=1e-7, rtol=0)
     assert np.allclose(se3.right_jacobian_so3(w), se3.left_jacobian_so3(w).T, atol=1e-14, rtol=0)
