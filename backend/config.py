@@ -25,7 +25,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 MODES = ("slam", "mapping", "dead-reckoning")
 IMU_FLIP_CHOICES = ("auto", "yes", "no")
 VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
-REPEATED_FRAME_CHOICES = ("cut", "retime", "skip", "use")
+REPEATED_FRAME_CHOICES = ("use", "skip", "cut")
 
 
 @dataclass
@@ -65,8 +65,7 @@ class FilterConfig:
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     loo_gate: bool = False  # leave-one-out chi-square test of the observations kept
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
-    repeated_frames: str = "use"  # cut | retime | skip | use: steps repeating the previous step's pixels (backend.timing)
-    max_track_age: int = 0  # steps; older landmarks are marginalized and re-triangulated (0: never)
+    repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
 
     # --- health checks
     nis_window: int = 50  # steps in the moving NIS average
@@ -95,8 +94,6 @@ class FilterConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"config key '{name}': must be > 0 or unset, got {value!r}")
-        if self.max_track_age < 0:
-            raise ConfigError(f"config key 'max_track_age': must be >= 0 (0: never), got {self.max_track_age!r}")
         if self.nis_warn_factor <= 1:
             raise ConfigError(f"config key 'nis_warn_factor': must be > 1, got {self.nis_warn_factor!r}")
         if (self.image_width is None) != (self.image_height is None):

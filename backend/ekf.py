@@ -4,9 +4,9 @@ State (right perturbation, ECE276A / Barfoot ch. 7-9):
 
     world_T_imu = mu exp(xi^),   xi in R^6 = [rho, theta]          (pose, 6)
     b_g                                                             (gyro bias, 3)
-    m_1 .. m_n  in the world frame                                  (active landmarks, 3 each)
+    theta_1 .. theta_n  (backend.landmarks)                         (active landmarks, 3 each)
 
-with one dense covariance ``P`` over ``[xi, b_g, m_1 .. m_n]``. Only landmarks whose track is
+with one dense covariance ``P`` over ``[xi, b_g, theta_1 .. theta_n]``. Only landmarks whose track is
 live are in the state; when a track ends its landmark is marginalized (rows and columns
 dropped, exact for a Gaussian) and moves to the map with its mean and 3x3 covariance.
 
@@ -16,28 +16,32 @@ Prediction, for the body twist u = [v, omega - b_g] over tau = t_{k+1} - t_k:
     xi    <- exp(-tau u-curlyhat) xi - tau J_r(tau u) [0; I] delta_b + w,   w ~ N(0, W)
     P_xx  <- F P_xx F^T + Q,  P_x,L <- F P_x,L,   F = [[exp(-tau u-curlyhat), -tau J_r E], [0, I]]
 
-Observation of landmark j in the stereo pair (course eq. z = Ks pi(cam_T_imu T^-1 m)):
+Observation of landmark j in the stereo pair (course eq. z = Ks pi(cam_T_imu T^-1 m)), with the
+landmark as a homogeneous point w = A (e + B theta) (backend.landmarks: world xyz, or anchored
+inverse depth, the default):
 
-    p_imu = mu^-1 m,   p_cam = cam_T_imu p_imu,   z = Ks pi([p_cam; 1])
-    dz/dxi = J_cam R_ci [-I, p_imu^]      (T^-1 m = exp(-xi^) mu^-1 m ~ p_imu - xi^ p_imu)
-    dz/dm  = J_cam R_ci R_wi^T            J_cam = Ks dpi/dq P^T  (4x3)
+    s = mu^-1 w,   q = cam_T_imu s,   z = Ks pi(q)
+    dz/dxi    = -Ks dpi/dq cam_T_imu s^odot     (T^-1 w = exp(-xi^) mu^-1 w ~ s - xi^ s)
+    dz/dtheta =  Ks dpi/dq cam_T_imu mu^-1 A B
 
 Update: every observed landmark jointly, each 4-row block of H touching 6 pose and 3 landmark
-columns; per-observation chi-square (4 dof) gating on the 4x4 innovation blocks; then
+columns. Per step: chi-square gate (4 dof) on the prior 4x4 innovation blocks; 1-point RANSAC
+(Civera et al. 2010), every observation a hypothesis, and a rescue test of the rest against the
+inliers' update; then, with S = L L^T over the kept rows,
 
-    S = H P H^T + R = L L^T,   A = L^-1 H P,   dx = A^T L^-1 r,   P <- P - A^T A
+    A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A
 
-which is the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain);
-P is symmetrized after every update and its positive definiteness checked periodically.
+the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain); P is kept
+exactly symmetric and its positive definiteness checked every 100 steps.
 
-Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation with
-enough disparity:  m = mu imu_T_cam tri(z),  with  dm/dxi = R_wi [I, -p_imu^],
-dm/dz = R_wi R_ic dtri/dz, and  P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x.
+Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation:
+theta = g(z, mu) with Jacobians J_z and J_xi (backend.landmarks.initialize), and
+
+    P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,   P_m,x = J_xi P_xi,x.
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
@@ -180,7 +184,6 @@ class VisualInertialEKF:
         self._theta = np.zeros((0, 3))  # landmark parameters (backend.landmarks)
         self._anchors = np.zeros((0, 4, 4))
         self._gated_run = np.zeros(0, dtype=np.int64)
-        self._born = np.zeros(0, dtype=np.int64)  # step of (re-)initialization
         self._slot: dict[int, int] = {}
         # marginalized landmarks (the map), appended in batches
         self._map_ids: list[np.ndarray] = []
@@ -248,9 +251,6 @@ class VisualInertialEKF:
             return stats
         if not self.config.full_state and self._ids.size:
             ended = ~np.isin(self._ids, ids)
-            if self.config.max_track_age:
-                # re-anchor old tracks: feature trackers drift, so a long track stops being one point
-                ended |= self.step_index - self._born >= self.config.max_track_age
             if ended.any():
                 stats.marginalized = int(ended.sum())
                 self._remove(ended, to_map=True)
@@ -479,7 +479,6 @@ class VisualInertialEKF:
         self._theta = np.concatenate([self._theta, theta])
         self._anchors = np.concatenate([self._anchors, anchors])
         self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
-        self._born = np.concatenate([self._born, np.full(n, self.step_index, dtype=np.int64)])
         self._reindex()
         stats.initialized = n
 
@@ -507,7 +506,6 @@ class VisualInertialEKF:
         self._theta = self._theta[keep_lm]
         self._anchors = self._anchors[keep_lm]
         self._gated_run = self._gated_run[keep_lm]
-        self._born = self._born[keep_lm]
         self._reindex()
 
     def _reindex(self) -> None:
@@ -561,8 +559,3 @@ class VisualInertialEKF:
         )
         repaired = (eigvec * np.maximum(eigval, 1e-12)) @ eigvec.T
         self.P[np.ix_(estimated, estimated)] = 0.5 * (repaired + repaired.T)
-
-
-def pose_sigma_summary(P: np.ndarray) -> tuple[float, float]:
-    """(position sigma m, rotation sigma deg) from the pose block of a covariance."""
-    return math.sqrt(max(np.trace(P[0:3, 0:3]), 0.0)), math.degrees(math.sqrt(max(np.trace(P[3:6, 3:6]), 0.0)))

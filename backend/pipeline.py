@@ -20,7 +20,7 @@ from backend.ekf import ImuNoise, VisualInertialEKF
 from backend.errors import InputError
 from backend.imu import NoiseDecision, dead_reckoning, decide_imu_noise, step_velocities
 from backend.sequence import Sequence
-from backend.timing import image_times, repeated_steps
+from backend.timing import repeated_steps
 
 
 @dataclass
@@ -132,46 +132,31 @@ def run_sequence(
 
         repeated = repeated_steps(seq)
         stats.repeated_frames = int(repeated.sum())
-        if config.repeated_frames == "retime":
-            update_times = image_times(seq.time_stamps, repeated)
-        else:
-            update_times = seq.time_stamps
-        use_step = ~repeated if config.repeated_frames != "use" else np.ones(seq.num_steps, dtype=bool)
-        if config.repeated_frames == "cut":
-            use_step = np.ones(seq.num_steps, dtype=bool)  # repeated steps end every track instead
-        # the timeline: updates at image times, poses recorded at the stamps (update first on ties)
-        events = sorted(
-            [(update_times[k], 0, k) for k in np.flatnonzero(use_step)]
-            + [(seq.time_stamps[k], 1, k) for k in range(seq.num_steps)]
-        )
-        stamps = seq.time_stamps
-        now = stamps[0]
+        policy = config.repeated_frames
+        dts = np.diff(seq.time_stamps)
 
-        def advance(to_time: float) -> None:
-            """Predict from ``now`` to ``to_time``; the twist of step k holds on [t_k, t_k+1)."""
-            nonlocal now
-            while now < to_time - 1e-9:
-                k = min(int(np.searchsorted(stamps, now, side="right")) - 1, seq.num_steps - 2)
-                until = min(to_time, stamps[k + 1]) if k + 1 < seq.num_steps - 1 else to_time
-                ekf.predict(until - now, v_steps[k], w_steps[k])
-                now = until
+        def step(k: int) -> None:
+            """Use the observations of step k as the repeated-frame policy says (backend.timing)."""
+            if not repeated[k] or policy == "use":
+                absorb(ekf.update(*seq.observations(k)))
+            elif policy == "cut":
+                ekf.finish()  # no track bridges a stalled camera
 
         t_loop = time.perf_counter()
-        for when, kind, k in events:
+        step(0)
+        poses[0] = ekf.world_T_imu
+        if progress:
+            progress(0)
+        for k in range(seq.num_steps - 1):
             t0 = time.perf_counter()
-            advance(when)
+            ekf.predict(dts[k], v_steps[k], w_steps[k])
             t1 = time.perf_counter()
+            step(k + 1)
+            t_update += time.perf_counter() - t1
             t_predict += t1 - t0
-            if kind == 0 and repeated[k] and config.repeated_frames == "cut":
-                ekf.finish()  # across a stall the images disagree with the motion: no track bridges it
-                t_update += time.perf_counter() - t1
-            elif kind == 0:
-                absorb(ekf.update(*seq.observations(k)))
-                t_update += time.perf_counter() - t1
-            else:
-                poses[k] = ekf.world_T_imu
-                if progress:
-                    progress(k)
+            poses[k + 1] = ekf.world_T_imu
+            if progress:
+                progress(k + 1)
         ekf.finish()
         stats.wall_seconds = time.perf_counter() - t_loop
 

@@ -40,7 +40,7 @@ def test_toml_round_trip_changed(tmp_path):
     config = FilterConfig(
         mode="mapping", full_state=True, estimate_gyro_bias=False, imu_flip="yes", velocity_index="next",
         linear_velocity_sigma=0.3, angular_velocity_sigma=1e-6, pixel_sigma=2.5, image_width=1241.0, image_height=376.0,
-        gate_probability=0.99, ransac_threshold_px=0.0, nis_window=7, max_track_age=40, max_depth=55.5,
+        gate_probability=0.99, ransac_threshold_px=0.0, nis_window=7, max_consecutive_gated=5, max_depth=55.5,
         gyro_bias_random_walk=3.3e-7, max_state_mib=1e12,
     ).validate()
     text = to_toml(config)
@@ -77,10 +77,10 @@ def test_filter_table_and_flat_keys(tmp_path):
 
 
 def test_load_over_base_keeps_other_values(tmp_path):
-    base = FilterConfig(pixel_sigma=3.0, max_track_age=10)
-    loaded = load_config(write(tmp_path, "[filter]\nmax_track_age = 20\n"), base)
-    assert (loaded.pixel_sigma, loaded.max_track_age) == (3.0, 20)
-    assert base.max_track_age == 10  # not modified
+    base = FilterConfig(pixel_sigma=3.0, max_consecutive_gated=10)
+    loaded = load_config(write(tmp_path, "[filter]\nmax_consecutive_gated = 20\n"), base)
+    assert (loaded.pixel_sigma, loaded.max_consecutive_gated) == (3.0, 20)
+    assert base.max_consecutive_gated == 10  # not modified
 
 
 def test_int_accepted_for_float_key(tmp_path):
@@ -158,7 +158,7 @@ def test_invalid_value(key, value):
         config_from_dict({key: value})
 
 
-@pytest.mark.parametrize("key, value", [("max_track_age", -1), ("nis_warn_factor", 0.5)])
+@pytest.mark.parametrize("key, value", [("max_consecutive_gated", -1), ("nis_warn_factor", 0.5)])
 def test_invalid_value_not_caught(key, value):
     with pytest.raises(ConfigError, match=f"'{key}'"):
         config_from_dict({key: value})
