@@ -110,6 +110,12 @@ class ConventionDecision:
 
         v = self.velocity_index
         f = self.imu_flip
+        if self.errors_px and not any(np.isfinite(e) for e in self.errors_px.values()):
+            return (
+                "extrinsic and velocity timing could not be tested (no feature seen at both k and k+horizon "
+                f"with positive disparity): using the extrinsic {'flipped' if f else 'as given'} and the velocity "
+                f"stamped {'k+1' if v == 'next' else 'k'}"
+            )
         return (
             f"extrinsic: {'IMU y,z flipped' if f else 'as given'} ({self.flip_source}; median reprojection "
             f"as given {err(False, v)}, flipped {err(True, v)})\n"
