@@ -58,9 +58,9 @@ class FilterConfig:
     image_height: Optional[float] = None  # px; None: 2.5 cy
 
     # --- landmarks
-    landmark_parametrization: str = "inverse-depth"  # inverse-depth (anchored) | xyz (backend.landmarks)
+    landmark_parametrization: str = "xyz"  # xyz | inverse-depth (anchored) (backend.landmarks)
     min_disparity: float = 0.0  # px: a landmark is initialized only from an observation with larger disparity
-    max_depth: Optional[float] = None  # m: ... and nearer than this (None: no limit)
+    max_depth: Optional[float] = 1000.0  # m: ... and nearer than this (xyz variance grows as depth^4; None: no limit)
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     loo_gate: bool = False  # leave-one-out chi-square test of the observations kept

@@ -67,6 +67,20 @@ def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     return X
 
 
+def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """r_i^T B_i^-1 r_i for (k,4,4) blocks and (k,4) residuals; inf where a block is singular."""
+    try:
+        return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
+    except np.linalg.LinAlgError:
+        out = np.full(residual.shape[0], np.inf)
+        for i in range(residual.shape[0]):
+            try:
+                out[i] = residual[i] @ np.linalg.solve(blocks[i], residual[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
 def _rows(select: np.ndarray) -> np.ndarray:
     """Rows of the stacked 4-vectors of the selected observations."""
     return (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
@@ -304,7 +318,7 @@ class VisualInertialEKF:
         S[np.diag_indices_from(S)] += self._R_pix
         idx = np.arange(k)
         blocks = S.reshape(k, 4, k, 4)[idx, :, idx, :]  # (k,4,4) diagonal blocks
-        nis = np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
+        nis = block_nis(blocks, residual)
         return residual, PHt, S, nis, in_front
 
     def _kalman_update(self, A: np.ndarray, w: np.ndarray) -> None:
@@ -329,21 +343,25 @@ class VisualInertialEKF:
         if self.config.loo_gate and use.sum() >= 3:
             use = self._posterior_gate(S, residual, use)
         A = w = None
-        if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
-            inlier = self._one_point_ransac(S, residual, use)
-            rest = use & ~inlier
-            use = inlier
-            if inlier.any():
-                L, A, w = self._whiten(PHt, S, residual, inlier)
-                if rest.any():
-                    rescued, A, w = self._rescue(L, A, w, PHt, S, residual, inlier, rest)
-                    use[rescued] = True
+        try:
+            if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
+                inlier = self._one_point_ransac(S, residual, use)
+                rest = use & ~inlier
+                use = inlier
+                if inlier.any():
+                    L, A, w = self._whiten(PHt, S, residual, inlier)
+                    if rest.any():
+                        rescued, A, w = self._rescue(L, A, w, PHt, S, residual, inlier, rest)
+                        use[rescued] = True
+            if use.any() and A is None:
+                _, A, w = self._whiten(PHt, S, residual, use)
+        except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
+            self.health.report(f"step {self.step_index}: update skipped ({exc})")
+            use = np.zeros_like(use)
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(nis[use].sum())
         if stats.used:
-            if A is None:
-                _, A, w = self._whiten(PHt, S, residual, use)
             self._kalman_update(A, w)
         self._gated_run[slots[use]] = 0
         self._gated_run[slots[~use]] += 1
@@ -368,8 +386,7 @@ class VisualInertialEKF:
         S_post = S[np.ix_(rr, rr)] - X.T @ X
         m = rr.size // 4
         blocks = S_post.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
-        r4 = r_post.reshape(m, 4)
-        nis = np.einsum("ki,ki->k", r4, np.linalg.solve(blocks, r4[:, :, None])[:, :, 0])
+        nis = block_nis(blocks, r_post.reshape(m, 4))
         ok = nis <= self._gate
         rest_idx = np.flatnonzero(rest)
         if not ok.any():
@@ -403,7 +420,7 @@ class VisualInertialEKF:
         S_c = S[np.ix_(rows, rows)]
         r_c = residual[idx]
         blocks = S_c.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
-        a = np.linalg.solve(blocks, r_c[:, :, None])[:, :, 0]  # (m,4): S_jj^-1 r_j
+        a = np.linalg.solve(blocks, r_c[:, :, None])[:, :, 0]  # (m,4): S_jj^-1 r_j (blocks passed the gate: regular)
         HPH = S_c - self._R_pix * np.eye(4 * m)
         change = np.einsum("pjq,jq->pj", HPH.reshape(4 * m, m, 4), a)  # (4m obs rows, m hypotheses)
         post = r_c.reshape(4 * m, 1) - change

@@ -628,3 +628,33 @@ def test_marginalized_landmark_keeps_estimate():
     np.testing.assert_array_equal(ids, before_ids)
     np.testing.assert_array_equal(pos, before_pos)
     np.testing.assert_array_equal(cov, before_cov)
+
+
+@pytest.mark.parametrize("kind", ["xyz", "inverse-depth"])
+def test_points_at_near_infinite_depth_do_not_break_the_filter(kind):
+    """A feature with 1e-4 px disparity (xyz: ~4e6 m away, covariance ~1e13) among good ones:
+    the run goes on, the pose stays accurate and P stays positive definite."""
+    drive = make_drive(40, seed=2)
+    far_id = 10**6
+
+    def add_far_point(k, ekf, ids, pix):
+        far = np.array([[640.0, 120.0, 640.0 - 1e-4, 120.0]])
+        return np.vstack([pix, far]) if ids.size else pix
+
+    def run(with_far: bool):
+        config = slam_config(landmark_parametrization=kind)
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
+        ekf.update(*drive.observations(0))
+        for k in range(drive.n - 1):
+            ekf.predict(drive.t[k + 1] - drive.t[k], drive.v_meas[k], drive.w_meas[k])
+            ids, pix = drive.observations(k + 1)
+            if with_far:
+                ids, pix = np.append(ids, far_id), add_far_point(k + 1, ekf, ids, pix)
+            ekf.update(ids, pix)
+        return ekf
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        plain, far = run(False), run(True)
+    assert np.linalg.norm(far.world_T_imu[:3, 3] - plain.world_T_imu[:3, 3]) < 0.05
+    assert np.linalg.eigvalsh(0.5 * (far.P + far.P.T)).min() > 0
