@@ -81,6 +81,14 @@ def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
         return out
 
 
+def _sub(M: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
+    """M[rows][:, cols] (cols defaults to rows), without a copy when both select everything."""
+    cols = rows if cols is None else cols
+    if rows.size == M.shape[0] and cols.size == M.shape[1]:
+        return M
+    return M[np.ix_(rows, cols)]
+
+
 def _rows(select: np.ndarray) -> np.ndarray:
     """Rows of the stacked 4-vectors of the selected observations."""
     return (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
@@ -286,8 +294,15 @@ class VisualInertialEKF:
 
         Homogeneous form of backend.landmarks: q = cam_T_imu mu^-1 A (e + B theta), z = Ks pi(q).
         """
-        w_world = np.einsum("kij,kj->ki", self._anchors[slots], landmarks.local_point(self._kind, self._theta[slots]))
         mu_inv = se3.inverse(self.mu)
+        local = landmarks.local_point(self._kind, self._theta[slots])
+        if self._kind == "xyz":  # anchors are the identity
+            w_world = local
+            dw_dtheta = mu_inv @ landmarks.basis(self._kind)  # (4,3), the same for every landmark
+        else:
+            anchors = self._anchors[slots]
+            w_world = np.einsum("kij,kj->ki", anchors, local)
+            dw_dtheta = mu_inv @ anchors @ landmarks.basis(self._kind)  # (k,4,3)
         s_imu = w_world @ mu_inv.T  # (k,4) homogeneous point in the IMU frame
         q = s_imu @ self._cam_T_imu.T
         in_front = q[:, 2] > 0.1 * np.abs(q[:, 3])
@@ -295,7 +310,7 @@ class VisualInertialEKF:
         Ks = self.camera.Ks
         dz_dq = Ks @ dpi_dq(q)  # (k,4,4)
         dz_dimu = dz_dq @ self._cam_T_imu  # (k,4,4): d z / d s_imu
-        H_theta = dz_dimu @ (mu_inv @ self._anchors[slots] @ landmarks.basis(self._kind))
+        H_theta = dz_dimu @ dw_dtheta
         if self._estimate_pose:
             H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
@@ -333,8 +348,8 @@ class VisualInertialEKF:
     def _whiten(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray):
         """L, A = L^-1 H P and w = L^-1 r over the selected observations."""
         rows = _rows(select)
-        L = self._cholesky(S[np.ix_(rows, rows)])
-        return L, _solve_lower(L, PHt[:, rows].T), _solve_lower(L, residual[select].reshape(-1, 1))[:, 0]
+        L = self._cholesky(_sub(S, rows))
+        return L, _solve_lower(L, (PHt if rows.size == PHt.shape[1] else PHt[:, rows]).T), _solve_lower(L, residual[select].reshape(-1, 1))[:, 0]
 
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
         """Gate, select a consistent set (1-point RANSAC), rescue the rest, then one joint update."""
@@ -417,7 +432,7 @@ class VisualInertialEKF:
         idx = np.flatnonzero(candidates)
         m = idx.size
         rows = (4 * idx[:, None] + np.arange(4)).ravel()
-        S_c = S[np.ix_(rows, rows)]
+        S_c = _sub(S, rows)
         r_c = residual[idx]
         blocks = S_c.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
         a = np.linalg.solve(blocks, r_c[:, :, None])[:, :, 0]  # (m,4): S_jj^-1 r_j (blocks passed the gate: regular)
