@@ -35,7 +35,7 @@ class FilterConfig:
     # --- what to estimate
     mode: str = "slam"  # slam | mapping (poses from dead reckoning held fixed) | dead-reckoning
     full_state: bool = False  # keep every landmark in the state (course formulation) instead of marginalizing ended tracks
-    max_state_mib: float = 2048.0  # refuse --full-state when the dense covariance would exceed this
+    max_state_mib: float = 256.0  # refuse --full-state when the dense covariance would exceed this (~1900 landmarks)
     estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk)
 
     # --- data conventions (checked by backend.conventions)
