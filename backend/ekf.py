@@ -184,6 +184,7 @@ class VisualInertialEKF:
         self.config = config.validate()
         self.imu_T_cam = np.array(imu_T_cam, dtype=float)
         self._cam_T_imu = se3.inverse(self.imu_T_cam)
+        self._imu_T_cam = self.imu_T_cam
         self.imu_noise = imu_noise
         self._estimate_pose = config.mode == "slam"
         self._use_vision = config.mode != "dead-reckoning"
@@ -204,6 +205,7 @@ class VisualInertialEKF:
         self._ids = np.zeros(0, dtype=np.int64)
         self._kind = config.landmark_parametrization
         self._theta = np.zeros((0, 3))  # landmark parameters (backend.landmarks)
+        self._theta_first = np.zeros((0, 3))  # their values at initialization (first-estimate Jacobians)
         self._anchors = np.zeros((0, 4, 4))
         self._gated_run = np.zeros(0, dtype=np.int64)
         self._slot: dict[int, int] = {}
@@ -295,28 +297,36 @@ class VisualInertialEKF:
         Homogeneous form of backend.landmarks: q = cam_T_imu mu^-1 A (e + B theta), z = Ks pi(q).
         """
         mu_inv = se3.inverse(self.mu)
-        local = landmarks.local_point(self._kind, self._theta[slots])
-        if self._kind == "xyz":  # anchors are the identity
-            w_world = local
-            dw_dtheta = mu_inv @ landmarks.basis(self._kind)  # (4,3), the same for every landmark
-        else:
-            anchors = self._anchors[slots]
-            w_world = np.einsum("kij,kj->ki", anchors, local)
-            dw_dtheta = mu_inv @ anchors @ landmarks.basis(self._kind)  # (k,4,3)
-        s_imu = w_world @ mu_inv.T  # (k,4) homogeneous point in the IMU frame
-        q = s_imu @ self._cam_T_imu.T
+        q, dw_dtheta = self._project(mu_inv, self._theta[slots], slots)
         in_front = q[:, 2] > 0.1 * np.abs(q[:, 3])
         q[~in_front, 2] = np.abs(q[~in_front, 3]) + 1.0  # placeholder, those rows are gated out
         Ks = self.camera.Ks
-        dz_dq = Ks @ dpi_dq(q)  # (k,4,4)
-        dz_dimu = dz_dq @ self._cam_T_imu  # (k,4,4): d z / d s_imu
+        residual = pixels - pi(q) @ Ks.T
+        if self.config.first_estimate_jacobians:
+            # FEJ (Huang, Mourikis & Roumeliotis 2008): linearize at each landmark's first estimate,
+            # so the unobservable directions get no spurious information
+            q, dw_dtheta = self._project(mu_inv, self._theta_first[slots], slots)
+            q[~in_front, 2] = np.abs(q[~in_front, 3]) + 1.0
+        s_imu = q @ self._imu_T_cam.T
+        dz_dimu = Ks @ dpi_dq(q) @ self._cam_T_imu  # (k,4,4): d z / d s_imu
         H_theta = dz_dimu @ dw_dtheta
         if self._estimate_pose:
             H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
             H_xi = np.zeros((slots.size, 4, 6))
-        residual = pixels - pi(q) @ Ks.T
         return residual, H_xi, H_theta, in_front
+
+    def _project(self, mu_inv: np.ndarray, theta: np.ndarray, slots: np.ndarray):
+        """q = cam_T_imu mu^-1 A (e + B theta) (k,4) and d(mu^-1 w)/d theta ((4,3) or (k,4,3))."""
+        local = landmarks.local_point(self._kind, theta)
+        if self._kind == "xyz":  # anchors are the identity
+            w_world = local
+            dw_dtheta = mu_inv @ landmarks.basis(self._kind)  # the same for every landmark
+        else:
+            anchors = self._anchors[slots]
+            w_world = np.einsum("kij,kj->ki", anchors, local)
+            dw_dtheta = mu_inv @ anchors @ landmarks.basis(self._kind)
+        return w_world @ (self._cam_T_imu @ mu_inv).T, dw_dtheta
 
     def _innovation(self, slots: np.ndarray, pixels: np.ndarray):
         """Residuals r (k,4), P H^T (D,4k), S = H P H^T + R (4k,4k), per-observation NIS (k,), in-front mask."""
@@ -509,6 +519,7 @@ class VisualInertialEKF:
         self.P = P_new
         self._ids = np.concatenate([self._ids, ids])
         self._theta = np.concatenate([self._theta, theta])
+        self._theta_first = np.concatenate([self._theta_first, theta])
         self._anchors = np.concatenate([self._anchors, anchors])
         self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
         self._reindex()
@@ -536,6 +547,7 @@ class VisualInertialEKF:
         self.P = self.P[np.ix_(keep, keep)]
         self._ids = self._ids[keep_lm]
         self._theta = self._theta[keep_lm]
+        self._theta_first = self._theta_first[keep_lm]
         self._anchors = self._anchors[keep_lm]
         self._gated_run = self._gated_run[keep_lm]
         self._reindex()

@@ -145,12 +145,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the numbers as JSON")
     p.set_defaults(func=cmd_eval)
 
-    try:
-        from tools import demo  # noqa: F401  (present once synth/ exists)
-    except ImportError:
-        pass
-    else:
-        demo.add_parsers(sub)
+    from tools import demo, mc
+
+    demo.add_parsers(sub)
+    mc.add_parsers(sub)
     return parser
 
 

@@ -1,0 +1,474 @@
+"""Monte Carlo consistency of the filter on synthetic scenes: NEES and NIS against their chi-square bands.
+
+A filter is consistent when its errors are as large as its covariance says (Bar-Shalom, Li and
+Kirubarajan 2001, ch. 5.4). Over R independent runs on the same scene:
+
+* pose NEES at step k: xi^T P^-1 xi with xi = log(mu^-1 T_true), the right perturbation of the
+  filter (T = mu exp(xi^)), P = the 6x6 pose block of the covariance. For a consistent filter it
+  is chi2(6), so the average over R runs times R is chi2(6R): the two-sided 95 % band of the
+  average is [chi2.ppf(0.025, 6R) / R, chi2.ppf(0.975, 6R) / R]. About 95 % of the steps should
+  lie in it (the first ``skip`` steps, where the pose is still at its near-zero prior, are left out).
+* landmark NEES: e^T C^-1 e (3 dof) for every mapped landmark of every run, with the band of the
+  average of that many chi2(3) values. Landmarks of one run share the pose errors they were seen
+  with, so they are not independent: the band is then too narrow and only a guide.
+* NIS: the EKF's r_i^T S_ii^-1 r_i per used stereo observation (4 dof) with the band of the
+  average over all used observations. The observations that pass the chi-square gate (and the
+  1-point RANSAC) are a truncated sample, so a consistent filter gives a little less than 4.
+
+Runs differ only in their noise: the trajectory and the landmarks come from
+``scene_config.seed``; the pixel noise, track cuts, outliers and IMU noise of run i from the
+noise seed ``seed0 + i`` (synth draws each from its own random stream of a seed, see
+:func:`scene_with_noise`).
+
+The runner takes any ``concurrent.futures.Executor``-like object (``submit`` returning futures
+with ``result()``); by default a process pool over every core. :func:`run_one` is a top-level
+function of picklable arguments, so any process-based executor can run it.
+
+synth is imported inside the functions that need it (backend does not depend on synth otherwise).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+import numpy as np
+from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
+
+from backend import se3
+from backend.config import FilterConfig
+from backend.errors import ConfigError
+
+#: Steps left out of the band statistics (the pose starts at its near-zero prior covariance).
+SKIP_STEPS = 10
+BAND_PROBABILITY = 0.95
+
+
+# ---------------------------------------------------------------------------------------- NEES
+
+
+def pose_nees(mu: np.ndarray, P_pose: np.ndarray, T_true: np.ndarray) -> float:
+    """xi^T P^-1 xi with xi = log(mu^-1 T_true) (6 dof; right perturbation T = mu exp(xi^)).
+
+    inf when ``P_pose`` is singular.
+    """
+    xi = se3.log_se3(se3.inverse(mu) @ T_true)
+    try:
+        L = np.linalg.cholesky(np.asarray(P_pose, dtype=float))
+    except np.linalg.LinAlgError:
+        return float("inf")
+    w = np.linalg.solve(L, xi)
+    return float(w @ w)
+
+
+def landmark_nees(positions: np.ndarray, covariances: np.ndarray, true_positions: np.ndarray) -> np.ndarray:
+    """e_j^T C_j^-1 e_j (3 dof) for estimates (K,3) with covariances (K,3,3) against the truth (K,3)."""
+    e = np.asarray(positions, dtype=float) - np.asarray(true_positions, dtype=float)
+    C = np.asarray(covariances, dtype=float)
+    if e.shape[0] == 0:
+        return np.zeros(0)
+    try:
+        return np.einsum("ki,ki->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+    except np.linalg.LinAlgError:  # a singular covariance among them: one at a time
+        out = np.full(e.shape[0], np.inf)
+        for j in range(e.shape[0]):
+            try:
+                out[j] = e[j] @ np.linalg.solve(C[j], e[j])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
+    """Two-sided band of the average of ``count`` independent chi2(``dof``) values."""
+    if count <= 0:
+        return (float("nan"), float("nan"))
+    tail = 0.5 * (1.0 - probability)
+    return (float(chi2.ppf(tail, dof * count) / count), float(chi2.ppf(1.0 - tail, dof * count) / count))
+
+
+# ---------------------------------------------------------------------------------------- one run
+
+
+def scene_with_noise(scene_config, noise_seed: int):
+    """The scene of ``scene_config`` with the noise of ``noise_seed``.
+
+    Trajectory and landmark points come from ``scene_config.seed``; pixel noise, track cuts,
+    outliers and IMU noise (gyro-bias walk included) from ``noise_seed``, each from the stream
+    synth.make_scene uses. So ``scene_with_noise(c, c.seed)`` equals ``make_scene(c)`` array for
+    array, and runs with different noise seeds share the geometry (the set of tracks differs,
+    since the track cuts and the visibility of noisy pixels are part of the noise).
+    """
+    from backend.sequence import validate_sequence
+    from synth._random import generator
+    from synth.imu import measure_velocities
+    from synth.observe import observe
+    from synth.scene import make_scene
+
+    cfg = scene_config
+    base = make_scene(cfg)
+    obs = observe(
+        base.world_T_imu_true,
+        base.points,
+        cfg.calibration,
+        pixel_sigma=cfg.pixel_sigma,
+        outlier_share=cfg.outlier_share,
+        mean_track_length=cfg.mean_track_length,
+        min_depth=cfg.min_depth,
+        max_depth=cfg.max_depth,
+        seed=int(noise_seed),
+    )
+    imu = measure_velocities(
+        base.twists_true,
+        base.sequence.time_stamps,
+        generator(int(noise_seed), "imu"),
+        linear_sigma=cfg.linear_sigma,
+        angular_sigma=cfg.angular_sigma,
+        gyro_bias=cfg.gyro_bias,
+        gyro_bias_walk=cfg.gyro_bias_walk,
+        velocity_index=cfg.velocity_index,
+    )
+    num_tracks = obs.point_index.shape[0]
+    sequence = dataclasses.replace(
+        base.sequence,
+        linear_velocity=np.ascontiguousarray(imu.linear_velocity),
+        angular_velocity=np.ascontiguousarray(imu.angular_velocity),
+        obs_ptr=obs.obs_ptr,
+        obs_ids=obs.obs_ids,
+        obs_pixels=obs.obs_pixels,
+        num_features=num_tracks,
+        source=f"{cfg.source}:noise{int(noise_seed)}",
+    )
+    validate_sequence(sequence)
+    return dataclasses.replace(
+        base,
+        sequence=sequence,
+        landmark_ids=np.arange(num_tracks, dtype=np.int64),
+        landmark_positions=base.points[obs.point_index],
+        landmark_point_index=obs.point_index,
+        gyro_bias_true=imu.gyro_bias,
+        outlier=obs.outlier,
+    )
+
+
+@dataclass
+class RunTrace:
+    """What one Monte Carlo run measured (small: travels back from a worker process)."""
+
+    noise_seed: int
+    pose_nees: np.ndarray  # (N,) per step, 6 dof
+    nis_sum: np.ndarray  # (N,) per step, sum over the used observations (4 dof each)
+    nis_count: np.ndarray  # (N,) int, used observations per step
+    landmark_nees: np.ndarray  # (K,) mapped landmarks (3 dof each), in id order
+    # Final-trajectory position RMSE against the truth WITHOUT alignment (m): the truth and both
+    # estimates start at the identity, so the raw error is the drift the filter reports against.
+    ate_estimate: float
+    ate_dead_reckoning: float
+    observations_gated: int = 0
+    conventions: str = ""  # decided by backend.pipeline.prepare, e.g. "flip=no,velocity=this"
+    health_messages: list = field(default_factory=list)
+    wall_seconds: float = 0.0
+
+    @property
+    def steps(self) -> int:
+        return int(self.pose_nees.shape[0])
+
+    @property
+    def mean_nis(self) -> float:
+        used = int(self.nis_count.sum())
+        return float(self.nis_sum.sum() / used) if used else float("nan")
+
+
+def _position_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
+    d = estimate[:, :3, 3] - truth[:, :3, 3]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def run_one(scene_config, filter_config: FilterConfig, noise_seed: Optional[int] = None) -> RunTrace:
+    """One run: build the scene (noise from ``noise_seed``, default ``scene_config.seed``, i.e.
+    exactly ``make_scene(scene_config)``), run the filter over it as backend.pipeline.run_sequence
+    does (conventions and IMU noise by ``prepare``, update at step 0, then predict + update per
+    step, the same repeated-frame policy) and record the NEES and NIS.
+
+    BLAS is limited to one thread and the filter's health warnings are kept in the trace
+    instead of being printed (safe under a thread pool too: see :func:`monte_carlo`).
+    """
+    from backend.camera import StereoCamera
+    from backend.ekf import POSE, ImuNoise, VisualInertialEKF
+    from backend.imu import dead_reckoning, step_velocities
+    from backend.pipeline import prepare
+    from backend.timing import repeated_steps
+
+    t0 = time.perf_counter()
+    seed = scene_config.seed if noise_seed is None else int(noise_seed)
+    config = filter_config.validate()
+    with threadpool_limits(limits=1), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        scene = scene_with_noise(scene_config, seed)
+        seq = scene.sequence
+        conventions, noise = prepare(seq, config)
+        ekf = VisualInertialEKF(
+            StereoCamera(seq.K, seq.baseline),
+            conventions.imu_T_cam,
+            config,
+            ImuNoise(noise.linear_sigma, noise.angular_sigma),
+            expected_landmarks=seq.num_features,
+        )
+        v_steps, w_steps = step_velocities(seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
+        n = seq.num_steps
+        truth = scene.world_T_imu_true
+        nees = np.empty(n)
+        nis_sum = np.zeros(n)
+        nis_count = np.zeros(n, dtype=np.int64)
+        poses = np.empty((n, 4, 4))
+        gated = 0
+        repeated = repeated_steps(seq)
+        dts = np.diff(seq.time_stamps)
+
+        for k in range(n):
+            if k > 0:
+                ekf.predict(dts[k - 1], v_steps[k - 1], w_steps[k - 1])
+            if not repeated[k] or config.repeated_frames == "use":
+                stats = ekf.update(*seq.observations(k))
+                nis_sum[k] = stats.nis_sum
+                nis_count[k] = stats.used
+                gated += stats.gated
+            elif config.repeated_frames == "cut":
+                ekf.finish()
+            poses[k] = ekf.world_T_imu
+            nees[k] = pose_nees(ekf.world_T_imu, ekf.P[POSE, POSE], truth[k])
+        ekf.finish()
+
+        ids, positions, covariances = ekf.landmark_map()
+        # scene.landmark_ids is arange(K): an id is its row of landmark_positions
+        lm_nees = landmark_nees(positions, covariances, scene.landmark_positions[ids])
+        dr = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
+    return RunTrace(
+        noise_seed=seed,
+        pose_nees=nees,
+        nis_sum=nis_sum,
+        nis_count=nis_count,
+        landmark_nees=lm_nees,
+        ate_estimate=_position_rmse(poses, truth),
+        ate_dead_reckoning=_position_rmse(dr, truth),
+        observations_gated=gated,
+        conventions=f"flip={'yes' if conventions.imu_flip else 'no'},velocity={conventions.velocity_index}",
+        health_messages=list(ekf.health.messages),
+        wall_seconds=time.perf_counter() - t0,
+    )
+
+
+# ---------------------------------------------------------------------------------------- many runs
+
+
+@dataclass
+class ConsistencyResult:
+    """NEES and NIS over R runs against their 95 % chi-square bands (module docstring)."""
+
+    runs: int
+    steps: int
+    skip: int  # first steps left out of the band share and the time averages
+    pose_nees_mean: np.ndarray  # (N,) average over the runs at each step
+    pose_nees_band: tuple  # band of the average of R chi2(6)
+    pose_nees_in_band: float  # share of steps >= skip whose average lies in the band
+    pose_nees_time_average: float  # mean over steps >= skip of pose_nees_mean (expectation 6)
+    landmark_nees_mean: float  # over every mapped landmark of every run (expectation 3)
+    landmark_count: int
+    landmark_nees_band: tuple
+    nis_mean: float  # per used observation over every run (expectation 4, a little less after gating)
+    nis_count: int
+    nis_band: tuple
+    nis_per_step: np.ndarray  # (N,) NIS per used observation at each step over the runs (nan: none used)
+    ate_estimate: np.ndarray  # (R,) m, unaligned position RMSE (RunTrace)
+    ate_dead_reckoning: np.ndarray  # (R,)
+    noise_seeds: list
+    per_run_pose_nees: np.ndarray  # (R,) time average of each run's pose NEES (steps >= skip)
+    per_run_nis: np.ndarray  # (R,) each run's NIS per observation
+    observations_gated: int = 0
+    conventions: dict = field(default_factory=dict)  # decision -> number of runs
+    health_messages: dict = field(default_factory=dict)  # noise seed -> messages (runs with any)
+    wall_seconds: float = 0.0
+    scene: dict = field(default_factory=dict)
+    filter: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "runs": self.runs,
+            "steps": self.steps,
+            "skip_steps": self.skip,
+            "band_probability": BAND_PROBABILITY,
+            "pose_nees": {
+                "dof": 6,
+                "time_average": self.pose_nees_time_average,
+                "band_of_run_average": list(self.pose_nees_band),
+                "share_of_steps_in_band": self.pose_nees_in_band,
+                "mean_per_step": self.pose_nees_mean,
+                "per_run_time_average": self.per_run_pose_nees,
+            },
+            "landmark_nees": {
+                "dof": 3,
+                "mean": self.landmark_nees_mean,
+                "count": self.landmark_count,
+                "band": list(self.landmark_nees_band),
+            },
+            "nis": {
+                "dof": 4,
+                "mean_per_observation": self.nis_mean,
+                "count": self.nis_count,
+                "band": list(self.nis_band),
+                "observations_gated": self.observations_gated,
+                "mean_per_step": self.nis_per_step,
+                "per_run": self.per_run_nis,
+            },
+            "ate_unaligned_m": {
+                "estimate_mean": float(np.mean(self.ate_estimate)) if self.runs else None,
+                "dead_reckoning_mean": float(np.mean(self.ate_dead_reckoning)) if self.runs else None,
+                "estimate": self.ate_estimate,
+                "dead_reckoning": self.ate_dead_reckoning,
+            },
+            "noise_seeds": self.noise_seeds,
+            "conventions": self.conventions,
+            "health_messages": self.health_messages,
+            "wall_seconds": self.wall_seconds,
+            "scene": self.scene,
+            "filter": self.filter,
+        }
+
+    def summary_lines(self) -> list[str]:
+        """Three lines: pose NEES, landmark NEES, NIS, each against its 95 % band."""
+        lo, hi = self.pose_nees_band
+        llo, lhi = self.landmark_nees_band
+        nlo, nhi = self.nis_band
+        return [
+            f"pose NEES (6 dof): {100 * self.pose_nees_in_band:.0f} % of steps {self.skip}..{self.steps - 1} in the "
+            f"95 % band [{lo:.2f}, {hi:.2f}] of the {self.runs}-run average; time average {self.pose_nees_time_average:.2f}",
+            f"landmark NEES (3 dof): mean {self.landmark_nees_mean:.2f} over {self.landmark_count} landmarks, "
+            f"band [{llo:.3f}, {lhi:.3f}] (if independent)",
+            f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}, band [{nlo:.3f}, {nhi:.3f}]",
+        ]
+
+
+def summarize(traces: list[RunTrace], skip: int = SKIP_STEPS) -> ConsistencyResult:
+    """Combine the runs' traces (all of the same length) into a :class:`ConsistencyResult`."""
+    if not traces:
+        raise ValueError("no runs to summarize")
+    steps = traces[0].steps
+    if any(t.steps != steps for t in traces):
+        raise ValueError("runs of different lengths")
+    R = len(traces)
+    nees = np.stack([t.pose_nees for t in traces])  # (R,N)
+    mean = nees.mean(axis=0)
+    band = average_band(6, R)
+    tail = mean[skip:] if steps > skip else mean
+    in_band = float(np.mean((tail >= band[0]) & (tail <= band[1]))) if tail.size else float("nan")
+    lm = np.concatenate([t.landmark_nees for t in traces])
+    nis_sum = np.stack([t.nis_sum for t in traces]).sum(axis=0)
+    nis_cnt = np.stack([t.nis_count for t in traces]).sum(axis=0)
+    total = int(nis_cnt.sum())
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nis_step = np.where(nis_cnt > 0, nis_sum / np.maximum(nis_cnt, 1), np.nan)
+    conventions: dict[str, int] = {}
+    for t in traces:
+        conventions[t.conventions] = conventions.get(t.conventions, 0) + 1
+    return ConsistencyResult(
+        runs=R,
+        steps=steps,
+        skip=min(skip, steps),
+        pose_nees_mean=mean,
+        pose_nees_band=band,
+        pose_nees_in_band=in_band,
+        pose_nees_time_average=float(tail.mean()) if tail.size else float("nan"),
+        landmark_nees_mean=float(lm.mean()) if lm.size else float("nan"),
+        landmark_count=int(lm.size),
+        landmark_nees_band=average_band(3, int(lm.size)),
+        nis_mean=float(nis_sum.sum() / total) if total else float("nan"),
+        nis_count=total,
+        nis_band=average_band(4, total),
+        nis_per_step=nis_step,
+        ate_estimate=np.array([t.ate_estimate for t in traces]),
+        ate_dead_reckoning=np.array([t.ate_dead_reckoning for t in traces]),
+        noise_seeds=[t.noise_seed for t in traces],
+        per_run_pose_nees=np.array([(t.pose_nees[skip:] if steps > skip else t.pose_nees).mean() for t in traces]),
+        per_run_nis=np.array([t.mean_nis for t in traces]),
+        observations_gated=int(sum(t.observations_gated for t in traces)),
+        conventions=conventions,
+        health_messages={str(t.noise_seed): t.health_messages for t in traces if t.health_messages},
+    )
+
+
+def _scene_dict(scene_config) -> dict[str, Any]:
+    return {f.name: getattr(scene_config, f.name) for f in dataclasses.fields(scene_config) if f.name != "calibration"}
+
+
+def _finished(futures: list):
+    """The futures as they finish (concurrent.futures ones), else in submission order."""
+    if all(isinstance(f, concurrent.futures.Future) for f in futures):
+        return concurrent.futures.as_completed(futures)
+    return iter(futures)
+
+
+def monte_carlo(
+    scene_config,
+    filter_config: FilterConfig,
+    runs: int,
+    seed0: int = 0,
+    executor: Optional[concurrent.futures.Executor] = None,
+    progress: Optional[Callable[[int], None]] = None,
+    skip: int = SKIP_STEPS,
+) -> ConsistencyResult:
+    """``runs`` runs of :func:`run_one` with the noise seeds ``seed0 .. seed0 + runs - 1`` (the geometry
+    stays that of ``scene_config.seed``), summarized.
+
+    ``executor``: any object with the ``concurrent.futures.Executor`` interface (``submit``); it is
+    used as is and not shut down. Default: a ``ProcessPoolExecutor`` over ``os.cpu_count()``
+    workers, created and shut down here. ``progress(finished)`` is called with the number of runs
+    finished so far, once per run.
+
+    BLAS thread limits and warning filters are process-wide; they are set here too (one BLAS
+    thread, health warnings off) so that the runs' own nested settings, which a thread pool
+    interleaves, save and restore only these values and leave the caller's as they were.
+    """
+    if runs < 1:
+        raise ConfigError(f"monte carlo: runs must be >= 1, got {runs!r}")
+    if filter_config.validate().mode != "slam":
+        raise ConfigError(f"monte carlo consistency needs mode 'slam' (the pose covariance), got {filter_config.mode!r}")
+    seeds = [int(seed0) + i for i in range(int(runs))]
+    own = executor is None
+    if own:
+        executor = concurrent.futures.ProcessPoolExecutor(max_workers=min(os.cpu_count() or 1, len(seeds)))
+    t0 = time.perf_counter()
+    traces: list[RunTrace] = []
+    completed = False
+    try:
+        with threadpool_limits(limits=1), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            futures = [executor.submit(run_one, scene_config, filter_config, s) for s in seeds]
+            seed_of = {id(f): s for f, s in zip(futures, seeds)}
+            try:
+                for fut in _finished(futures):
+                    try:
+                        traces.append(fut.result())
+                    except Exception as exc:
+                        raise RuntimeError(f"monte carlo run with noise seed {seed_of[id(fut)]} failed: {exc}") from exc
+                    if progress is not None:
+                        progress(len(traces))
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+        completed = True
+    finally:
+        if own:
+            executor.shutdown(wait=True, cancel_futures=not completed)
+    traces.sort(key=lambda t: t.noise_seed)
+    result = summarize(traces, skip)
+    result.wall_seconds = time.perf_counter() - t0
+    result.scene = _scene_dict(scene_config)
+    result.filter = filter_config.as_dict()
+    return result
