@@ -192,74 +192,49 @@ def _position_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
 
 def run_one(scene_config, filter_config: FilterConfig, noise_seed: Optional[int] = None) -> RunTrace:
     """One run: build the scene (noise from ``noise_seed``, default ``scene_config.seed``, i.e.
-    exactly ``make_scene(scene_config)``), run the filter over it as backend.pipeline.run_sequence
-    does (conventions and IMU noise by ``prepare``, update at step 0, then predict + update per
-    step, the same repeated-frame policy) and record the NEES and NIS.
+    exactly ``make_scene(scene_config)``), run backend.pipeline.run_sequence over it and record
+    the NEES and NIS through its observer hook.
 
-    BLAS is limited to one thread and the filter's health warnings are kept in the trace
-    instead of being printed (safe under a thread pool too: see :func:`monte_carlo`).
+    BLAS threads follow ``filter_config.blas_threads`` (1) and the filter's health warnings are
+    kept in the trace instead of being printed (safe under a thread pool too: see
+    :func:`monte_carlo`).
     """
-    from backend.camera import StereoCamera
-    from backend.ekf import POSE, ImuNoise, VisualInertialEKF
-    from backend.imu import dead_reckoning, step_velocities
-    from backend.pipeline import prepare
-    from backend.timing import repeated_steps
+    from backend.ekf import POSE
+    from backend.pipeline import run_sequence
 
     t0 = time.perf_counter()
     seed = scene_config.seed if noise_seed is None else int(noise_seed)
     config = filter_config.validate()
-    with threadpool_limits(limits=1), warnings.catch_warnings():
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         scene = scene_with_noise(scene_config, seed)
-        seq = scene.sequence
-        conventions, noise = prepare(seq, config)
-        ekf = VisualInertialEKF(
-            StereoCamera(seq.K, seq.baseline),
-            conventions.imu_T_cam,
-            config,
-            ImuNoise(noise.linear_sigma, noise.angular_sigma),
-            expected_landmarks=seq.num_features,
-        )
-        v_steps, w_steps = step_velocities(seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
-        n = seq.num_steps
         truth = scene.world_T_imu_true
+        n = scene.sequence.num_steps
         nees = np.empty(n)
         nis_sum = np.zeros(n)
         nis_count = np.zeros(n, dtype=np.int64)
-        poses = np.empty((n, 4, 4))
-        gated = 0
-        repeated = repeated_steps(seq)
-        dts = np.diff(seq.time_stamps)
 
-        for k in range(n):
-            if k > 0:
-                ekf.predict(dts[k - 1], v_steps[k - 1], w_steps[k - 1])
-            if not repeated[k] or config.repeated_frames == "use":
-                stats = ekf.update(*seq.observations(k))
-                nis_sum[k] = stats.nis_sum
-                nis_count[k] = stats.used
-                gated += stats.gated
-            elif config.repeated_frames == "cut":
-                ekf.finish()
-            poses[k] = ekf.world_T_imu
+        def record(k, ekf, step_stats) -> None:
             nees[k] = pose_nees(ekf.world_T_imu, ekf.P[POSE, POSE], truth[k])
-        ekf.finish()
+            if step_stats is not None:
+                nis_sum[k] = step_stats.nis_sum
+                nis_count[k] = step_stats.used
 
-        ids, positions, covariances = ekf.landmark_map()
+        result = run_sequence(scene.sequence, config, observer=record)  # one BLAS thread by config
         # scene.landmark_ids is arange(K): an id is its row of landmark_positions
-        lm_nees = landmark_nees(positions, covariances, scene.landmark_positions[ids])
-        dr = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
+        lm_nees = landmark_nees(result.map_positions, result.map_covariances, scene.landmark_positions[result.map_ids])
+    conventions = result.conventions
     return RunTrace(
         noise_seed=seed,
         pose_nees=nees,
         nis_sum=nis_sum,
         nis_count=nis_count,
         landmark_nees=lm_nees,
-        ate_estimate=_position_rmse(poses, truth),
-        ate_dead_reckoning=_position_rmse(dr, truth),
-        observations_gated=gated,
+        ate_estimate=_position_rmse(result.world_T_imu, truth),
+        ate_dead_reckoning=_position_rmse(result.dead_reckoning, truth),
+        observations_gated=result.stats.observations_gated,
         conventions=f"flip={'yes' if conventions.imu_flip else 'no'},velocity={conventions.velocity_index}",
-        health_messages=list(ekf.health.messages),
+        health_messages=list(result.stats.health_messages),
         wall_seconds=time.perf_counter() - t0,
     )
 

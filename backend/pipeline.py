@@ -16,7 +16,7 @@ from threadpoolctl import threadpool_limits
 from backend.camera import StereoCamera
 from backend.config import FilterConfig
 from backend.conventions import ConventionDecision, decide_conventions
-from backend.ekf import ImuNoise, VisualInertialEKF
+from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
 from backend.imu import NoiseDecision, dead_reckoning, decide_imu_noise, step_velocities
 from backend.sequence import Sequence
@@ -92,10 +92,13 @@ def run_sequence(
     config: FilterConfig,
     progress: Optional[Callable[[int], None]] = None,
     decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
+    observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
 ) -> RunResult:
     """Run the filter over every step and every observation of ``seq``.
 
-    ``progress(k)`` is called after each step; ``decisions`` skips :func:`prepare`.
+    ``progress(k)`` is called after each step; ``observer(k, ekf, step_stats)`` too, with the
+    filter itself (step_stats is None where the step's observations were not used);
+    ``decisions`` skips :func:`prepare`.
     """
     config.validate()
     if seq.num_steps < 2:
@@ -137,10 +140,14 @@ def run_sequence(
 
         def step(k: int) -> None:
             """Use the observations of step k as the repeated-frame policy says (backend.timing)."""
+            step_stats = None
             if not repeated[k] or policy == "use":
-                absorb(ekf.update(*seq.observations(k)))
+                step_stats = ekf.update(*seq.observations(k))
+                absorb(step_stats)
             elif policy == "cut":
                 ekf.finish()  # no track bridges a stalled camera
+            if observer is not None:
+                observer(k, ekf, step_stats)
 
         t_loop = time.perf_counter()
         step(0)
