@@ -42,6 +42,7 @@ from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
 from backend import se3
+from backend.ekf import block_nis
 from backend.config import FilterConfig
 from backend.errors import ConfigError
 
@@ -73,16 +74,7 @@ def landmark_nees(positions: np.ndarray, covariances: np.ndarray, true_positions
     C = np.asarray(covariances, dtype=float)
     if e.shape[0] == 0:
         return np.zeros(0)
-    try:
-        return np.einsum("ki,ki->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
-    except np.linalg.LinAlgError:  # a singular covariance among them: one at a time
-        out = np.full(e.shape[0], np.inf)
-        for j in range(e.shape[0]):
-            try:
-                out[j] = e[j] @ np.linalg.solve(C[j], e[j])
-            except np.linalg.LinAlgError:
-                pass
-        return out
+    return block_nis(C, e)
 
 
 def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
@@ -105,56 +97,9 @@ def scene_with_noise(scene_config, noise_seed: int):
     array, and runs with different noise seeds share the geometry (the set of tracks differs,
     since the track cuts and the visibility of noisy pixels are part of the noise).
     """
-    from backend.sequence import validate_sequence
-    from synth._random import generator
-    from synth.imu import measure_velocities
-    from synth.observe import observe
     from synth.scene import make_scene
 
-    cfg = scene_config
-    base = make_scene(cfg)
-    obs = observe(
-        base.world_T_imu_true,
-        base.points,
-        cfg.calibration,
-        pixel_sigma=cfg.pixel_sigma,
-        outlier_share=cfg.outlier_share,
-        mean_track_length=cfg.mean_track_length,
-        min_depth=cfg.min_depth,
-        max_depth=cfg.max_depth,
-        seed=int(noise_seed),
-    )
-    imu = measure_velocities(
-        base.twists_true,
-        base.sequence.time_stamps,
-        generator(int(noise_seed), "imu"),
-        linear_sigma=cfg.linear_sigma,
-        angular_sigma=cfg.angular_sigma,
-        gyro_bias=cfg.gyro_bias,
-        gyro_bias_walk=cfg.gyro_bias_walk,
-        velocity_index=cfg.velocity_index,
-    )
-    num_tracks = obs.point_index.shape[0]
-    sequence = dataclasses.replace(
-        base.sequence,
-        linear_velocity=np.ascontiguousarray(imu.linear_velocity),
-        angular_velocity=np.ascontiguousarray(imu.angular_velocity),
-        obs_ptr=obs.obs_ptr,
-        obs_ids=obs.obs_ids,
-        obs_pixels=obs.obs_pixels,
-        num_features=num_tracks,
-        source=f"{cfg.source}:noise{int(noise_seed)}",
-    )
-    validate_sequence(sequence)
-    return dataclasses.replace(
-        base,
-        sequence=sequence,
-        landmark_ids=np.arange(num_tracks, dtype=np.int64),
-        landmark_positions=base.points[obs.point_index],
-        landmark_point_index=obs.point_index,
-        gyro_bias_true=imu.gyro_bias,
-        outlier=obs.outlier,
-    )
+    return make_scene(scene_config, noise_seed=noise_seed)
 
 
 @dataclass

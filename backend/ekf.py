@@ -68,7 +68,7 @@ def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
-    """r_i^T B_i^-1 r_i for (k,4,4) blocks and (k,4) residuals; inf where a block is singular."""
+    """r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals; inf where a block is singular."""
     try:
         return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
     except np.linalg.LinAlgError:

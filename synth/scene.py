@@ -106,10 +106,16 @@ class Scene:
         return self.config.calibration.image_size
 
 
-def make_scene(config: SceneConfig | None = None) -> Scene:
-    """Build the scene described by ``config`` (default: the 500-step street, seed 0)."""
+def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None) -> Scene:
+    """Build the scene described by ``config`` (default: the 500-step street, seed 0).
+
+    Trajectory and landmark points come from ``config.seed``; pixel noise, track cuts, outliers
+    and IMU noise from ``noise_seed`` (default: ``config.seed``), each from its own random stream,
+    so Monte Carlo runs can share the geometry and differ only in the noise.
+    """
     cfg = SceneConfig() if config is None else config
     seed = int(cfg.seed)
+    noise = seed if noise_seed is None else int(noise_seed)
     traj = TRAJECTORIES[cfg.scenario](int(cfg.steps), cfg.dt, generator(seed, "trajectory"))
     points = LANDMARKS[cfg.scenario](traj.world_T_imu, generator(seed, "landmarks"), density=cfg.landmark_density)
     obs = observe(
@@ -121,12 +127,12 @@ def make_scene(config: SceneConfig | None = None) -> Scene:
         mean_track_length=cfg.mean_track_length,
         min_depth=cfg.min_depth,
         max_depth=cfg.max_depth,
-        seed=seed,
+        seed=noise,
     )
     imu = measure_velocities(
         traj.twists,
         traj.time_stamps,
-        generator(seed, "imu"),
+        generator(noise, "imu"),
         linear_sigma=cfg.linear_sigma,
         angular_sigma=cfg.angular_sigma,
         gyro_bias=cfg.gyro_bias,
@@ -146,7 +152,7 @@ def make_scene(config: SceneConfig | None = None) -> Scene:
         obs_ids=obs.obs_ids,
         obs_pixels=obs.obs_pixels,
         num_features=num_tracks,
-        source=cfg.source,
+        source=cfg.source if noise == seed else f"{cfg.source}:noise{noise}",
         layout="2022",
         dropped={"nonpositive_disparity": 0, "outside_image": 0},
     )
