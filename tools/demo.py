@@ -9,6 +9,8 @@ import warnings
 
 import numpy as np
 
+from backend.errors import VislamError
+
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from synth.scene import SceneConfig, make_scene, write_scene
@@ -18,8 +20,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
     scene = make_scene(SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed))
     write_scene(scene, out)
     seq = scene.sequence
+    wrote = "data.npz, gt_tum.txt, landmarks.npz"
+    if args.render:
+        if args.scenario != "street":
+            raise VislamError("--render: only the street scenario has a textured world so far")
+        from synth.render import write_kitti_sequence
+
+        write_kitti_sequence(out, scene)
+        wrote += ", image_0/, image_1/, calib.txt, times.txt, poses.txt (KITTI odometry layout)"
     print(f"{args.scenario} scene, seed {args.seed}: {seq.num_steps} steps, {seq.num_observations} observations "
-          f"of {scene.landmark_ids.size} tracks; wrote data.npz, gt_tum.txt, landmarks.npz to {out}/")
+          f"of {scene.landmark_ids.size} tracks; wrote {wrote} to {out}/")
     return 0
 
 
@@ -73,6 +83,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True)
     p.add_argument("--force", action="store_true")
+    p.add_argument("--render", action="store_true", help="also render rectified stereo images (KITTI odometry layout)")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("demo", help="synthetic street scene -> SLAM -> evaluation, every output (the README's first command)")
