@@ -64,7 +64,6 @@ class FilterConfig:
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     first_estimate_jacobians: bool = True  # linearize observations at each landmark's first estimate (FEJ)
-    loo_gate: bool = False  # leave-one-out chi-square test of the observations kept
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
     repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
 

@@ -63,7 +63,7 @@ def matched_pairs(seq: Sequence, horizon: int = 3, min_disparity: float = 1.0) -
 
 def reprojection_error(
     seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str, horizon: int = 3,
-    min_disparity: float = 1.0, pairs: MatchedPairs | None = None,
+    min_disparity: float = 1.0, pairs: MatchedPairs | None = None, poses: np.ndarray | None = None,
 ) -> float:
     """Median left-image error (px) of points triangulated at k and reprojected at k+horizon,
     carried by dead reckoning: p_b = cam_T_imu T_b^-1 T_a imu_T_cam p_a."""
@@ -71,7 +71,8 @@ def reprojection_error(
     if pairs.step.size == 0:
         return float("nan")
     camera = StereoCamera(seq.K, seq.baseline)
-    poses = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
+    if poses is None:
+        poses = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
     b_T_a = se3.inverse(imu_T_cam) @ se3.inverse(poses[pairs.horizon :]) @ poses[: -pairs.horizon] @ imu_T_cam
     T = b_T_a[pairs.step]
     p_b = np.einsum("pij,pj->pi", T[:, :3, :3], pairs.p_cam) + T[:, :3, 3]
@@ -135,9 +136,10 @@ def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: st
     errors: dict[str, float] = {}
     if len(flips) * len(indices) > 1:
         pairs = matched_pairs(seq, horizon)
+        poses = {i: dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, i) for i in indices}
         for flip, index in itertools.product(flips, indices):
             extrinsic = flipped_extrinsic(seq.imu_T_cam) if flip else seq.imu_T_cam
-            errors[_key(flip, index)] = reprojection_error(seq, extrinsic, index, horizon, pairs=pairs)
+            errors[_key(flip, index)] = reprojection_error(seq, extrinsic, index, horizon, pairs=pairs, poses=poses[index])
         finite = {k: v for k, v in errors.items() if np.isfinite(v)}
         best = min(finite, key=finite.get) if finite else _key(flips[0], indices[0])
     else:

@@ -47,7 +47,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import get_lapack_funcs, solve_triangular
+from scipy.linalg import get_lapack_funcs
 from scipy.stats import chi2
 
 from backend import landmarks, se3
@@ -184,7 +184,6 @@ class VisualInertialEKF:
         self.config = config.validate()
         self.imu_T_cam = np.array(imu_T_cam, dtype=float)
         self._cam_T_imu = se3.inverse(self.imu_T_cam)
-        self._imu_T_cam = self.imu_T_cam
         self.imu_noise = imu_noise
         self._estimate_pose = config.mode == "slam"
         self._use_vision = config.mode != "dead-reckoning"
@@ -247,11 +246,12 @@ class VisualInertialEKF:
         self.step_index += 1
         u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.gyro_bias])
         twist = dt * u
-        self.mu = self.mu @ se3.exp_se3(twist)
+        step = se3.exp_se3(twist)
+        self.mu = self.mu @ step
         if not self._estimate_pose:
             return
         Phi = np.eye(CORE)
-        Phi[POSE, POSE] = se3.exp_curly(-twist)
+        Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
         if self.config.estimate_gyro_bias:
             Phi[POSE, BIAS] = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
         P = self.P
@@ -307,7 +307,7 @@ class VisualInertialEKF:
             # so the unobservable directions get no spurious information
             q, dw_dtheta = self._project(mu_inv, self._theta_first[slots], slots)
             q[~in_front, 2] = np.abs(q[~in_front, 3]) + 1.0
-        s_imu = q @ self._imu_T_cam.T
+        s_imu = q @ self.imu_T_cam.T
         dz_dimu = Ks @ dpi_dq(q) @ self._cam_T_imu  # (k,4,4): d z / d s_imu
         H_theta = dz_dimu @ dw_dtheta
         if self._estimate_pose:
@@ -365,8 +365,6 @@ class VisualInertialEKF:
         """Gate, select a consistent set (1-point RANSAC), rescue the rest, then one joint update."""
         residual, PHt, S, nis, in_front = self._innovation(slots, pixels)
         use = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
-        if self.config.loo_gate and use.sum() >= 3:
-            use = self._posterior_gate(S, residual, use)
         A = w = None
         try:
             if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
@@ -455,29 +453,6 @@ class VisualInertialEKF:
         best = int(np.argmax(support - 1e-6 * np.minimum(err, 1e6).sum(axis=0) / (m * 1e3)))
         out = np.zeros_like(candidates)
         out[idx[within[:, best]]] = True
-        return out
-
-    def _posterior_gate(self, S: np.ndarray, residual: np.ndarray, inlier: np.ndarray) -> np.ndarray:
-        """Leave-one-out test of the prior-gated observations (one pass).
-
-        With all others used, observation i has the standardized residual
-        e_i = (S^-1 r)_i  with covariance  (S^-1)_ii,  so  e_i^T (S^-1)_ii^-1 e_i ~ chi2(4).
-        It catches features that agree with the prior pose but not with the other features
-        (e.g. on a car driving ahead), which the prior gate lets through while the pose is uncertain.
-        """
-        idx = np.flatnonzero(inlier)
-        if idx.size < 3:
-            return inlier
-        rows = (4 * idx[:, None] + np.arange(4)).ravel()
-        L = self._cholesky(S[np.ix_(rows, rows)])
-        L_inv = solve_triangular(L, np.eye(rows.size), lower=True, check_finite=False)
-        e = (L_inv.T @ (L_inv @ residual[idx].ravel())).reshape(-1, 4)
-        # diagonal 4x4 blocks of S^-1 = L^-T L^-1
-        cols = L_inv.reshape(rows.size, idx.size, 4).transpose(1, 0, 2)  # (k, 4k, 4)
-        blocks = cols.transpose(0, 2, 1) @ cols
-        loo = np.einsum("ki,ki->k", e, np.linalg.solve(blocks, e[:, :, None])[:, :, 0])
-        out = inlier.copy()
-        out[idx[loo > self._gate]] = False
         return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:

@@ -536,7 +536,7 @@ def test_dead_reckoning_mode_makes_no_map(seq60):
 @pytest.mark.parametrize("robust", [True, False], ids=["ransac", "chi2-only"])
 def test_outlier_is_gated(robust):
     drive = make_drive(30, seed=4)
-    config = slam_config() if robust else slam_config(ransac_threshold_px=0.0, loo_gate=False)
+    config = slam_config() if robust else slam_config(ransac_threshold_px=0.0)
     k_bad = 20
     bad_id = []
 
