@@ -26,6 +26,7 @@ MODES = ("slam", "mapping", "dead-reckoning")
 IMU_FLIP_CHOICES = ("auto", "yes", "no")
 VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
 REPEATED_FRAME_CHOICES = ("use", "skip", "cut")
+ERROR_MODELS = ("invariant", "body")
 
 
 @dataclass
@@ -37,6 +38,7 @@ class FilterConfig:
     full_state: bool = False  # keep every landmark in the state (course formulation) instead of marginalizing ended tracks
     max_state_mib: float = 256.0  # refuse --full-state when the dense covariance would exceed this (~1900 landmarks)
     estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk)
+    gyro_bias_min_observations: float = 10.0  # ... only with at least this many stereo observations per step on average
 
     # --- data conventions (checked by backend.conventions)
     imu_flip: str = "auto"  # auto | yes | no: flip the IMU's y and z axes, diag(1,-1,-1,1) @ imu_T_cam
@@ -63,7 +65,8 @@ class FilterConfig:
     max_depth: Optional[float] = 1000.0  # m: ... and nearer than this (xyz variance grows as depth^4; None: no limit)
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
-    first_estimate_jacobians: bool = True  # linearize observations at each landmark's first estimate (FEJ)
+    error_model: str = "invariant"  # invariant (right-invariant, xyz landmarks; backend.invariant) | body (mu exp(xi^))
+    first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
     repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
 
@@ -81,6 +84,12 @@ class FilterConfig:
         _choice("velocity_index", self.velocity_index, VELOCITY_INDEX_CHOICES)
         _choice("landmark_parametrization", self.landmark_parametrization, PARAMETRIZATIONS)
         _choice("repeated_frames", self.repeated_frames, REPEATED_FRAME_CHOICES)
+        _choice("error_model", self.error_model, ERROR_MODELS)
+        if self.error_model == "invariant" and self.landmark_parametrization != "xyz":
+            raise ConfigError(
+                "config key 'error_model': 'invariant' needs landmark_parametrization 'xyz'; "
+                f"use error_model 'body' with {self.landmark_parametrization!r}"
+            )
         positive = [
             "pixel_sigma", "linear_velocity_sigma_floor", "angular_velocity_sigma_floor",
             "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma",

@@ -50,7 +50,7 @@ import numpy as np
 from scipy.linalg import get_lapack_funcs
 from scipy.stats import chi2
 
-from backend import landmarks, se3
+from backend import invariant, landmarks, se3
 from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
@@ -187,6 +187,7 @@ class VisualInertialEKF:
         self.imu_noise = imu_noise
         self._estimate_pose = config.mode == "slam"
         self._use_vision = config.mode != "dead-reckoning"
+        self._invariant = config.error_model == "invariant"  # backend.invariant; else the body error above
         if config.full_state and expected_landmarks is not None:
             self.check_full_state_size(expected_landmarks, config)
 
@@ -223,7 +224,10 @@ class VisualInertialEKF:
 
     @property
     def pose_covariance(self) -> np.ndarray:
-        return self.P[POSE, POSE]
+        """6x6 covariance of the right perturbation world_T_imu = mu exp(xi^), whatever the error model."""
+        if self._invariant:
+            return invariant.body_pose_covariance(self.mu, self.P[POSE, POSE])
+        return self.P[POSE, POSE].copy()
 
     @property
     def num_active(self) -> int:
@@ -250,6 +254,9 @@ class VisualInertialEKF:
         self.mu = self.mu @ step
         if not self._estimate_pose:
             return
+        if self._invariant:
+            self._predict_invariant(dt, twist)
+            return
         Phi = np.eye(CORE)
         Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
         if self.config.estimate_gyro_bias:
@@ -264,6 +271,24 @@ class VisualInertialEKF:
         P[np.arange(6), np.arange(6)] += diag
         if self.config.estimate_gyro_bias:
             P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
+
+    def _predict_invariant(self, dt: float, twist: np.ndarray) -> None:
+        """P <- F P F^T + G Q G^T with F = I + [-tau G_omega at the bias columns] (backend.invariant, I2)."""
+        P = self.P
+        G_pose, G_lm = invariant.noise_jacobian(self.mu, twist, self._theta)
+        G = np.concatenate([G_pose, np.zeros((3, 6)), G_lm.reshape(-1, 6)])  # (D,6)
+        if self.config.estimate_gyro_bias:
+            g = -dt * G[:, 3:6]  # d xi / d b_g
+            C = P[:, BIAS].copy()
+            gC = g @ C.T
+            P += gC + gC.T + g @ (C[BIAS] @ g.T)
+        noise = self.imu_noise
+        q = np.concatenate([noise.linear_sigma**2, noise.angular_sigma**2]) * dt * dt
+        P += (G * q) @ G.T
+        if self.config.estimate_gyro_bias:
+            P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
+        P += P.T
+        P *= 0.5
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -297,6 +322,8 @@ class VisualInertialEKF:
         Homogeneous form of backend.landmarks: q = cam_T_imu mu^-1 A (e + B theta), z = Ks pi(q).
         """
         mu_inv = se3.inverse(self.mu)
+        if self._invariant:
+            return self._observation_model_invariant(mu_inv, slots, pixels)
         q, dw_dtheta = self._project(mu_inv, self._theta[slots], slots)
         in_front = q[:, 2] > 0.1 * np.abs(q[:, 3])
         q[~in_front, 2] = np.abs(q[~in_front, 3]) + 1.0  # placeholder, those rows are gated out
@@ -314,6 +341,20 @@ class VisualInertialEKF:
             H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
             H_xi = np.zeros((slots.size, 4, 6))
+        return residual, H_xi, H_theta, in_front
+
+    def _observation_model_invariant(self, mu_inv: np.ndarray, slots: np.ndarray, pixels: np.ndarray):
+        """(I3) of backend.invariant: dz/drho = -M, dz/dphi = 0, dz/dzeta = M at the current estimate."""
+        cam_T_world = self._cam_T_imu @ mu_inv
+        q = self._theta[slots] @ cam_T_world[:, :3].T + cam_T_world[:, 3]  # (k,4) homogeneous, q4 = 1
+        in_front = q[:, 2] > 0.1
+        q[~in_front, 2] = 1.0  # placeholder, those rows are gated out
+        Ks = self.camera.Ks
+        residual = pixels - pi(q) @ Ks.T
+        M = Ks @ dpi_dq(q) @ cam_T_world[:, :3]  # (k,4,3): dz / d(world point)
+        H_xi, H_theta = invariant.observation_jacobian(M)
+        if not self._estimate_pose:
+            H_xi = np.zeros_like(H_xi)
         return residual, H_xi, H_theta, in_front
 
     def _project(self, mu_inv: np.ndarray, theta: np.ndarray, slots: np.ndarray):
@@ -456,6 +497,10 @@ class VisualInertialEKF:
         return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:
+        if self._invariant:
+            self.mu, self._theta = invariant.retract(self.mu, self._theta, dx[POSE], dx[CORE:])
+            self.gyro_bias = self.gyro_bias + dx[BIAS]
+            return
         if self._estimate_pose:
             self.mu = self.mu @ se3.exp_se3(dx[POSE])
             self.gyro_bias = self.gyro_bias + dx[BIAS]
@@ -476,6 +521,8 @@ class VisualInertialEKF:
         ids, pixels = ids[ok], pixels[ok]
         n = ids.size
         theta, anchors, J_z, J_xi = landmarks.initialize(self._kind, self.camera, pixels, self.mu, self.imu_T_cam)
+        if self._invariant:
+            J_xi = invariant.initialization_pose_jacobian(n)  # (I4)
         new_cov = self._R_pix * (J_z @ J_z.transpose(0, 2, 1))  # (n,3,3) pixel part
         D = self.P.shape[0]
         P_new = np.zeros((D + 3 * n, D + 3 * n))
@@ -501,8 +548,13 @@ class VisualInertialEKF:
         stats.initialized = n
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
+        """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
         diag = CORE + 3 * slots[:, None] + np.arange(3)
-        return self.P[diag[:, :, None], diag[:, None, :]]
+        P_zeta = self.P[diag[:, :, None], diag[:, None, :]]
+        if not self._invariant:
+            return P_zeta
+        P_phi_zeta = self.P[3:6][:, diag].transpose(1, 0, 2)  # (k,3,3)
+        return invariant.world_covariances(self._theta[slots], self.P[3:6, 3:6], P_phi_zeta, P_zeta)
 
     def _to_map(self, slots: np.ndarray) -> None:
         """Append the world-frame estimates of ``slots`` to the map (points at infinity are left out)."""

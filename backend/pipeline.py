@@ -6,6 +6,7 @@ Decides the data conventions and the IMU noise first (both recorded), then steps
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -83,6 +84,9 @@ def prepare(seq: Sequence, config: FilterConfig) -> tuple[ConventionDecision, No
         config.angular_velocity_sigma,
         config.linear_velocity_sigma_floor,
         config.angular_velocity_sigma_floor,
+        config.estimate_gyro_bias,
+        seq.num_observations / max(seq.num_steps, 1),
+        config.gyro_bias_min_observations,
     )
     return conventions, noise
 
@@ -111,7 +115,7 @@ def run_sequence(
         ekf = VisualInertialEKF(
             StereoCamera(seq.K, seq.baseline),
             conventions.imu_T_cam,
-            config,
+            config if noise.gyro_bias == config.estimate_gyro_bias else dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias),
             ImuNoise(noise.linear_sigma, noise.angular_sigma),
             expected_landmarks=seq.num_features,
         )

@@ -152,6 +152,8 @@ def slam_config(**kw) -> FilterConfig:
     values = dict(pixel_sigma=PIX_SIGMA, linear_velocity_sigma=LIN_SIGMA, angular_velocity_sigma=ANG_SIGMA,
                   imu_flip="no", velocity_index="this")
     values.update(kw)
+    if values.get("landmark_parametrization", "xyz") != "xyz":
+        values.setdefault("error_model", "body")  # the invariant error needs world xyz landmarks
     return FilterConfig(**values).validate()
 
 
@@ -195,7 +197,7 @@ def drive200() -> Drive:
 def test_prediction_mean(dt, v, w, bias):
     rng = np.random.default_rng(3)
     mu0 = random_pose(rng)
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(), NOISE, world_T_imu=mu0)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(error_model="body"), NOISE, world_T_imu=mu0)
     ekf.gyro_bias = np.array(bias, dtype=float)
     ekf.predict(dt, np.array(v), np.array(w))
     expected = mu0 @ se3.exp_se3(dt * np.concatenate([v, np.subtract(w, bias)]))
@@ -204,7 +206,7 @@ def test_prediction_mean(dt, v, w, bias):
 
 def _pose_only_filter(rng, P0: np.ndarray, mu0: np.ndarray) -> VisualInertialEKF:
     tiny = ImuNoise(np.full(3, 1e-12), np.full(3, 1e-12))
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=False), tiny, world_T_imu=mu0)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=False, error_model="body"), tiny, world_T_imu=mu0)
     ekf.P[:] = 0.0
     ekf.P[POSE, POSE] = P0
     return ekf
@@ -242,7 +244,7 @@ def test_gyro_bias_jacobian():
     dt, v, w = 0.4, np.array([7.0, 0.3, -0.1]), np.array([0.2, -0.5, 0.9])
 
     def filter_with_bias(bias):
-        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=True), NOISE, world_T_imu=mu0)
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=True, error_model="body"), NOISE, world_T_imu=mu0)
         ekf.P[:] = 0.0
         ekf.P[BIAS, BIAS] = sigma_b**2 * np.eye(3)
         ekf.gyro_bias = np.array(bias, dtype=float)
@@ -299,7 +301,7 @@ def _pixels(mu: np.ndarray, w_world: np.ndarray) -> np.ndarray:
 def test_observation_jacobians(kind):
     rng = np.random.default_rng(7)
     mu0 = random_pose(rng)
-    config = FilterConfig(landmark_parametrization=kind)
+    config = FilterConfig(landmark_parametrization=kind, error_model="body")
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE, world_T_imu=mu0)
     ekf.P[POSE, POSE] = random_spd(rng, 6, 1e-4)
     p_cam = np.array([[2.0, -1.0, 15.0], [-6.0, 0.5, 8.0], [0.3, 1.2, 35.0], [9.0, -2.0, 22.0]])
@@ -344,7 +346,7 @@ def test_landmark_initialization(kind):
     rng = np.random.default_rng(9)
     mu0 = random_pose(rng)
     sigma_pix = 0.8
-    config = FilterConfig(landmark_parametrization=kind, pixel_sigma=sigma_pix)
+    config = FilterConfig(landmark_parametrization=kind, pixel_sigma=sigma_pix, error_model="body")
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE, world_T_imu=mu0)
     P_core = random_spd(rng, CORE, 1e-3)  # pose and gyro bias, correlated
     ekf.P[:] = P_core
@@ -438,8 +440,9 @@ def test_covariance_exactly_symmetric_after_every_step():
     assert asymmetric_steps == []
 
 
-def test_slam_beats_dead_reckoning(drive200):
-    ekf, poses, stats = run_filter(drive200, slam_config())
+@pytest.mark.parametrize("error_model", ["invariant", "body"])
+def test_slam_beats_dead_reckoning(drive200, error_model):
+    ekf, poses, stats = run_filter(drive200, slam_config(error_model=error_model))
     truth = drive200.poses
     dr = dead_reckoning(drive200.t, drive200.v_meas, drive200.w_meas, "this")
     err_slam = np.linalg.norm(poses[-1, :3, 3] - truth[-1, :3, 3])
@@ -466,13 +469,14 @@ def seq60() -> Sequence:
     return to_sequence(make_drive(60, seed=2, density=1.2, track=(2, 12)))
 
 
-def test_full_state_matches_marginalized(seq60):
+@pytest.mark.parametrize("error_model", ["invariant", "body"])
+def test_full_state_matches_marginalized(seq60, error_model):
     steps = np.repeat(np.arange(seq60.num_steps), np.diff(seq60.obs_ptr))
     for i in np.unique(seq60.obs_ids):  # no landmark is seen again after its track ends
         seen = steps[seq60.obs_ids == i]
         assert seen[-1] - seen[0] == seen.size - 1
-    marg = run_sequence(seq60, slam_config(full_state=False))
-    full = run_sequence(seq60, slam_config(full_state=True))
+    marg = run_sequence(seq60, slam_config(full_state=False, error_model=error_model))
+    full = run_sequence(seq60, slam_config(full_state=True, error_model=error_model))
     assert marg.stats.observations_used > 500
     assert full.stats.active_landmarks_max > 2 * marg.stats.active_landmarks_max
     assert marg.stats.observations_used == full.stats.observations_used

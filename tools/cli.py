@@ -80,16 +80,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from backend.conventions import decide_conventions
-    from backend.imu import decide_imu_noise
+    from backend.pipeline import prepare
     from backend.sequence import load_sequence
     from backend.timing import repeated_steps
 
     seq = load_sequence(args.data)
     defaults = FilterConfig()
-    decision = decide_conventions(seq, "auto", "auto", defaults.convention_horizon)
-    noise = decide_imu_noise(seq.linear_velocity, seq.angular_velocity, None, None,
-                             defaults.linear_velocity_sigma_floor, defaults.angular_velocity_sigma_floor)
+    decision, noise = prepare(seq, defaults)
     per_step = np.diff(seq.obs_ptr)
     print(f"{args.data}: {seq.layout} layout, {seq.num_steps} steps over "
           f"{seq.time_stamps[-1] - seq.time_stamps[0]:.1f} s, {seq.num_features} features, "

@@ -17,11 +17,15 @@ import numpy as np
 __all__ = ["add_parsers", "cmd_mc", "plot_consistency"]
 
 
-def _filter_config(args: argparse.Namespace, pixel_sigma: float):
-    """Defaults with the scene's pixel_sigma < --config TOML < --set KEY=VALUE."""
+def _filter_config(args: argparse.Namespace, scene_config):
+    """Defaults with the scene's noise (pixel, velocity) < --config TOML < --set KEY=VALUE."""
     from backend.config import FilterConfig, apply_overrides, load_config
 
-    base = FilterConfig(pixel_sigma=pixel_sigma)
+    base = FilterConfig(
+        pixel_sigma=scene_config.pixel_sigma,
+        linear_velocity_sigma=float(np.max(scene_config.linear_sigma)),
+        angular_velocity_sigma=float(np.max(scene_config.angular_sigma)),
+    )
     config = load_config(args.config, base) if getattr(args, "config", None) else base
     return apply_overrides(config, list(getattr(args, "set", None) or [])).validate()
 
@@ -79,7 +83,7 @@ def cmd_mc(args: argparse.Namespace) -> int:
         seed=args.seed,
         landmark_density=getattr(args, "landmark_density", 1.0),
     )
-    config = _filter_config(args, scene_config.pixel_sigma)
+    config = _filter_config(args, scene_config)
     out = outputs.prepare_output_dir(args.out, args.force)
     workers = getattr(args, "workers", None) or os.cpu_count() or 1
     executor = None

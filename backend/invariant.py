@@ -1,0 +1,99 @@
+"""Right-invariant error of the pose and the world-xyz landmarks (pure functions).
+
+Barrau & Bonnabel, "An EKF-SLAM algorithm with consistency properties" (arXiv 1510.06263, 2015)
+and "The invariant extended Kalman filter as a stable observer" (IEEE TAC 2017). Pose and
+landmarks together are one element of SE_{K+1}(3),
+
+    X = (R, p, m_1 .. m_K),   X1 X2 = (R1 R2, R1 p2 + p1, R1 m2_i + m1_i),
+
+and the error is E = X X_hat^-1 = exp(xi) with xi = (rho, phi, zeta_1 .. zeta_K):
+
+    R = exp(phi^) R_hat,  p = exp(phi^) p_hat + J_l(phi) rho,  m_i = exp(phi^) m_hat_i + J_l(phi) zeta_i   (I1)
+
+so to first order  dp = rho + phi x p_hat,  dm_i = zeta_i + phi x m_hat_i  (a world-frame error
+that moves the landmarks with the pose's rotation). With body-frame velocity inputs the error
+does not depend on the estimate:
+
+- Prediction  T_{k+1} = T_k exp(tau (u - b - n)^),  landmarks static:
+
+      xi_{k+1} = xi_k + G (J_r(tau u_hat) tau (-[0; db] - n)),   G = Ad_X(X_hat_{k+1}) on pose vectors   (I2)
+
+  where Ad_X of a pose vector (rho, phi) is  (R rho + p^ R phi, R phi; m_i^ R phi for each i).
+  The pose-pose Jacobian is the identity: the error is autonomous; noise and bias enter through G.
+- Observation  s = T^-1 m = T_hat^-1 E^-1 m ~ T_hat^-1 (m_hat + zeta - rho):
+
+      dz/drho = -M,   dz/dphi = 0,   dz/dzeta = M,   M = Ks dpi/dq cam_T_imu T_hat^-1 [I; 0]        (I3)
+
+  No rotation column: a rotation of the whole world is unobservable for every estimate, which is
+  why this filter needs no first-estimate Jacobians.
+- Landmark initialization  m = T g(z):  zeta = rho + R_hat imu_R_cam dg/dz dz  (no phi column).   (I4)
+- Correction  X_hat <- exp(dx) X_hat, i.e. (I1) with (rho, phi, zeta) = dx.                       (I5)
+- World covariance of a landmark:  dm = zeta - m_hat^ phi.                                       (I6)
+- Body-frame (right) pose error  xi_body = Ad(T_hat^-1) (rho, phi).                              (I7)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from backend import se3
+
+
+def _hat_batch(v: np.ndarray) -> np.ndarray:
+    """(n,3) -> (n,3,3) skew matrices."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.ndarray):
+    """G J_r(twist) of (I2): how a body-twist error d (6,) moves the error state.
+
+    Returns (pose rows (6,6), landmark rows (K,3,6)); xi_{k+1} = xi_k + [pose; landmarks] @ d.
+    """
+    J = se3.right_jacobian_se3(twist)
+    pose = se3.adjoint(world_T_imu_next) @ J
+    R_phi = world_T_imu_next[:3, :3] @ J[3:6]  # (3,6): world-frame rotation error per unit d
+    lm = _hat_batch(np.asarray(points, dtype=float)) @ R_phi
+    return pose, lm
+
+
+def observation_jacobian(dz_dworld: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(I3): from M = dz/d(world point) (k,4,3) to (H_pose (k,4,6), H_landmark (k,4,3))."""
+    H_pose = np.zeros(dz_dworld.shape[:-1] + (6,))
+    H_pose[..., :3] = -dz_dworld
+    return H_pose, dz_dworld
+
+
+def initialization_pose_jacobian(n: int) -> np.ndarray:
+    """(I4): d zeta / d (rho, phi) of n new landmarks, (n,3,6) = [I 0]."""
+    J = np.zeros((n, 3, 6))
+    J[:, :, :3] = np.eye(3)
+    return J
+
+
+def retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_points: np.ndarray):
+    """(I5): exp(dx) X_hat for the pose (4,4) and the landmarks (K,3); returns new copies."""
+    R_d = se3.exp_so3(d_pose[3:])
+    J_l = se3.left_jacobian_so3(d_pose[3:])
+    pose = se3.exp_se3(d_pose) @ world_T_imu
+    pts = np.asarray(points) @ R_d.T + np.asarray(d_points).reshape(-1, 3) @ J_l.T
+    return pose, pts
+
+
+def world_covariances(points: np.ndarray, P_phi: np.ndarray, P_phi_zeta: np.ndarray, P_zeta: np.ndarray) -> np.ndarray:
+    """(I6): covariances (K,3,3) of the world positions from Cov(phi) (3,3), Cov(phi, zeta_i) (K,3,3)
+    and Cov(zeta_i) (K,3,3)."""
+    A = -_hat_batch(np.asarray(points, dtype=float))  # d m / d phi
+    cross = A @ P_phi_zeta  # (K,3,3)
+    cov = A @ P_phi @ A.transpose(0, 2, 1) + cross + cross.transpose(0, 2, 1) + P_zeta
+    return 0.5 * (cov + cov.transpose(0, 2, 1))
+
+
+def body_pose_covariance(world_T_imu: np.ndarray, P_pose: np.ndarray) -> np.ndarray:
+    """(I7): the 6x6 covariance of the right perturbation world_T_imu = mu exp(xi^)."""
+    A = se3.adjoint(se3.inverse(world_T_imu))
+    out = A @ P_pose @ A.T
+    return 0.5 * (out + out.T)

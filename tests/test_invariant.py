@@ -1,0 +1,245 @@
+"""The right-invariant error model (backend.invariant, error_model = "invariant"): every Jacobian
+against finite differences of the error definition (I1), and the structural property it exists for.
+
+Error of an estimate (mu, m_hat) against a truth (T, m):  E = X X_hat^-1, i.e.
+(rho, phi) = log(T mu^-1) and zeta = J_l(phi)^-1 (m - exp(phi^) m_hat).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
+
+from backend import invariant, se3
+from backend.config import FilterConfig
+from backend.ekf import BIAS, CORE, POSE, ImuNoise, VisualInertialEKF
+from helpers import numeric_jacobian
+from test_ekf import CAMERA, IMU_T_CAM, NOISE, homogeneous, random_pose, random_spd, rel_err
+
+CONFIG = FilterConfig(error_model="invariant", landmark_parametrization="xyz")
+
+
+@pytest.fixture(autouse=True)
+def _single_blas_thread():
+    with threadpool_limits(limits=1):
+        yield
+
+
+def pose_error(T: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """(rho, phi) of T = exp(xi^) mu."""
+    return se3.log_se3(T @ se3.inverse(mu))
+
+
+def landmark_error(m: np.ndarray, m_hat: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """zeta of (I1): m = exp(phi^) m_hat + J_l(phi) zeta."""
+    return np.linalg.solve(se3.left_jacobian_so3(phi), m - se3.exp_so3(phi) @ m_hat)
+
+
+def _filter(mu0, bias=np.zeros(3), estimate_bias=True, noise=NOISE) -> VisualInertialEKF:
+    from dataclasses import replace
+
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, replace(CONFIG, estimate_gyro_bias=estimate_bias), noise, world_T_imu=mu0)
+    ekf.gyro_bias = np.array(bias, dtype=float)
+    return ekf
+
+
+def test_config_refuses_invariant_with_inverse_depth():
+    from backend.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="error_model"):
+        FilterConfig(error_model="invariant", landmark_parametrization="inverse-depth").validate()
+
+
+def test_prediction_leaves_the_error_unchanged_and_adds_mapped_noise():
+    """(I2): with no noise the error is autonomous (F = I); the noise enters through G."""
+    rng = np.random.default_rng(1)
+    mu0 = random_pose(rng)
+    dt, v, w = 0.4, np.array([7.0, 0.4, -0.2]), np.array([0.3, -0.2, 0.8])
+    twist = dt * np.concatenate([v, w])
+    ekf = _filter(mu0, estimate_bias=False)
+    P0 = random_spd(rng, 6, 1e-3)
+    ekf.P[POSE, POSE] = P0
+    ekf.predict(dt, v, w)
+    mu1 = ekf.world_T_imu
+    # exact, not only to first order: exp(x) mu0 step (mu0 step)^-1 = exp(x)
+    x = rng.multivariate_normal(np.zeros(6), P0)
+    np.testing.assert_allclose(pose_error(se3.exp_se3(x) @ mu0 @ se3.exp_se3(twist), mu1), x, atol=1e-10)
+
+    J_fd = numeric_jacobian(lambda n: pose_error(mu0 @ se3.exp_se3(twist + n), mu1), np.zeros(6), 1e-7)
+    G_pose, _ = invariant.noise_jacobian(mu1, twist, np.zeros((0, 3)))
+    assert rel_err(G_pose, J_fd) < 1e-6
+    Q = np.diag(np.concatenate([NOISE.linear_sigma**2, NOISE.angular_sigma**2]) * dt * dt)
+    np.testing.assert_allclose(ekf.P[POSE, POSE], P0 + G_pose @ Q @ G_pose.T, rtol=1e-10, atol=1e-18)
+
+
+def test_noise_moves_landmark_errors_with_the_rotation():
+    """(I2) landmark rows: a static landmark's zeta changes by m_hat^ phi when the pose error turns by phi."""
+    rng = np.random.default_rng(2)
+    mu0 = random_pose(rng)
+    twist = 0.3 * np.array([6.0, 0.2, 0.1, 0.2, -0.4, 0.7])
+    mu1 = mu0 @ se3.exp_se3(twist)
+    points = rng.normal(0.0, 20.0, (3, 3))
+    _, G_lm = invariant.noise_jacobian(mu1, twist, points)
+    for i, m in enumerate(points):  # truth = estimate for the landmark; only the pose noise n differs
+
+        def zeta(n, m=m):
+            phi = pose_error(mu0 @ se3.exp_se3(twist + n), mu1)[3:]
+            return landmark_error(m, m, phi)
+
+        assert rel_err(G_lm[i], numeric_jacobian(zeta, np.zeros(6), 1e-7)) < 1e-6
+
+
+def test_gyro_bias_jacobian_and_cross_covariance():
+    rng = np.random.default_rng(3)
+    mu0 = random_pose(rng)
+    sigma_b, bias0 = 0.01, np.array([0.002, -0.004, 0.003])
+    dt, v, w = 0.4, np.array([7.0, 0.3, -0.1]), np.array([0.2, -0.5, 0.9])
+    ekf = _filter(mu0, bias0)
+    ekf.P[:] = 0.0
+    ekf.P[BIAS, BIAS] = sigma_b**2 * np.eye(3)
+    ekf.predict(dt, v, w)
+    mu1 = ekf.world_T_imu.copy()
+
+    def error(delta):  # the true bias is bias0 + delta
+        return pose_error(mu0 @ se3.exp_se3(dt * np.concatenate([v, w - bias0 - delta])), mu1)
+
+    J_fd = numeric_jacobian(error, np.zeros(3), 1e-7)
+    assert rel_err(ekf.P[POSE, BIAS], J_fd * sigma_b**2) < 1e-5
+    np.testing.assert_allclose(ekf.P[BIAS, POSE], ekf.P[POSE, BIAS].T, rtol=0, atol=0)
+
+
+def _filter_with_landmarks(rng):
+    mu0 = random_pose(rng)
+    ekf = _filter(mu0)
+    ekf.P[:CORE, :CORE] = random_spd(rng, CORE, 1e-4)
+    p_cam = np.array([[2.0, -1.0, 15.0], [-6.0, 0.5, 8.0], [0.3, 1.2, 35.0], [9.0, -2.0, 22.0]])
+    ids = np.array([3, 7, 8, 20])
+    assert ekf.update(ids, CAMERA.project(p_cam)).initialized == 4
+    ekf.predict(0.1, np.array([2.0, 0.1, 0.0]), np.array([0.02, -0.01, 0.05]))
+    return ekf, ids, p_cam
+
+
+def _pixels(T: np.ndarray, m: np.ndarray) -> np.ndarray:
+    q = se3.inverse(IMU_T_CAM) @ se3.inverse(T) @ homogeneous(m)
+    return CAMERA.Ks @ (q / q[2])
+
+
+def test_observation_jacobians_against_the_retraction():
+    """(I3) against finite differences of z(exp(dx) X_hat) with the retraction (I1)/(I5)."""
+    rng = np.random.default_rng(4)
+    ekf, ids, _ = _filter_with_landmarks(rng)
+    slots = np.array([ekf._slot[i] for i in ids])
+    z_meas = np.array([_pixels(ekf.world_T_imu, m) for m in ekf._theta[slots]]) + 2.0
+    residual, H_xi, H_m, in_front = ekf._observation_model(slots, z_meas)
+    assert in_front.all()
+    for k, slot in enumerate(slots):
+        others = np.zeros((ekf.num_active, 3))
+
+        def z_of(d_pose, d_lm, slot=slot):
+            pts = others.copy()
+            pts[slot] = d_lm
+            T, m = invariant.retract(ekf.world_T_imu, ekf._theta, d_pose, pts)
+            return _pixels(T, m[slot])
+
+        np.testing.assert_allclose(residual[k], z_meas[k] - z_of(np.zeros(6), np.zeros(3)), atol=1e-8)
+        J_pose = numeric_jacobian(lambda d: z_of(d, np.zeros(3)), np.zeros(6), 1e-6)
+        J_lm = numeric_jacobian(lambda d: z_of(np.zeros(6), d), np.zeros(3), 1e-6)
+        assert rel_err(H_xi[k], J_pose) < 1e-5
+        assert rel_err(H_m[k], J_lm) < 1e-5
+
+
+def test_global_rotation_and_translation_are_unobservable_at_any_estimate():
+    """The reason for the invariant error: moving the whole world (pose and landmarks) changes no
+    prediction, and H says so exactly at every estimate: no rotation column, rho = -zeta."""
+    rng = np.random.default_rng(5)
+    ekf, ids, _ = _filter_with_landmarks(rng)
+    for _ in range(3):  # several linearization points
+        ekf.mu = random_pose(rng, angle=0.3, spread=2.0) @ ekf.mu
+        slots = np.array([ekf._slot[i] for i in ids])
+        _, H_xi, H_m, _ = ekf._observation_model(slots, np.zeros((ids.size, 4)))
+        assert np.all(H_xi[:, :, 3:6] == 0.0)
+        np.testing.assert_allclose(H_xi[:, :, :3] + H_m, 0.0, atol=1e-12)
+        assert np.abs(H_m).max() > 1.0
+
+
+def test_initialization_and_map_covariance():
+    """(I4) and (I6): the map covariance of a new landmark equals J P J^T + J_z R J_z^T of the world
+    point m = exp(xi^) mu T_ic g(z), whatever the coordinates the state keeps it in."""
+    rng = np.random.default_rng(6)
+    mu0 = random_pose(rng)
+    sigma_pix = 0.8
+    from dataclasses import replace
+
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, replace(CONFIG, pixel_sigma=sigma_pix), NOISE, world_T_imu=mu0)
+    P_core = random_spd(rng, CORE, 1e-3)
+    ekf.P[:] = P_core
+    p_cam = np.array([[2.0, -1.0, 15.0], [-6.0, 0.5, 8.0], [0.3, 1.2, 35.0]])
+    z = CAMERA.project(p_cam) + rng.normal(0.0, 0.5, (3, 4))
+    ids = np.array([4, 10, 11])
+    assert ekf.update(ids, z).initialized == 3
+
+    def world(d, zi):
+        return (se3.exp_se3(d) @ mu0 @ IMU_T_CAM @ homogeneous(CAMERA.triangulate(zi)))[:3]
+
+    map_ids, map_pos, map_cov = ekf.landmark_map()
+    np.testing.assert_array_equal(map_ids, ids)
+    for i, zi in enumerate(z):
+        J_xi = numeric_jacobian(lambda d: world(d, zi), np.zeros(6), 1e-6)
+        J_z = numeric_jacobian(lambda zz: world(np.zeros(6), zz), zi, 1e-4)
+        expected = J_xi @ P_core[POSE, POSE] @ J_xi.T + sigma_pix**2 * J_z @ J_z.T
+        np.testing.assert_allclose(map_pos[i], world(np.zeros(6), zi), atol=1e-10)
+        assert rel_err(map_cov[i], expected) < 1e-4
+        # and the state's zeta: cross covariance with the pose and bias is that of rho (I4)
+        cols = CORE + 3 * ekf._slot[ids[i]] + np.arange(3)
+        np.testing.assert_allclose(ekf.P[cols, :CORE], P_core[:3, :], rtol=1e-12, atol=1e-18)
+
+
+def test_body_pose_covariance_is_the_adjoint_map():
+    """(I7): mu^-1 exp(xi^) mu = exp((Ad(mu^-1) xi)^) exactly, so samples give the same covariance."""
+    rng = np.random.default_rng(7)
+    mu = random_pose(rng)
+    P = random_spd(rng, 6, 1e-3)
+    xi = rng.multivariate_normal(np.zeros(6), P, size=500)
+    body = np.array([se3.log_se3(se3.inverse(mu) @ se3.exp_se3(x) @ mu) for x in xi])
+    expected = invariant.body_pose_covariance(mu, xi.T @ xi / len(xi))
+    np.testing.assert_allclose(body.T @ body / len(body), expected, rtol=0, atol=1e-10 * np.abs(expected).max())
+    ekf = _filter(mu)
+    ekf.P[POSE, POSE] = P
+    np.testing.assert_allclose(ekf.pose_covariance, invariant.body_pose_covariance(mu, P), rtol=1e-14, atol=0)
+
+
+def test_correction_is_the_group_exponential():
+    """(I5): retract with (rho, phi, zeta) gives back exactly that error, by the definition (I1)."""
+    rng = np.random.default_rng(8)
+    mu = random_pose(rng)
+    points = rng.normal(0.0, 10.0, (4, 3))
+    d_pose = np.concatenate([rng.normal(0, 0.5, 3), rng.normal(0, 0.3, 3)])
+    d_pts = rng.normal(0.0, 0.5, (4, 3))
+    T, m = invariant.retract(mu, points, d_pose, d_pts)
+    np.testing.assert_allclose(pose_error(T, mu), d_pose, atol=1e-10)
+    for i in range(4):
+        np.testing.assert_allclose(landmark_error(m[i], points[i], d_pose[3:]), d_pts[i], atol=1e-10)
+
+
+def test_prediction_keeps_covariance_symmetric_with_landmarks():
+    rng = np.random.default_rng(9)
+    ekf, _, _ = _filter_with_landmarks(rng)
+    for _ in range(20):
+        ekf.predict(0.1, np.array([8.0, 0.1, 0.0]), np.array([0.01, 0.02, 0.3]))
+        assert np.array_equal(ekf.P, ekf.P.T)
+    assert np.linalg.eigvalsh(ekf.P).min() > 0.0
+
+
+def test_prediction_without_noise_is_the_identity():
+    """No velocity noise and no bias uncertainty: F = I, so only the bias random walk is added."""
+    rng = np.random.default_rng(10)
+    tiny = ImuNoise(np.zeros(3), np.zeros(3))
+    ekf, _, _ = _filter_with_landmarks(rng)
+    ekf.imu_noise = tiny
+    ekf.P[BIAS, :] = 0.0
+    ekf.P[:, BIAS] = 0.0
+    before = ekf.P.copy()
+    ekf.predict(0.1, np.array([8.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.2]))
+    before[np.arange(6, 9), np.arange(6, 9)] += CONFIG.gyro_bias_random_walk**2 * 0.1
+    np.testing.assert_allclose(ekf.P, before, rtol=0, atol=1e-20)
