@@ -245,3 +245,13 @@ def ate_per_pose(
     if return_stamps:
         return np.array(est_aligned.timestamps, dtype=float), errors
     return errors
+
+
+def aligned_poses(
+    est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, sim3: bool = False, max_diff: float = 0.01
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps (M,), aligned estimate (M,4,4), ground truth (M,4,4)) of the matched poses, the
+    estimate moved onto the ground truth by the same alignment as :func:`trajectory_errors`."""
+    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    return (np.array(est_aligned.timestamps, dtype=float), np.array(est_aligned.poses_se3, dtype=float),
+            np.array(ref.poses_se3, dtype=float))

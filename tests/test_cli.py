@@ -30,7 +30,7 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     assert main(["run", str(short_0027), "--out", str(out), "--gt", str(gt), "--quiet"]) == 0
     names = {p.name for p in out.iterdir()}
     assert {"trajectory.txt", "dead_reckoning.txt", "map.npz", "map.ply", "trajectory.ply",
-            "trajectory.png", "summary.json", "config.toml"} <= names
+            "trajectory.png", "ate_over_time.png", "summary.json", "config.toml"} <= names
     assert not [n for n in names if ".tmp" in n]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 150
@@ -40,6 +40,11 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     evaluated = json.loads((tmp_path / "eval.json").read_text())
     assert evaluated["ate_rmse"] == pytest.approx(summary["errors"]["estimate"]["ate_rmse"], rel=1e-6)
     assert evaluated["num_matched"] == 150
+    # with --out: the JSON and both plots; an existing non-empty directory is refused
+    assert main(["eval", str(out / "trajectory.txt"), str(gt), "--out", str(tmp_path / "ev")]) == 0
+    assert {p.name for p in (tmp_path / "ev").iterdir()} == {"eval.json", "trajectories.png", "ate_over_time.png"}
+    assert json.loads((tmp_path / "ev" / "eval.json").read_text()) == evaluated
+    assert main(["eval", str(out / "trajectory.txt"), str(gt), "--out", str(tmp_path / "ev")]) == 2
     assert summary["timing"]["real_time_factor"] > 1
     # evo reads the trajectory
     from evo.tools import file_interface

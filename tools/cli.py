@@ -114,6 +114,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
           f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
     if args.json:
         outputs.write_json(args.json, d)
+    if args.out:
+        from backend.metrics import aligned_poses
+        from tools.plots import plot_trajectories_topdown
+        from tools.report import write_error_plot
+
+        out = outputs.prepare_output_dir(args.out, args.force)
+        _, est_aligned, ref = aligned_poses(est_t, est, gt_t, gt, sim3=args.sim3)
+        plot_trajectories_topdown(out / "trajectories.png", {"estimate (aligned)": est_aligned, "ground truth": ref},
+                                  title=f"{args.estimate} vs {args.ground_truth}")
+        write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
+        outputs.write_json(out / "eval.json", d)
+        print(f"outputs in {out}/ (eval.json, trajectories.png, ate_over_time.png)")
     return 0
 
 
@@ -140,6 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
     p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
     p.add_argument("--json", help="write the numbers as JSON")
+    p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned) and ate_over_time.png")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
     p.set_defaults(func=cmd_eval)
 
     from tools import demo, mc

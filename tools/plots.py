@@ -14,7 +14,7 @@ import numpy as np
 
 from tools.outputs import atomic_write
 
-__all__ = ["plot_trajectories_topdown", "plot_error_over_time"]
+__all__ = ["plot_trajectories_topdown", "plot_error_over_time", "plot_errors_over_time"]
 
 DPI = 150
 MAX_LANDMARKS_PLOTTED = 20000
@@ -117,18 +117,39 @@ def plot_error_over_time(
 ) -> None:
     """Line plot of ``errors`` (N,) over time since the first stamp (seconds), with the
     RMSE as a horizontal dashed line."""
-    t = np.asarray(time_stamps, dtype=float)
-    e = np.asarray(errors, dtype=float)
-    if t.ndim != 1 or e.shape != t.shape:
-        raise ValueError(f"time_stamps and errors must have the same shape (N,), got {t.shape} and {e.shape}")
+    plot_errors_over_time(path, {"error": (time_stamps, errors)}, title, ylabel)
+
+
+def plot_errors_over_time(
+    path: str | os.PathLike,
+    series: Mapping[str, tuple[Any, Any]],
+    title: str,
+    ylabel: str = "error [m]",
+) -> None:
+    """One line per named ``(time_stamps (N,), errors (N,))`` over time since the earliest stamp
+    (seconds), each with its RMSE as a dashed line of the same colour."""
+    checked = {}
+    for name, (time_stamps, errors) in series.items():
+        t = np.asarray(time_stamps, dtype=float)
+        e = np.asarray(errors, dtype=float)
+        if t.ndim != 1 or e.shape != t.shape:
+            raise ValueError(f"time_stamps and errors must have the same shape (N,), got {t.shape} and {e.shape}")
+        checked[name] = (t, e)
+    starts = [t[0] for t, _ in checked.values() if len(t)]
+    t0 = min(starts) if starts else 0.0
     fig = _new_figure((9.0, 4.0))
     ax = fig.add_subplot(1, 1, 1)
-    if len(t):
-        ax.plot(t - t[0], e, color="tab:blue", linewidth=1.0, label="error")
+    colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple"]
+    for i, (name, (t, e)) in enumerate(checked.items()):
+        if not len(t):
+            continue
+        color = colors[i % len(colors)]
         finite = e[np.isfinite(e)]
+        rmse = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("nan")
+        ax.plot(t - t0, e, color=color, linewidth=1.0, label=f"{name} (RMSE {rmse:.3g})")
         if len(finite):
-            rmse = float(np.sqrt(np.mean(finite**2)))
-            ax.axhline(rmse, color="tab:red", linestyle="--", linewidth=1.0, label=f"RMSE {rmse:.3g}")
+            ax.axhline(rmse, color=color, linestyle="--", linewidth=0.8)
+    if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize="small")
     ax.set_xlabel("time [s]")
     ax.set_ylabel(ylabel)

@@ -8,6 +8,7 @@
 | map.ply | landmarks coloured by uncertainty (viridis on log10 of the largest sigma: dark = certain, yellow = uncertain) |
 | trajectory.ply | the path as a line set coloured by time |
 | trajectory.png | top-down plot: dead reckoning, estimate, ground truth, landmarks |
+| ate_over_time.png | with ground truth: position error of each pose after SE(3) alignment, estimate and dead reckoning |
 | summary.json | counts, timings, decisions, configuration and (with ground truth) errors |
 | config.toml | the configuration used, loadable with --config |
 """
@@ -20,7 +21,7 @@ from typing import Optional
 import numpy as np
 
 from backend.config import to_toml
-from backend.metrics import trajectory_errors
+from backend.metrics import ate_per_pose, trajectory_errors
 from backend.pipeline import RunResult
 from tools import outputs, plots
 
@@ -94,11 +95,22 @@ def write_run_outputs(
         curves["ground truth"] = gt[1]
     plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, landmarks=result.map_positions,
                                     title=f"{Path(source).name}: {result.config.mode}")
+    if gt is not None:
+        write_error_plot(out_dir / "ate_over_time.png", {"estimate": result.world_T_imu, "dead reckoning": result.dead_reckoning},
+                         result.time_stamps, *gt)
     summary = summary_dict(result, source, errors)
     outputs.write_json(out_dir / "summary.json", summary)
     with outputs.atomic_write(out_dir / "config.toml") as tmp:
         tmp.write_text(to_toml(result.config))
     return summary
+
+
+def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t: np.ndarray, gt_poses: np.ndarray,
+                     sim3: bool = False) -> None:
+    """Position error over time of each named estimate (same stamps), each aligned to the ground truth."""
+    series = {name: ate_per_pose(time_stamps, poses, gt_t, gt_poses, sim3=sim3, return_stamps=True)
+              for name, poses in estimates.items()}
+    plots.plot_errors_over_time(path, series, f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment")
 
 
 def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
