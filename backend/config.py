@@ -61,6 +61,7 @@ class FilterConfig:
 
     # --- landmarks
     landmark_parametrization: str = "xyz"  # xyz | inverse-depth (anchored) (backend.landmarks)
+    unbiased_triangulation: bool = True  # xyz: start at E[triangulation] under pixel_sigma (unscented), not at the biased point
     min_disparity: float = 0.0  # px: a landmark is initialized only from an observation with larger disparity
     max_depth: Optional[float] = 1000.0  # m: ... and nearer than this (xyz variance grows as depth^4; None: no limit)
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
@@ -195,7 +196,8 @@ def config_from_dict(values: dict[str, Any], base: FilterConfig | None = None) -
 
 
 def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterConfig:
-    """Read a TOML file: keys at the top level or in a ``[filter]`` table."""
+    """Read a TOML file: keys at the top level or in a ``[filter]`` table (a ``[tracker]`` table is
+    the front end's and is skipped here)."""
     path = Path(path)
     try:
         with open(path, "rb") as handle:
@@ -204,6 +206,7 @@ def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterCon
         raise ConfigError(f"{path}: config file not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    data = {k: v for k, v in data.items() if k != "tracker"}  # the front end's table (frontend.config)
     table = data.get("filter", data)
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: key 'filter' must be a table")

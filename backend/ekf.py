@@ -520,7 +520,10 @@ class VisualInertialEKF:
             return
         ids, pixels = ids[ok], pixels[ok]
         n = ids.size
-        theta, anchors, J_z, J_xi = landmarks.initialize(self._kind, self.camera, pixels, self.mu, self.imu_T_cam)
+        theta, anchors, J_z, J_xi = landmarks.initialize(
+            self._kind, self.camera, pixels, self.mu, self.imu_T_cam,
+            cfg.pixel_sigma if cfg.unbiased_triangulation else None,
+        )
         if self._invariant:
             J_xi = invariant.initialization_pose_jacobian(n)  # (I4)
         new_cov = self._R_pix * (J_z @ J_z.transpose(0, 2, 1))  # (n,3,3) pixel part

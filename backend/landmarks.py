@@ -48,17 +48,20 @@ def basis(kind: str) -> np.ndarray:
 
 
 def initialize(
-    kind: str, camera: StereoCamera, pixels: np.ndarray, world_T_imu: np.ndarray, imu_T_cam: np.ndarray
+    kind: str, camera: StereoCamera, pixels: np.ndarray, world_T_imu: np.ndarray, imu_T_cam: np.ndarray,
+    pixel_sigma: float | None = None,
 ):
     """Parameters and Jacobians of new landmarks from stereo pixels (n,4).
 
     Returns theta (n,3), anchors (n,4,4), J_z (n,3,4) = dtheta/dz and J_xi (n,3,6) = dtheta/dxi
-    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from.
+    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from. For ``xyz`` with
+    ``pixel_sigma``, the point is the expected triangulation under that pixel noise
+    (:meth:`StereoCamera.triangulate_mean`), not the triangulation of the measured pixels.
     """
     n = pixels.shape[0]
     if kind == "xyz":
         R_wi = world_T_imu[:3, :3]
-        p_cam = camera.triangulate(pixels)
+        p_cam = camera.triangulate(pixels) if pixel_sigma is None else camera.triangulate_mean(pixels, pixel_sigma)
         p_imu = p_cam @ imu_T_cam[:3, :3].T + imu_T_cam[:3, 3]
         theta = p_imu @ R_wi.T + world_T_imu[:3, 3]
         J_z = (R_wi @ imu_T_cam[:3, :3]) @ camera.triangulation_jacobian(pixels)

@@ -113,3 +113,30 @@ def test_camera_is_frozen():
         CAM.baseline = 1.0  # type: ignore[misc]
     with pytest.raises(ValueError):
         CAM.K[0, 0] = 1.0
+
+
+def test_triangulate_mean_matches_monte_carlo_expectation():
+    """The unscented mean equals the sample mean of triangulated noisy pixels (the depth bias of
+    1/disparity) to within the Monte Carlo error, where the plain triangulation does not."""
+    rng = np.random.default_rng(0)
+    sigma = 0.5
+    p = np.array([[3.0, -1.0, 40.0], [-8.0, 2.0, 25.0], [1.0, 0.5, 60.0]])
+    z = CAM.project(p)
+    mean = CAM.triangulate_mean(z, sigma)
+    samples = CAM.triangulate(z[None] + rng.normal(0.0, sigma, (400_000,) + z.shape))
+    sample_mean = samples.mean(axis=0)
+    stderr = samples.std(axis=0) / np.sqrt(samples.shape[0])
+    assert np.all(np.abs(mean - sample_mean) < 5 * stderr + 1e-3 * np.abs(p[:, 2:]))
+    bias = sample_mean[:, 2] - p[:, 2]
+    assert np.all(bias > 10 * stderr[:, 2])  # the plain triangulation is measurably too near
+    assert np.all(np.abs(mean[:, 2] - sample_mean[:, 2]) < 0.1 * bias)
+    # second order: E[depth] ~ depth (1 + 2 sigma^2 / d^2)
+    d = z[:, 0] - z[:, 2]
+    np.testing.assert_allclose(mean[:, 2], p[:, 2] * (1 + 2 * sigma**2 / d**2), rtol=2e-3)
+
+
+def test_triangulate_mean_falls_back_where_the_expansion_fails():
+    z = CAM.project(np.array([[1.0, 0.0, 500.0], [1.0, 0.0, 20.0]]))  # disparities 0.77 px and 19 px
+    mean = CAM.triangulate_mean(z, 1.0)
+    np.testing.assert_array_equal(mean[0], CAM.triangulate(z[0]))
+    assert mean[1, 2] > CAM.triangulate(z[1])[2]
