@@ -47,6 +47,10 @@ has the same row in both and a disparity ``fx b / z``. Per camera:
    ``(layer, -mean depth of the clipped polygon)``. Layers make the street's occlusions right
    where mean depth alone would not (ground below walls): 0 backdrop, 1-2 ground, 3 walls.
 
+:func:`render_depth` gives the ground truth of an image: each pixel's camera-frame depth ``z``
+from the plane that paints it last with coverage >= 0.5 (same culling, clipping and order),
+``inf`` for the sky, so ``z K^-1 (u, v, 1)`` is the pixel's true 3-D point.
+
 The street world (:func:`build_street_planes`) follows the trajectory; :func:`write_kitti_sequence`
 renders a whole sequence in the KITTI odometry layout.
 """
@@ -72,6 +76,7 @@ __all__ = [
     "SKY",
     "Plane",
     "render_image",
+    "render_depth",
     "render_pair",
     "build_street_planes",
     "write_kitti_sequence",
@@ -362,7 +367,12 @@ def _smallest_singular_value(J: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(0.5 * (a - np.sqrt(np.maximum(a * a - 4.0 * det * det, 0.0))), 0.0))
 
 
-def _render(world: _World, cam_T_world: np.ndarray, K: np.ndarray, width: int, height: int, background: float) -> np.ndarray:
+def _render(
+    world: _World, cam_T_world: np.ndarray, K: np.ndarray, width: int, height: int, background: float,
+    depth_out: np.ndarray | None = None,
+) -> np.ndarray:
+    """The grey image; if ``depth_out`` (height, width) float is given, each pixel a plane paints with
+    coverage >= 0.5 also gets that plane's depth (camera z) there, in the same painter's order."""
     R, t = cam_T_world[:3, :3], cam_T_world[:3, 3]
     m = _BBOX_MARGIN
     corners_cam = world.corners @ R.T + t
@@ -474,6 +484,11 @@ def _render(world: _World, cam_T_world: np.ndarray, K: np.ndarray, width: int, h
                 cv2.fillConvexPoly(mask, np.round(region * 16).astype(np.int32), 1, cv2.LINE_8, 4)
             cv2.multiply(colour, mask, dst=colour)
             cv2.multiply(alpha, mask, dst=alpha)
+        if depth_out is not None:
+            covered = alpha >= 128  # coverage >= 0.5
+            a, b, c = r_box[j]  # 1 / depth = a x + b y + c at box pixel (x, y)
+            ys, xs = np.nonzero(covered)
+            depth_out[y0[j] : y1[j], x0[j] : x1[j]][covered] = 1.0 / (a * xs + b * ys + c)
         # premultiplied "over": out = out (255 - alpha) / 255 + colour
         cv2.multiply(sub, cv2.bitwise_not(alpha), dst=sub, scale=1.0 / 255.0)
         cv2.add(sub, colour, dst=sub)
@@ -526,6 +541,19 @@ def render_image(planes, cam_T_world: np.ndarray, K: np.ndarray, image_size, bac
     plane is drawn."""
     width, height = (int(v) for v in image_size)
     return _render(_world_of(planes), np.asarray(cam_T_world, dtype=float), np.asarray(K, dtype=float), width, height, background)
+
+
+def render_depth(planes_or_world, cam_T_world: np.ndarray, K: np.ndarray, image_size) -> np.ndarray:
+    """Depth image (height, width) float64 of what :func:`render_image` draws: at each pixel the
+    camera-frame z (m) of the last plane, in the painter's order (layer, then far to near), that
+    covers it by >= 0.5; ``inf`` where no plane does (sky). ``image_size = (width, height)``.
+    Within a plane the inverse depth is affine in (u, v), so interpolating ``1 / depth``
+    bilinearly between pixels of one plane is exact."""
+    width, height = (int(v) for v in image_size)
+    depth = np.full((height, width), np.inf)
+    _render(_world_of(planes_or_world), np.asarray(cam_T_world, dtype=float), np.asarray(K, dtype=float),
+            width, height, SKY, depth_out=depth)
+    return depth
 
 
 def render_pair(planes, world_T_imu: np.ndarray, calibration: Calibration, background: float = SKY):

@@ -18,8 +18,8 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
 
-def _config_from_args(args: argparse.Namespace) -> FilterConfig:
-    """Defaults < --config TOML < dedicated flags < --set KEY=VALUE."""
+def _config_from_args(args: argparse.Namespace, assignments: list[str] | None = None) -> FilterConfig:
+    """Defaults < --config TOML < dedicated flags < --set KEY=VALUE (``assignments``, default all of --set)."""
     config = load_config(args.config) if args.config else FilterConfig()
     flags = []
     if getattr(args, "mode", None):
@@ -30,7 +30,8 @@ def _config_from_args(args: argparse.Namespace) -> FilterConfig:
         flags.append(f"imu_flip={args.imu_flip}")
     if getattr(args, "velocity_index", None):
         flags.append(f"velocity_index={args.velocity_index}")
-    return apply_overrides(config, flags + list(args.set or [])).validate()
+    assignments = list(args.set or []) if assignments is None else assignments
+    return apply_overrides(config, flags + assignments).validate()
 
 
 def _add_filter_options(p: argparse.ArgumentParser) -> None:
@@ -49,10 +50,25 @@ def cmd_run(args: argparse.Namespace) -> int:
     from tools import outputs
     from tools.report import format_summary, write_run_outputs
 
-    config = _config_from_args(args)
+    from pathlib import Path
+
+    images = Path(args.data).is_dir()
+    filter_set, tracker_set = list(args.set or []), []
+    if images:
+        from frontend.config import split_overrides
+
+        filter_set, tracker_set = split_overrides(filter_set)
+    elif args.imu:
+        raise VislamError(f"{args.data}: --imu is for an image directory; a feature file carries its velocities")
+    config = _config_from_args(args, filter_set)
     out_dir = outputs.prepare_output_dir(args.out, args.force)
     gt = outputs.read_tum(args.gt) if args.gt else None
-    seq = load_sequence(args.data, image_size=config.image_size)
+    if images:
+        from tools.track import track_images
+
+        seq = track_images(args, tracker_set, args.quiet)
+    else:
+        seq = load_sequence(args.data, image_size=config.image_size)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
         f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))
@@ -134,7 +150,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("run", help="run the filter on a feature file (.npz) and write trajectory, map, summary")
-    p.add_argument("data", help="feature + IMU file in the course .npz layout")
+    p.add_argument("data", help="feature + IMU file in the course .npz layout, or a stereo image directory (with --imu)")
+    p.add_argument("--imu", help="with an image directory: IMU velocities (CSV t,vx,vy,vz,wx,wy,wz or a course .npz)")
+    p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
+    p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--gt", help="ground truth TUM file (world_T_imu, the data's stamps) for ATE/RPE")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
@@ -156,10 +175,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
     p.set_defaults(func=cmd_eval)
 
-    from tools import demo, mc
+    from tools import demo, mc, track
 
     demo.add_parsers(sub)
     mc.add_parsers(sub)
+    track.add_parsers(sub)
     return parser
 
 

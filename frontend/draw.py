@@ -1,0 +1,85 @@
+"""Debug pictures of the tracker, one PNG a frame.
+
+The left image (top) shows every emitted track as a dot with its tail (its last ``tail`` left
+positions); the right image (below it) shows the matched right pixel and, along the row, a line
+from the left pixel's column to it (the disparity). Colours are per id. Each file is written to a
+temporary name in the output directory and moved onto ``NNNNNN.png`` with ``os.replace``, so a
+reader never sees half a picture.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections import deque
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = ["TrackDrawer"]
+
+
+def _colour(track_id: int) -> tuple[int, int, int]:
+    """A bright BGR colour that depends only on the id."""
+    hue = (track_id * 47) % 180
+    bgr = cv2.cvtColor(np.array([[[hue, 220, 255]]], np.uint8), cv2.COLOR_HSV2BGR)[0, 0]
+    return int(bgr[0]), int(bgr[1]), int(bgr[2])
+
+
+def _point(p) -> tuple[int, int]:
+    return int(round(float(p[0]))), int(round(float(p[1])))
+
+
+def write_png_atomic(path: Path, image: np.ndarray) -> None:
+    """Encode ``image`` as PNG into a temporary file next to ``path``, then ``os.replace`` it."""
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+class TrackDrawer:
+    """Draws frames into ``out_dir`` (created if missing); call :meth:`draw` once per frame, in order."""
+
+    def __init__(self, out_dir, tail: int = 10) -> None:
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.tail = int(tail)
+        self._history: dict[int, deque] = {}
+
+    def render(self, index: int, left: np.ndarray, right: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """The picture (2H, W, 3) BGR of frame ``index``; also updates the tails."""
+        alive = set(int(i) for i in ids)
+        self._history = {i: h for i, h in self._history.items() if i in alive}
+        top = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)
+        bottom = cv2.cvtColor(right, cv2.COLOR_GRAY2BGR)
+        for track_id, (uL, vL, uR, vR) in zip(ids.tolist(), pixels):
+            history = self._history.setdefault(track_id, deque(maxlen=self.tail))
+            history.append((uL, vL))
+            colour = _colour(track_id)
+            if len(history) > 1:
+                cv2.polylines(top, [np.round(np.array(history)).astype(np.int32)], False, colour, 1, cv2.LINE_AA)
+            cv2.circle(top, _point((uL, vL)), 2, colour, -1, cv2.LINE_AA)
+            cv2.line(bottom, _point((uL, vR)), _point((uR, vR)), colour, 1, cv2.LINE_AA)
+            cv2.circle(bottom, _point((uR, vR)), 2, colour, -1, cv2.LINE_AA)
+        picture = np.vstack([top, bottom])
+        cv2.putText(picture, f"frame {index}  tracks {len(ids)}", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                    (0, 255, 255), 1, cv2.LINE_AA)
+        return picture
+
+    def draw(self, index: int, left: np.ndarray, right: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> Path:
+        """Render frame ``index`` and write it as ``out_dir/NNNNNN.png``; returns the path."""
+        path = self.out_dir / f"{index:06d}.png"
+        write_png_atomic(path, self.render(index, left, right, ids, pixels))
+        return path

@@ -1,0 +1,215 @@
+"""Rectified stereo image sequences in the KITTI odometry layout.
+
+A directory holds ``image_0/NNNNNN.png`` (left), ``image_1/NNNNNN.png`` (right, the same file
+names), ``calib.txt`` with ``P0:`` and ``P1:`` rows (3x4 rectified projection matrices, 12 numbers
+row-major; other rows such as ``P2:`` or ``Tr:`` are ignored) and ``times.txt`` (seconds, one a
+frame). Both cameras share K (``P[:, :3]``); the left one is the reference (``P0[:, 3] = 0``) and
+the right one sits ``baseline = -P1[0,3] / P1[0,0]`` metres along its x axis.
+
+:func:`open_stereo_directory` checks the layout, calibration and time stamps and reads the first
+pair (image size); frames are then read lazily, one pair at a time. Every problem raises
+:class:`~backend.errors.InputError` with one line naming the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from backend.errors import InputError
+
+__all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey"]
+
+LEFT_DIR, RIGHT_DIR = "image_0", "image_1"
+
+#: Relative tolerance of "P0 and P1 have the same K" and of the zero translations.
+_K_TOL = 1e-6
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def read_calibration(path: Path) -> tuple[np.ndarray, float]:
+    """(K (3,3), baseline (m)) from the ``P0:``/``P1:`` rows of a KITTI ``calib.txt``."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: missing (need P0: and P1: rows)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read: {_one_line(e)}") from None
+    rows: dict[str, np.ndarray] = {}
+    for number, line in enumerate(lines, start=1):
+        key, sep, values = line.partition(":")
+        key = key.strip()
+        if not sep or key not in ("P0", "P1"):
+            continue
+        if key in rows:
+            raise InputError(f"{path}: line {number}: '{key}:' given twice")
+        try:
+            P = np.array(values.split(), dtype=np.float64)
+        except ValueError:
+            raise InputError(f"{path}: line {number}: '{key}:' has a value that is not a number") from None
+        if P.shape != (12,):
+            raise InputError(f"{path}: line {number}: '{key}:' needs 12 numbers (3x4 row-major), got {P.size}")
+        if not np.isfinite(P).all():
+            raise InputError(f"{path}: line {number}: '{key}:' has a non-finite value")
+        rows[key] = P.reshape(3, 4)
+    for key in ("P0", "P1"):
+        if key not in rows:
+            raise InputError(f"{path}: no '{key}:' row (need P0: and P1: 3x4 projection matrices)")
+    P0, P1 = rows["P0"], rows["P1"]
+    K = P0[:, :3].copy()
+    scale = float(np.abs(K).max())
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
+        raise InputError(f"{path}: P0[:, :3] is not a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    if not np.allclose(P1[:, :3], K, rtol=0.0, atol=_K_TOL * scale):
+        raise InputError(f"{path}: P0 and P1 disagree in K (P[:, :3]); the images must be rectified with one K")
+    if np.abs(P0[:, 3]).max() > _K_TOL * scale:
+        raise InputError(f"{path}: P0[:, 3] must be 0 (the left camera is the reference), got {P0[:, 3].tolist()}")
+    if np.abs(P1[1:, 3]).max() > _K_TOL * scale:
+        raise InputError(f"{path}: P1[1:, 3] must be 0 (a horizontal rectified baseline), got {P1[1:, 3].tolist()}")
+    baseline = float(-P1[0, 3] / P1[0, 0])
+    if not baseline > 0:
+        raise InputError(f"{path}: baseline -P1[0,3]/P1[0,0] = {baseline:.6g} m must be > 0 (right camera to the right)")
+    return K, baseline
+
+
+def read_times(path: Path, n_frames: int) -> np.ndarray:
+    """(n_frames,) strictly increasing seconds from ``times.txt`` (one number a line)."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: missing (need one time stamp a frame)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read: {_one_line(e)}") from None
+    values, numbers = [], []
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        try:
+            t = float(text)
+        except ValueError:
+            raise InputError(f"{path}: line {number}: not a number: {text[:40]!r}") from None
+        if not np.isfinite(t):
+            raise InputError(f"{path}: line {number}: non-finite time stamp {text!r}")
+        values.append(t)
+        numbers.append(number)
+    if len(values) != n_frames:
+        raise InputError(f"{path}: {len(values)} time stamps for {n_frames} frames (need one a frame)")
+    t = np.array(values, dtype=np.float64)
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise InputError(
+            f"{path}: line {numbers[i]}: time stamps not strictly increasing ({t[i]:.9g} after {t[i - 1]:.9g})"
+        )
+    return t
+
+
+def read_grey(path: Path) -> np.ndarray:
+    """An 8-bit grey image (colour is converted); InputError if it cannot be decoded."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        why = "missing" if not Path(path).exists() else "unreadable (not a decodable image)"
+        raise InputError(f"{path}: {why}")
+    if img.dtype != np.uint8:
+        raise InputError(f"{path}: expected an 8-bit image, got {img.dtype}")
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code)
+    return img
+
+
+@dataclass(frozen=True, eq=False)
+class StereoDirectory:
+    """A checked KITTI-layout directory; images are read on demand."""
+
+    root: Path
+    left_paths: tuple[Path, ...]
+    right_paths: tuple[Path, ...]
+    times: np.ndarray  # (n,) seconds, strictly increasing
+    K: np.ndarray  # (3,3)
+    baseline: float  # m
+    image_size: tuple[int, int]  # (width, height) of every image
+
+    def __len__(self) -> int:
+        return len(self.left_paths)
+
+    def read(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) grey images of frame ``index``; InputError if unreadable or mis-sized."""
+        left, right = read_grey(self.left_paths[index]), read_grey(self.right_paths[index])
+        w, h = self.image_size
+        for path, img in ((self.left_paths[index], left), (self.right_paths[index], right)):
+            if img.shape != (h, w):
+                raise InputError(
+                    f"{path}: size {img.shape[1]}x{img.shape[0]} differs from {w}x{h} "
+                    f"(the first left image {self.left_paths[0].name})"
+                )
+        return left, right
+
+    def frames(self, start: int = 0, stop: int | None = None, prefetch: bool = True) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """Yield (index, left, right) for frames ``start..stop-1``; with ``prefetch`` the next pair
+        is decoded on a worker thread while the caller works on this one (two pairs in memory)."""
+        indices = range(start, len(self) if stop is None else min(stop, len(self)))
+        if not prefetch:
+            for i in indices:
+                yield (i, *self.read(i))
+            return
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="vislam-images") as pool:
+            pending = pool.submit(self.read, indices[0]) if len(indices) else None
+            for n, i in enumerate(indices):
+                left, right = pending.result()
+                pending = pool.submit(self.read, indices[n + 1]) if n + 1 < len(indices) else None
+                yield i, left, right
+
+
+def _png_names(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        what = "not a directory" if folder.exists() else "missing directory"
+        raise InputError(f"{folder}: {what} (KITTI layout: {LEFT_DIR}/ left and {RIGHT_DIR}/ right .png frames)")
+    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() == ".png" and not p.name.startswith("."))
+
+
+def open_stereo_directory(path) -> StereoDirectory:
+    """Check a KITTI-layout directory (folders, equal frame lists, calib.txt, times.txt, first pair)."""
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError(f"{root}: {'not a directory' if root.exists() else 'missing directory'}")
+    left_names = _png_names(root / LEFT_DIR)
+    right_names = _png_names(root / RIGHT_DIR)
+    if not left_names:
+        raise InputError(f"{root / LEFT_DIR}: empty sequence (no .png frames)")
+    if len(left_names) != len(right_names):
+        raise InputError(
+            f"{root / RIGHT_DIR}: {len(right_names)} frames but {LEFT_DIR}/ has {len(left_names)} (need one right image per left image)"
+        )
+    if left_names != right_names:
+        name = next(a for a, b in zip(left_names, right_names) if a != b)
+        raise InputError(f"{root / RIGHT_DIR}: no {name} to pair with {LEFT_DIR}/{name} (file names must match)")
+    K, baseline = read_calibration(root / "calib.txt")
+    times = read_times(root / "times.txt", len(left_names))
+    left0 = read_grey(root / LEFT_DIR / left_names[0])
+    right0 = read_grey(root / RIGHT_DIR / right_names[0])
+    if left0.shape != right0.shape:
+        raise InputError(
+            f"{root / RIGHT_DIR / right_names[0]}: size {right0.shape[1]}x{right0.shape[0]} differs from "
+            f"the left image's {left0.shape[1]}x{left0.shape[0]}"
+        )
+    return StereoDirectory(
+        root=root,
+        left_paths=tuple(root / LEFT_DIR / n for n in left_names),
+        right_paths=tuple(root / RIGHT_DIR / n for n in right_names),
+        times=times,
+        K=K,
+        baseline=baseline,
+        image_size=(int(left0.shape[1]), int(left0.shape[0])),
+    )
