@@ -1,1 +1,7 @@
-"""vislam front end: OpenCV stereo tracking of rectified image pairs (see issue 4; not built yet)."""
+"""vislam front end: OpenCV stereo tracking of rectified image pairs into course-layout observations.
+
+Modules: ``config`` (TrackerConfig), ``images`` (KITTI-layout directories), ``imu_input`` (IMU
+CSV / course .npz, extrinsic), ``tracker`` (StereoTracker.step), ``detect`` (grid corners),
+``affine`` (drift-free patch refinement), ``motion`` (camera motion, rigid-motion checks),
+``draw`` (debug pictures), ``track`` (track_directory, iter_tracks).
+"""

@@ -120,23 +120,29 @@ def align(img: np.ndarray, templates: Templates, A: np.ndarray, t: np.ndarray, i
     if n == 0:
         return A, t, residual
     gx, gy = _grid(templates.size)
-    active = np.arange(n)
+    active = np.arange(n)  # warps still iterating; the arrays below hold their rows only
+    patch, steepest_t, hessian_inv = templates.patch, templates.steepest_t, templates.hessian_inv
+    A_act, t_act = A.copy(), t.copy()
     for _ in range(max(1, iterations)):
-        warped, _ = _normalize(_sample(img, A[active], t[active], gx, gy))
-        r = warped - templates.patch[active]
+        warped, _ = _normalize(_sample(img, A_act, t_act, gx, gy))
+        r = warped - patch
         residual[active] = np.sqrt(np.einsum("nk,nk->n", r, r))
-        b = (templates.steepest_t[active] @ r[:, :, None])[:, :, 0]
-        dp = (templates.hessian_inv[active] @ b[:, :, None])[:, :, 0].astype(np.float64)
+        b = (steepest_t @ r[:, :, None])[:, :, 0]
+        dp = (hessian_inv @ b[:, :, None])[:, :, 0].astype(np.float64)
         # W <- W o W(dp)^-1, with W(dp) = [[1 + dp0, dp2, dp4], [dp1, 1 + dp3, dp5]]
         a00, a10, a01, a11 = 1.0 + dp[:, 0], dp[:, 1], dp[:, 2], 1.0 + dp[:, 3]
         det = a00 * a11 - a01 * a10
         D_inv = np.empty((active.size, 2, 2))
         D_inv[:, 0, 0], D_inv[:, 0, 1], D_inv[:, 1, 0], D_inv[:, 1, 1] = a11 / det, -a01 / det, -a10 / det, a00 / det
         shift = -(D_inv @ dp[:, 4:6, None])[:, :, 0]
-        step = (A[active] @ shift[:, :, None])[:, :, 0]
-        t[active] += step
-        A[active] = A[active] @ D_inv
-        active = active[np.abs(step).max(axis=1) >= epsilon]
-        if active.size == 0:
+        step = (A_act @ shift[:, :, None])[:, :, 0]
+        t_act += step
+        A_act = A_act @ D_inv
+        A[active], t[active] = A_act, t_act
+        going = np.abs(step).max(axis=1) >= epsilon
+        if not going.any():
             break
+        if not going.all():
+            active, A_act, t_act = active[going], A_act[going], t_act[going]
+            patch, steepest_t, hessian_inv = patch[going], steepest_t[going], hessian_inv[going]
     return A, t, residual

@@ -49,7 +49,7 @@ def grid_corners(half: np.ndarray, full_size: tuple[int, int], cols: int, rows: 
 def select(cell: np.ndarray, live_count: np.ndarray, budget: int, want: int) -> np.ndarray:
     """Indices of the candidates to track (``cell`` (m,) sorted, strongest first within a cell):
     at most ``budget - live_count[c]`` in cell c and ``want`` in all, filled emptiest cell first
-    (the k-th candidate of a cell holding n tracks ranks n + k; ties go to the stronger)."""
+    (the k-th candidate of a cell holding n tracks ranks n + k; among equal ranks, lower k first)."""
     if cell.size == 0 or want <= 0:
         return np.zeros(0, np.int64)
     rank = np.arange(cell.size) - np.searchsorted(cell, cell)  # position within its cell
