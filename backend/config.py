@@ -136,15 +136,12 @@ def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"config key '{name}': must be one of {', '.join(choices)}, got {value!r}")
 
 
-def _field_types() -> dict[str, str]:
-    return {f.name: str(f.type) for f in fields(FilterConfig)}
-
-
-def _coerce(name: str, value: Any) -> Any:
-    """Convert a TOML or command-line value to the declared type of key ``name``."""
-    types = _field_types()
+def coerce_value(cls: type, name: str, value: Any, label: str = "config key") -> Any:
+    """Convert a TOML or command-line value to the declared type of field ``name`` of the config
+    dataclass ``cls`` (bool, int, float, str, Optional of those). Shared by every component's config."""
+    types = {f.name: str(f.type) for f in fields(cls)}
     if name not in types:
-        raise ConfigError(f"unknown config key '{name}' (known: {', '.join(sorted(types))})")
+        raise ConfigError(f"unknown {label} '{name}' (known: {', '.join(sorted(types))})")
     declared = types[name]
     optional = declared.startswith("Optional")
     if isinstance(value, str):
@@ -187,26 +184,44 @@ def _coerce(name: str, value: Any) -> Any:
     return value
 
 
+def replace_validated(cls: type, values: dict[str, Any], base=None, label: str = "config key"):
+    """A ``cls`` instance with ``values`` (coerced) applied over ``base`` (default: the defaults), validated."""
+    config = dataclasses.replace(base) if base is not None else cls()
+    for name, value in values.items():
+        setattr(config, name, coerce_value(cls, name, value, label))
+    return config.validate()
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The tables of a TOML configuration file; ConfigError naming the file otherwise."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def parse_assignment(item: str) -> tuple[str, str]:
+    """``KEY=VALUE`` of the command line's ``--set`` -> (key with - as _, value)."""
+    if "=" not in item:
+        raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+    key, value = item.split("=", 1)
+    return key.strip().replace("-", "_"), value
+
+
 def config_from_dict(values: dict[str, Any], base: FilterConfig | None = None) -> FilterConfig:
     """A FilterConfig with ``values`` applied over ``base`` (default: the defaults)."""
-    config = dataclasses.replace(base) if base is not None else FilterConfig()
-    for name, value in values.items():
-        setattr(config, name, _coerce(name, value))
-    return config.validate()
+    return replace_validated(FilterConfig, values, base)
 
 
 def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterConfig:
     """Read a TOML file: keys at the top level or in a ``[filter]`` table (a ``[tracker]`` table is
     the front end's and is skipped here)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as handle:
-            data = tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    data = {k: v for k, v in data.items() if k != "tracker"}  # the front end's table (frontend.config)
+    data = {k: v for k, v in read_toml(path).items() if k != "tracker"}  # the front end's table (frontend.config)
     table = data.get("filter", data)
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: key 'filter' must be a table")
@@ -221,13 +236,7 @@ def load_config(path: str | Path, base: FilterConfig | None = None) -> FilterCon
 
 def apply_overrides(config: FilterConfig, assignments: list[str]) -> FilterConfig:
     """Apply ``KEY=VALUE`` strings (command line ``--set``)."""
-    values: dict[str, Any] = {}
-    for item in assignments:
-        if "=" not in item:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        key, value = item.split("=", 1)
-        values[key.strip().replace("-", "_")] = value
-    return config_from_dict(values, config)
+    return config_from_dict(dict(parse_assignment(a) for a in assignments), config)
 
 
 def to_toml(config: FilterConfig) -> str:

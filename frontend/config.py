@@ -22,12 +22,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from backend.config import coerce_value, parse_assignment, read_toml, replace_validated
 from backend.errors import ConfigError
-
-try:  # Python >= 3.11
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
 
 __all__ = [
     "TrackerConfig",
@@ -169,57 +165,24 @@ def _at_least(name: str, value: Any, low: int) -> None:
         raise ConfigError(f"config key '{name}': must be an integer >= {low}, got {value!r}")
 
 
-_TYPES = {f.name: f.type if isinstance(f.type, str) else f.type.__name__ for f in fields(TrackerConfig)}
+_LABEL = "tracker config key"
+_KEYS = {f.name for f in fields(TrackerConfig)}
 
 
 def _coerce(name: str, value: Any) -> Any:
-    """Convert a TOML or command-line value to the declared type (bool, int, float, str) of ``name``."""
-    if name not in _TYPES:
-        raise ConfigError(f"unknown tracker config key '{name}' (known: {', '.join(sorted(_TYPES))})")
-    kind = _TYPES[name]
-    if isinstance(value, str) and kind != "str":
-        text = value.strip().lower()
-        try:
-            if kind == "bool":
-                value = {"1": True, "true": True, "yes": True, "on": True,
-                         "0": False, "false": False, "no": False, "off": False}[text]
-            else:
-                value = int(text) if kind == "int" else float(text)
-        except (KeyError, ValueError):
-            noun = {"bool": "true or false", "int": "an integer", "float": "a number"}[kind]
-            raise ConfigError(f"config key '{name}': expected {noun}, got {value!r}") from None
-        return value
-    ok = {
-        "bool": isinstance(value, bool),
-        "int": isinstance(value, int) and not isinstance(value, bool),
-        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
-        "str": isinstance(value, str),
-    }[kind]
-    if not ok:
-        raise ConfigError(f"config key '{name}': expected a value of type {kind}, got {value!r}")
-    return float(value) if kind == "float" else value
+    return coerce_value(TrackerConfig, name, value, _LABEL)
 
 
 def tracker_config_from_dict(values: dict[str, Any], base: TrackerConfig | None = None) -> TrackerConfig:
     """A TrackerConfig with ``values`` applied over ``base`` (default: the defaults), validated."""
-    config = dataclasses.replace(base) if base is not None else TrackerConfig()
-    for name, value in values.items():
-        setattr(config, name, _coerce(name, value))
-    return config.validate()
+    return replace_validated(TrackerConfig, values, base, _LABEL)
 
 
 def load_tracker_config(path: str | Path, base: TrackerConfig | None = None) -> TrackerConfig:
     """Read the ``[tracker]`` table of a TOML file (other tables, e.g. ``[filter]``, are ignored);
     a file without that table gives ``base`` (or the defaults)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as handle:
-            data = tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    table = data.get("tracker", {})
+    table = read_toml(path).get("tracker", {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: key 'tracker' must be a table")
     try:
@@ -228,16 +191,9 @@ def load_tracker_config(path: str | Path, base: TrackerConfig | None = None) -> 
         raise ConfigError(f"{path}: [tracker] {exc}") from None
 
 
-def _parse_assignment(item: str) -> tuple[str, str]:
-    if "=" not in item:
-        raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-    key, value = item.split("=", 1)
-    return key.strip().replace("-", "_"), value
-
-
 def apply_tracker_overrides(config: TrackerConfig, assignments: list[str]) -> TrackerConfig:
     """Apply ``KEY=VALUE`` strings (command line ``--set``) to a copy of ``config``."""
-    return tracker_config_from_dict(dict(_parse_assignment(a) for a in assignments), config)
+    return tracker_config_from_dict(dict(parse_assignment(a) for a in assignments), config)
 
 
 def split_overrides(assignments: list[str]) -> tuple[list[str], list[str]]:
@@ -245,6 +201,6 @@ def split_overrides(assignments: list[str]) -> tuple[list[str], list[str]]:
     the tracker, every other key (unknown ones included, refused there) to the filter."""
     filter_part, tracker_part = [], []
     for item in assignments:
-        key, _ = _parse_assignment(item)
-        (tracker_part if key in _TYPES else filter_part).append(item)
+        key, _ = parse_assignment(item)
+        (tracker_part if key in _KEYS else filter_part).append(item)
     return filter_part, tracker_part
