@@ -35,15 +35,20 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def read_lines(path: Path, missing: str = "file does not exist") -> list[str]:
+    """The lines of a text file; InputError naming it (``missing`` says what the file should hold)."""
+    try:
+        return Path(path).read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: {missing}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read as text: {_one_line(e)}") from None
+
+
 def read_calibration(path: Path) -> tuple[np.ndarray, float]:
     """(K (3,3), baseline (m)) from the ``P0:``/``P1:`` rows of a KITTI ``calib.txt``."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: missing (need P0: and P1: rows)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read: {_one_line(e)}") from None
+    lines = read_lines(path, "missing (need P0: and P1: rows)")
     rows: dict[str, np.ndarray] = {}
     for number, line in enumerate(lines, start=1):
         key, sep, values = line.partition(":")
@@ -84,12 +89,7 @@ def read_calibration(path: Path) -> tuple[np.ndarray, float]:
 def read_times(path: Path, n_frames: int) -> np.ndarray:
     """(n_frames,) strictly increasing seconds from ``times.txt`` (one number a line)."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: missing (need one time stamp a frame)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read: {_one_line(e)}") from None
+    lines = read_lines(path, "missing (need one time stamp a frame)")
     values, numbers = [], []
     for number, line in enumerate(lines, start=1):
         text = line.strip()

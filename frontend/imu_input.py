@@ -25,6 +25,7 @@ import numpy as np
 
 from backend.errors import InputError
 from backend.sequence import load_sequence
+from frontend.images import read_lines
 
 __all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam"]
 
@@ -57,12 +58,7 @@ def _numbers(text: str) -> list[float] | None:
 def read_imu_csv(path, n_frames: int) -> ImuVelocities:
     """The first ``n_frames`` rows ``t,vx,vy,vz,wx,wy,wz`` of a CSV (see the module docstring)."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: file does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read as text: {' '.join(str(e).split())}") from None
+    lines = read_lines(path)
     rows, numbers = [], []
     first = True
     for number, line in enumerate(lines, start=1):
@@ -120,12 +116,7 @@ def read_imu_T_cam(path) -> np.ndarray:
     """A rigid 4x4 transform (camera -> IMU) from a text file: 4 rows of 4 numbers (spaces or
     commas; ``#`` comments allowed)."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: file does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read as text: {' '.join(str(e).split())}") from None
+    lines = read_lines(path)
     rows = []
     for number, line in enumerate(lines, start=1):
         text = line.split("#", 1)[0].strip()
