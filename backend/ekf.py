@@ -24,15 +24,22 @@ inverse depth, the default):
     dz/dxi    = -Ks dpi/dq cam_T_imu s^odot     (T^-1 w = exp(-xi^) mu^-1 w ~ s - xi^ s)
     dz/dtheta =  Ks dpi/dq cam_T_imu mu^-1 A B
 
-Update: every observed landmark jointly, each 4-row block of H touching 6 pose and 3 landmark
-columns. Per step: chi-square gate (4 dof) on the prior 4x4 innovation blocks; 1-point RANSAC
-(Civera et al. 2010), every observation a hypothesis, and a rescue test of the rest against the
-inliers' update; then, with S = L L^T over the kept rows,
+Update: every observed landmark jointly, in three rows per observation (U1). The pixel noise is
+white (sigma^2 I) and on rectified pairs the rows of H for vL and vR are equal, so the orthogonal
+change of rows  [uL, vL, uR, vR] -> [uL, (vL + vR)/sqrt 2, uR | (vL - vR)/sqrt 2]  leaves the noise
+sigma^2 I and puts all the state information in the first three rows; the last has H = 0 and only
+adds d^2 / sigma^2 to the NIS. The update from 3 rows is identical to the one from 4 (and the
+NIS, gate and RANSAC errors are computed over all 4), at (3/4)^2 of the dense work.
+Each 3-row block of H touches 6 pose and 3 landmark columns. Per step: chi-square gate (4 dof)
+on the prior innovation blocks; 1-point RANSAC (Civera et al. 2010), every observation a
+hypothesis; a rescue test of the rest against the inliers' update (U3, ``_rescue``); then, with
+S = L L^T over the kept rows,
 
-    A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A
+    A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A                               (U2)
 
-the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain); P is kept
-exactly symmetric and its positive definiteness checked every 100 steps.
+the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain), one triangle
+by BLAS syrk and mirrored, so P stays exactly symmetric; its positive definiteness is checked
+every 100 steps.
 
 Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation:
 theta = g(z, mu) with Jacobians J_z and J_xi (backend.landmarks.initialize), and
@@ -47,7 +54,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import get_lapack_funcs
+from scipy.linalg import get_blas_funcs, get_lapack_funcs
 from scipy.stats import chi2
 
 from backend import invariant, landmarks, se3
@@ -67,8 +74,37 @@ def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     return X
 
 
+def solve_3x3(blocks: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """B_i^-1 r_i for (k,3,3) blocks and (k,3) right-hand sides by the adjugate (Cramer's rule),
+    vectorized over k: several times faster than ``np.linalg.solve`` on small stacks. Singular
+    blocks (|det| <= 1e-12 * ||B||^3) give inf."""
+    B = blocks
+    c00 = B[:, 1, 1] * B[:, 2, 2] - B[:, 1, 2] * B[:, 2, 1]
+    c01 = B[:, 1, 2] * B[:, 2, 0] - B[:, 1, 0] * B[:, 2, 2]
+    c02 = B[:, 1, 0] * B[:, 2, 1] - B[:, 1, 1] * B[:, 2, 0]
+    det = B[:, 0, 0] * c00 + B[:, 0, 1] * c01 + B[:, 0, 2] * c02
+    adj = np.empty_like(B)  # adj[i, j] = cofactor[j, i]
+    adj[:, 0, 0], adj[:, 1, 0], adj[:, 2, 0] = c00, c01, c02
+    adj[:, 0, 1] = B[:, 0, 2] * B[:, 2, 1] - B[:, 0, 1] * B[:, 2, 2]
+    adj[:, 1, 1] = B[:, 0, 0] * B[:, 2, 2] - B[:, 0, 2] * B[:, 2, 0]
+    adj[:, 2, 1] = B[:, 0, 1] * B[:, 2, 0] - B[:, 0, 0] * B[:, 2, 1]
+    adj[:, 0, 2] = B[:, 0, 1] * B[:, 1, 2] - B[:, 0, 2] * B[:, 1, 1]
+    adj[:, 1, 2] = B[:, 0, 2] * B[:, 1, 0] - B[:, 0, 0] * B[:, 1, 2]
+    adj[:, 2, 2] = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
+    scale = np.abs(B).reshape(-1, 9).max(axis=1)
+    singular = np.abs(det) <= 1e-12 * scale**3
+    x = np.einsum("kij,kj->ki", adj, rhs) / np.where(singular, 1.0, det)[:, None]
+    x[singular] = np.inf
+    return x
+
+
 def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
     """r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals; inf where a block is singular."""
+    if blocks.shape[1:] == (3, 3):
+        x = solve_3x3(blocks, residual)
+        out = np.einsum("ki,ki->k", residual, np.where(np.isfinite(x), x, 0.0))
+        out[~np.isfinite(x).all(axis=1)] = np.inf
+        return out
     try:
         return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
     except np.linalg.LinAlgError:
@@ -86,17 +122,82 @@ def _sub(M: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.
     cols = rows if cols is None else cols
     if rows.size == M.shape[0] and cols.size == M.shape[1]:
         return M
-    return M[np.ix_(rows, cols)]
+    return M[rows][:, cols]  # two gathers: faster than M[np.ix_(rows, cols)]
+
+
+ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
+_SQRT_HALF = float(np.sqrt(0.5))
+
+
+def _three_rows(a: np.ndarray) -> np.ndarray:
+    """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
+    out = a[:, :3].copy()
+    out[:, 1] = (a[:, 1] + a[:, 3]) * _SQRT_HALF
+    return out
+
+
+def _take_rows(M: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """M[rows], without a copy when ``rows`` selects every row."""
+    return M if rows.size == M.shape[0] else M[rows]
 
 
 def _rows(select: np.ndarray) -> np.ndarray:
-    """Rows of the stacked 4-vectors of the selected observations."""
-    return (4 * np.flatnonzero(select)[:, None] + np.arange(4)).ravel()
+    """Rows of the stacked 3-row blocks of the selected observations."""
+    return (ROWS * np.flatnonzero(select)[:, None] + np.arange(ROWS)).ravel()
+
+
+def _diagonal_blocks(S: np.ndarray, k: int) -> np.ndarray:
+    """The k diagonal 3x3 blocks (k,3,3) of a (3k,3k) matrix."""
+    idx = np.arange(k)
+    return S.reshape(k, ROWS, k, ROWS)[idx, :, idx, :]
+
+
+_syrk = get_blas_funcs("syrk", dtype=np.float64)
+_MIRROR: dict[int, np.ndarray] = {}
+
+
+def _symmetric_downdate(P: np.ndarray, A: np.ndarray) -> None:
+    """P <- P - A^T A in place for a symmetric C-ordered P: BLAS syrk on one triangle, then mirrored.
+
+    P.T is the Fortran-ordered view of the same (symmetric) matrix, so syrk updates it in place.
+    """
+    if A.flags.f_contiguous:  # A^T A from A itself (trans=1), else from A^T (trans=0): no copy either way
+        out = _syrk(-1.0, A, beta=1.0, c=P.T, trans=1, lower=0, overwrite_c=1)
+    else:
+        out = _syrk(-1.0, A.T, beta=1.0, c=P.T, trans=0, lower=0, overwrite_c=1)
+    if not np.shares_memory(out, P):  # not updated in place (P not C-contiguous): copy back
+        P[...] = out.T
+    _mirror_lower(P)  # syrk wrote the upper triangle of P.T, i.e. the lower triangle of P
+
+
+def _mirror_lower(P: np.ndarray) -> None:
+    """Copy the lower triangle of the square P onto its upper triangle (exact symmetry), in place."""
+    n = P.shape[0]
+    mask = _MIRROR.get(n)
+    if mask is None:
+        mask = _MIRROR.setdefault(n, np.triu(np.ones((n, n), dtype=bool), 1))
+    np.copyto(P, P.T, where=mask)
+
+
+@dataclass
+class _Innovation:
+    """The prior innovation of one step's observations of tracked landmarks, 3-row form (U1)."""
+
+    slots: np.ndarray  # (k,) state slots of the landmarks
+    residual: np.ndarray  # (k,3) r = z - h(x)
+    off_row: np.ndarray  # (k,) residual of (vL - vR)/sqrt 2: no state in it
+    H_x: np.ndarray  # (3k,6) d h / d pose
+    H_m: np.ndarray  # (k,3,3) d h / d landmark
+    HP: np.ndarray  # (3k,D) H P
+    S: np.ndarray  # (3k,3k) H P H^T + R
+    nis: np.ndarray  # (k,) r^T S_ii^-1 r + d^2 / sigma^2 (4 dof)
+    in_front: np.ndarray  # (k,) bool
 
 
 POSE = slice(0, 6)
 BIAS = slice(6, 9)
 CORE = 9  # pose + gyro bias
+_BIAS_DIAG = (np.arange(6, 9), np.arange(6, 9))
 
 
 @dataclass
@@ -273,22 +374,36 @@ class VisualInertialEKF:
             P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
 
     def _predict_invariant(self, dt: float, twist: np.ndarray) -> None:
-        """P <- F P F^T + G Q G^T with F = I + [-tau G_omega at the bias columns] (backend.invariant, I2)."""
+        """P <- F P F^T + G Q G^T with F = I + g e_b^T, g = -tau G_omega (backend.invariant, I2).
+
+        Both terms are low rank: with C = P[:, b] and P_bb = P[b, b],
+        F P F^T = P + g C^T + C g^T + g P_bb g^T, so  P += X M X^T  with X = [g, C, G sqrt(q)] (D x 12)
+        and M = [[P_bb, I, 0], [I, 0, 0], [0, 0, I]]: one product, then the lower triangle mirrored.
+        """
         P = self.P
+        D = P.shape[0]
         G_pose, G_lm = invariant.noise_jacobian(self.mu, twist, self._theta)
-        G = np.concatenate([G_pose, np.zeros((3, 6)), G_lm.reshape(-1, 6)])  # (D,6)
-        if self.config.estimate_gyro_bias:
-            g = -dt * G[:, 3:6]  # d xi / d b_g
-            C = P[:, BIAS].copy()
-            gC = g @ C.T
-            P += gC + gC.T + g @ (C[BIAS] @ g.T)
         noise = self.imu_noise
-        q = np.concatenate([noise.linear_sigma**2, noise.angular_sigma**2]) * dt * dt
-        P += (G * q) @ G.T
-        if self.config.estimate_gyro_bias:
-            P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
-        P += P.T
-        P *= 0.5
+        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
+        bias = self.config.estimate_gyro_bias
+        X = np.zeros((D, 12 if bias else 6))
+        G = X[:, -6:]
+        G[:6] = G_pose
+        G[CORE:] = G_lm.reshape(-1, 6)
+        if bias:
+            X[:, 0:3] = -dt * G[:, 3:6]  # g
+            X[:, 3:6] = P[:, BIAS]
+        G *= q
+        if bias:
+            Z = X.copy()
+            Z[:, 0:3] = X[:, 0:3] @ P[BIAS, BIAS] + X[:, 3:6]
+            Z[:, 3:6] = X[:, 0:3]
+        else:
+            Z = X
+        P += Z @ X.T
+        _mirror_lower(P)
+        if bias:
+            P[_BIAS_DIAG] += self.config.gyro_bias_random_walk**2 * dt
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -369,64 +484,61 @@ class VisualInertialEKF:
             dw_dtheta = mu_inv @ anchors @ landmarks.basis(self._kind)
         return w_world @ (self._cam_T_imu @ mu_inv).T, dw_dtheta
 
-    def _innovation(self, slots: np.ndarray, pixels: np.ndarray):
-        """Residuals r (k,4), P H^T (D,4k), S = H P H^T + R (4k,4k), per-observation NIS (k,), in-front mask."""
-        residual, H_xi, H_m, in_front = self._observation_model(slots, pixels)
-        k = slots.size
-        P = self.P
-        cols = CORE + 3 * slots[:, None] + np.arange(3)  # (k,3) landmark columns
-        # P H^T, using the sparsity of H: each 4-row block touches 6 pose and 3 landmark columns
-        PHt = P[:, :6] @ H_xi.reshape(4 * k, 6).T  # (D,4k)
-        P_cols = P[:, cols].transpose(1, 0, 2)  # (k,D,3)
-        PHt += (P_cols @ H_m.transpose(0, 2, 1)).transpose(1, 0, 2).reshape(-1, 4 * k)
-        S = H_xi.reshape(4 * k, 6) @ PHt[:6]
-        S += (H_m @ PHt[cols]).reshape(4 * k, 4 * k)
-        S[np.diag_indices_from(S)] += self._R_pix
-        idx = np.arange(k)
-        blocks = S.reshape(k, 4, k, 4)[idx, :, idx, :]  # (k,4,4) diagonal blocks
-        nis = block_nis(blocks, residual)
-        return residual, PHt, S, nis, in_front
+    def _innovation(self, slots: np.ndarray, pixels: np.ndarray) -> "_Innovation":
+        """The prior innovation of the observed landmarks, in the 3-row form (U1) of the module docstring."""
+        r4, H_x4, H_m4, in_front = self._observation_model(slots, pixels)
+        H_x = _three_rows(H_x4).reshape(-1, 6)
+        H_m = _three_rows(H_m4)
+        HP, S = self._project_covariance(H_x, H_m, slots)
+        residual = _three_rows(r4)
+        off_row = (r4[:, 1] - r4[:, 3]) * _SQRT_HALF
+        nis = block_nis(_diagonal_blocks(S, slots.size), residual) + off_row**2 / self._R_pix
+        return _Innovation(slots, residual, off_row, H_x, H_m, HP, S, nis, in_front)
 
-    def _kalman_update(self, A: np.ndarray, w: np.ndarray) -> None:
-        """With S = L L^T, A = L^-1 H P and w = L^-1 r:  dx = A^T w,  P <- P - A^T A (symmetric form of
-        P - K S K^T, equal to the Joseph form for the optimal gain); P is re-symmetrized."""
-        P = self.P
-        P -= A.T @ A
-        P += P.T
-        P *= 0.5
-        self._apply_correction(A.T @ w)
+    def _project_covariance(self, H_x: np.ndarray, H_m: np.ndarray, slots: np.ndarray):
+        """H P (3k,D) and S = H P H^T + R (3k,3k) for H_x (3k,6) and H_m (k,3,3) at landmark ``slots``.
 
-    def _whiten(self, PHt: np.ndarray, S: np.ndarray, residual: np.ndarray, select: np.ndarray):
-        """L, A = L^-1 H P and w = L^-1 r over the selected observations."""
-        rows = _rows(select)
-        L = self._cholesky(_sub(S, rows))
-        return L, _solve_lower(L, (PHt if rows.size == PHt.shape[1] else PHt[:, rows]).T), _solve_lower(L, residual[select].reshape(-1, 1))[:, 0]
+        Uses the sparsity of H (each 3-row block touches 6 pose and 3 landmark columns) and the
+        symmetry of P (rows of P, not columns): H P = H_x P[pose] + H_m P[landmark];
+        row block i of S is H_m,i (H P)[:, landmark i]^T + H_x,i (H P)[:, pose]^T.
+        """
+        P = self.P
+        D = P.shape[0]
+        m = H_x.shape[0]
+        HP = H_x @ P[:6]
+        HP += (H_m @ P[CORE:].reshape(-1, 3, D)[slots]).reshape(m, D)
+        PHt_m = np.ascontiguousarray(HP[:, CORE:].T).reshape(-1, 3, m)[slots]  # (k,3,m)
+        S = (H_m @ PHt_m).reshape(m, m)
+        S += H_x @ HP[:, :6].T
+        S.flat[:: m + 1] += self._R_pix
+        return HP, S
 
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
-        """Gate, select a consistent set (1-point RANSAC), rescue the rest, then one joint update."""
-        residual, PHt, S, nis, in_front = self._innovation(slots, pixels)
-        use = in_front & (nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
-        A = w = None
+        """Gate, select a consistent set (1-point RANSAC), update, rescue the rest (module docstring)."""
+        inn = self._innovation(slots, pixels)
+        use = inn.in_front & (inn.nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
+        rest = np.zeros_like(use)
         try:
             if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
-                inlier = self._one_point_ransac(S, residual, use)
+                inlier = self._one_point_ransac(inn.S, inn.residual, inn.off_row, use)
                 rest = use & ~inlier
                 use = inlier
-                if inlier.any():
-                    L, A, w = self._whiten(PHt, S, residual, inlier)
-                    if rest.any():
-                        rescued, A, w = self._rescue(L, A, w, PHt, S, residual, inlier, rest)
-                        use[rescued] = True
-            if use.any() and A is None:
-                _, A, w = self._whiten(PHt, S, residual, use)
+            if use.any():
+                rows = _rows(use)
+                L = self._cholesky(_sub(inn.S, rows))
+                A = _solve_lower(L, _take_rows(inn.HP, rows))
+                w = _solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
+                if rest.any():  # (no consensus at all: nothing is rescued either)
+                    rescued, A, w = self._rescue(inn, L, A, w, use, rest)
+                    use[rescued] = True
+                _symmetric_downdate(self.P, A)
+                self._apply_correction(A.T @ w)
         except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
             self.health.report(f"step {self.step_index}: update skipped ({exc})")
-            use = np.zeros_like(use)
+            use[:] = False
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
-        stats.nis_sum = float(nis[use].sum())
-        if stats.used:
-            self._kalman_update(A, w)
+        stats.nis_sum = float(inn.nis[use].sum())
         self._gated_run[slots[use]] = 0
         self._gated_run[slots[~use]] += 1
         bad = self._gated_run >= self.config.max_consecutive_gated
@@ -434,31 +546,30 @@ class VisualInertialEKF:
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
-    def _rescue(self, L, A, w, PHt, S, residual, inlier, rest):
+    def _rescue(self, inn: "_Innovation", L, A, w, inlier, rest):
         """Chi-square test of the ``rest`` after the update with the ``inlier`` (Civera et al.'s rescue).
 
         To first order, the update with the inliers leaves the others the residual and covariance
         r_r - S_ri S_ii^-1 r_i  and  S_rr - S_ri S_ii^-1 S_ir  (S_ri = H_r P H_i^T): no second
-        linearization. The joint factor of [inliers; rescued] is the block Cholesky
-        L = [[L_i, 0], [X^T, L_post]] with X = L_i^-1 S_ir, so the final whitened system extends
-        (A, w) of the inliers by  A_r = L_post^-1 (H_r P - X^T A),  w_r = L_post^-1 r_post.
+        linearization; the row differences d pass unchanged. The joint factor of [inliers; rescued]
+        is the block Cholesky L = [[L_i, 0], [X^T, L_post]] with X = L_i^-1 S_ir, so the whitened
+        system (A, w) of the inliers extends by  A_r = L_post^-1 (H_r P - X^T A),  w_r = L_post^-1 r_post  (U3).
         Returns (indices rescued, A, w).
         """
         ri, rr = _rows(inlier), _rows(rest)
-        X = _solve_lower(L, S[np.ix_(ri, rr)])
-        r_post = residual[rest].ravel() - X.T @ w
-        S_post = S[np.ix_(rr, rr)] - X.T @ X
-        m = rr.size // 4
-        blocks = S_post.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
-        nis = block_nis(blocks, r_post.reshape(m, 4))
+        S_r = inn.S[rr]
+        X = _solve_lower(L, S_r[:, ri].T)
+        r_post = inn.residual[rest].ravel() - X.T @ w
+        S_post = S_r[:, rr] - X.T @ X
+        m = rr.size // ROWS
+        nis = block_nis(_diagonal_blocks(S_post, m), r_post.reshape(m, ROWS)) + inn.off_row[rest] ** 2 / self._R_pix
         ok = nis <= self._gate
         rest_idx = np.flatnonzero(rest)
         if not ok.any():
             return rest_idx[ok], A, w
         ok_rows = _rows(ok)
-        L_post = self._cholesky(S_post[np.ix_(ok_rows, ok_rows)])
-        X_ok = X[:, ok_rows]
-        A_r = _solve_lower(L_post, PHt[:, rr[ok_rows]].T - X_ok.T @ A)
+        L_post = self._cholesky(_sub(S_post, ok_rows))
+        A_r = _solve_lower(L_post, inn.HP[rr[ok_rows]] - X[:, ok_rows].T @ A)
         w_r = _solve_lower(L_post, r_post[ok_rows].reshape(-1, 1))[:, 0]
         return rest_idx[ok], np.vstack([A, A_r]), np.concatenate([w, w_r])
 
@@ -469,26 +580,26 @@ class VisualInertialEKF:
             raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {info})")
         return L
 
-    def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, off_row: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.
 
         Hypothesis j: the EKF update with observation j alone, dx_j = P H_j^T S_jj^-1 r_j. It changes
         every residual by  H dx_j = (S - R)_{:,j} S_jj^-1 r_j,  so all hypotheses cost one product
         with the S already formed. The hypothesis whose updated residuals leave the most observations
-        within ``ransac_threshold_px`` (4-vector norm) wins; its supporters are the inliers. A moving
+        within ``ransac_threshold_px`` (norm of the 4 pixel residuals: the 3 rows and the row
+        difference, which no hypothesis changes) wins; its supporters are the inliers. A moving
         car ahead, tracked by many features that agree with each other but not with the scene, loses.
         """
         idx = np.flatnonzero(candidates)
         m = idx.size
-        rows = (4 * idx[:, None] + np.arange(4)).ravel()
-        S_c = _sub(S, rows)
+        S_c = _sub(S, _rows(candidates))
         r_c = residual[idx]
-        blocks = S_c.reshape(m, 4, m, 4)[np.arange(m), :, np.arange(m), :]
-        a = np.linalg.solve(blocks, r_c[:, :, None])[:, :, 0]  # (m,4): S_jj^-1 r_j (blocks passed the gate: regular)
-        HPH = S_c - self._R_pix * np.eye(4 * m)
-        change = np.einsum("pjq,jq->pj", HPH.reshape(4 * m, m, 4), a)  # (4m obs rows, m hypotheses)
-        post = r_c.reshape(4 * m, 1) - change
-        err = np.sqrt((post.reshape(m, 4, m) ** 2).sum(axis=1))  # (m obs, m hypotheses)
+        a = solve_3x3(_diagonal_blocks(S_c, m), r_c)[:, :, None]  # (m,3,1): S_jj^-1 r_j (gated: regular)
+        S_c = S_c.reshape(ROWS * m, m, ROWS)
+        change = np.matmul(S_c.transpose(1, 0, 2), a)[:, :, 0].T  # (3m obs rows, m hypotheses): S_{:,j} a_j
+        change[np.arange(ROWS * m), np.repeat(np.arange(m), ROWS)] -= self._R_pix * a.ravel()  # (S - R)
+        post = r_c.reshape(ROWS * m, 1) - change
+        err = np.sqrt((post.reshape(m, ROWS, m) ** 2).sum(axis=1) + off_row[idx, None] ** 2)  # (m obs, m hyp.)
         within = err <= self.config.ransac_threshold_px
         support = within.sum(axis=0)
         best = int(np.argmax(support - 1e-6 * np.minimum(err, 1e6).sum(axis=0) / (m * 1e3)))
@@ -574,7 +685,7 @@ class VisualInertialEKF:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
         keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
-        self.P = self.P[np.ix_(keep, keep)]
+        self.P = self.P[keep][:, keep]
         self._ids = self._ids[keep_lm]
         self._theta = self._theta[keep_lm]
         self._theta_first = self._theta_first[keep_lm]

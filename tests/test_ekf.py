@@ -17,7 +17,7 @@ from threadpoolctl import threadpool_limits
 from backend import se3
 from backend.camera import StereoCamera
 from backend.config import FilterConfig
-from backend.ekf import BIAS, CORE, POSE, ImuNoise, VisualInertialEKF
+from backend.ekf import BIAS, CORE, POSE, ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import FilterError
 from backend.imu import dead_reckoning
 from backend.pipeline import run_sequence
@@ -404,6 +404,48 @@ def test_initialization_defers_too_small_disparity_and_too_far():
     stats = ekf.update(np.arange(4), z)
     assert (stats.initialized, stats.deferred, ekf.num_active) == (1, 3, 1)
     assert ekf.landmark_map()[0].tolist() == [0]
+
+
+@pytest.mark.parametrize("error_model", ["invariant", "body"])
+def test_three_row_update_equals_four_row_joseph_update(error_model):
+    """The 3-row update (ekf module docstring, U1-U2) against the textbook 4-row Joseph form
+    K = P H^T S^-1,  P+ = (I - K H) P (I - K H)^T + K R K^T,  dx = K r  on the same linearization."""
+    drive = make_drive(30, seed=3)
+    config = slam_config(error_model=error_model, ransac_threshold_px=0.0, gate_probability=0.999999)
+    ekf, _, _ = run_filter(drive, config, steps=20)
+    ekf.predict(DT, drive.v_meas[19], drive.w_meas[19])
+    ids, pix = drive.observations(20)
+    slots = np.array([ekf._slot.get(i, -1) for i in ids])
+    ids, pix, slots = ids[slots >= 0], pix[slots >= 0], slots[slots >= 0]
+    assert slots.size >= 10
+    r4, H_x, H_m, in_front = ekf._observation_model(slots, pix)
+    assert in_front.all()
+    D = ekf.P.shape[0]
+    H = np.zeros((4 * slots.size, D))
+    for i, j in enumerate(slots):
+        H[4 * i : 4 * i + 4, :6] = H_x[i]
+        H[4 * i : 4 * i + 4, CORE + 3 * j : CORE + 3 * j + 3] = H_m[i]
+    R = PIX_SIGMA**2 * np.eye(H.shape[0])
+    P = ekf.P.copy()
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    IKH = np.eye(D) - K @ H
+    P_ref = IKH @ P @ IKH.T + K @ R @ K.T
+    dx_ref = K @ r4.ravel()
+    nis_ref = sum(r4[i] @ np.linalg.solve(S[4 * i : 4 * i + 4, 4 * i : 4 * i + 4], r4[i]) for i in range(slots.size))
+
+    mu, theta = ekf.mu.copy(), ekf._theta.copy()
+    ekf._apply_correction(dx_ref)
+    mu_ref, theta_ref = ekf.mu, ekf._theta
+    ekf.mu, ekf._theta = mu, theta
+    stats = StepStats()
+    ekf._joint_update(slots, pix, stats)
+    assert stats.used == slots.size
+    assert stats.nis_sum == pytest.approx(nis_ref, rel=1e-9)
+    scale = np.abs(P_ref).max()
+    assert np.abs(ekf.P - P_ref).max() <= 1e-9 * scale
+    assert np.abs(ekf.mu - mu_ref).max() <= 1e-9
+    assert np.abs(ekf._theta - theta_ref).max() <= 1e-9
 
 
 # ----------------------------------------------------------------------------------------------
