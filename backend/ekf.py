@@ -413,12 +413,14 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self._use_vision:
             return stats
+        slots = self._slots_of(ids)
         if not self.config.full_state and self._ids.size:
-            ended = ~np.isin(self._ids, ids)
+            ended = np.ones(self._ids.size, dtype=bool)
+            ended[slots[slots >= 0]] = False
             if ended.any():
                 stats.marginalized = int(ended.sum())
                 self._remove(ended, to_map=True)
-        slots = np.fromiter((self._slot.get(i, -1) for i in ids.tolist()), dtype=np.int64, count=ids.size)
+                slots = self._slots_of(ids)
         known = slots >= 0
         if known.any():
             self._joint_update(slots[known], pixels[known], stats)
@@ -524,13 +526,15 @@ class VisualInertialEKF:
                 rest = use & ~inlier
                 use = inlier
             if use.any():
+                L = self._cholesky(_sub(inn.S, _rows(use)))
+                if rest.any():  # (no consensus at all: nothing is rescued either)
+                    rescued = self._rescue(inn, L, use, rest)
+                    if rescued.size:
+                        use[rescued] = True
+                        L = self._cholesky(_sub(inn.S, _rows(use)))
                 rows = _rows(use)
-                L = self._cholesky(_sub(inn.S, rows))
                 A = _solve_lower(L, _take_rows(inn.HP, rows))
                 w = _solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
-                if rest.any():  # (no consensus at all: nothing is rescued either)
-                    rescued, A, w = self._rescue(inn, L, A, w, use, rest)
-                    use[rescued] = True
                 _symmetric_downdate(self.P, A)
                 self._apply_correction(A.T @ w)
         except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
@@ -546,32 +550,25 @@ class VisualInertialEKF:
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
-    def _rescue(self, inn: "_Innovation", L, A, w, inlier, rest):
-        """Chi-square test of the ``rest`` after the update with the ``inlier`` (Civera et al.'s rescue).
+    def _rescue(self, inn: "_Innovation", L: np.ndarray, inlier: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """Indices of the ``rest`` that pass the chi-square gate after the update with the ``inlier``
+        (Civera et al.'s rescue), L the Cholesky factor of the inliers' S_ii.
 
         To first order, the update with the inliers leaves the others the residual and covariance
-        r_r - S_ri S_ii^-1 r_i  and  S_rr - S_ri S_ii^-1 S_ir  (S_ri = H_r P H_i^T): no second
-        linearization; the row differences d pass unchanged. The joint factor of [inliers; rescued]
-        is the block Cholesky L = [[L_i, 0], [X^T, L_post]] with X = L_i^-1 S_ir, so the whitened
-        system (A, w) of the inliers extends by  A_r = L_post^-1 (H_r P - X^T A),  w_r = L_post^-1 r_post  (U3).
-        Returns (indices rescued, A, w).
+        r_r - S_ri S_ii^-1 r_i = r_r - X^T L^-1 r_i  and  S_rr - X^T X  with X = L^-1 S_ir
+        (S_ri = H_r P H_i^T): no second linearization; only the 3x3 diagonal blocks of X^T X are
+        needed. The row differences d pass unchanged. The caller then updates with inliers and
+        rescued jointly, which equals the two updates in sequence (U3).
         """
         ri, rr = _rows(inlier), _rows(rest)
-        S_r = inn.S[rr]
-        X = _solve_lower(L, S_r[:, ri].T)
-        r_post = inn.residual[rest].ravel() - X.T @ w
-        S_post = S_r[:, rr] - X.T @ X
+        X = _solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
+        w = _solve_lower(L, inn.residual[inlier].reshape(-1, 1))[:, 0]
         m = rr.size // ROWS
-        nis = block_nis(_diagonal_blocks(S_post, m), r_post.reshape(m, ROWS)) + inn.off_row[rest] ** 2 / self._R_pix
-        ok = nis <= self._gate
-        rest_idx = np.flatnonzero(rest)
-        if not ok.any():
-            return rest_idx[ok], A, w
-        ok_rows = _rows(ok)
-        L_post = self._cholesky(_sub(S_post, ok_rows))
-        A_r = _solve_lower(L_post, inn.HP[rr[ok_rows]] - X[:, ok_rows].T @ A)
-        w_r = _solve_lower(L_post, r_post[ok_rows].reshape(-1, 1))[:, 0]
-        return rest_idx[ok], np.vstack([A, A_r]), np.concatenate([w, w_r])
+        r_post = inn.residual[rest] - (X.T @ w).reshape(m, ROWS)
+        X3 = X.reshape(-1, m, ROWS)
+        S_post = _diagonal_blocks(inn.S, inn.slots.size)[rest] - np.einsum("ika,ikb->kab", X3, X3)
+        nis = block_nis(S_post, r_post) + inn.off_row[rest] ** 2 / self._R_pix
+        return np.flatnonzero(rest)[nis <= self._gate]
 
     @staticmethod
     def _cholesky(S: np.ndarray) -> np.ndarray:
@@ -692,6 +689,10 @@ class VisualInertialEKF:
         self._anchors = self._anchors[keep_lm]
         self._gated_run = self._gated_run[keep_lm]
         self._reindex()
+
+    def _slots_of(self, ids: np.ndarray) -> np.ndarray:
+        """State slots of ``ids`` (-1 where not in the state)."""
+        return np.fromiter((self._slot.get(i, -1) for i in ids.tolist()), dtype=np.int64, count=ids.size)
 
     def _reindex(self) -> None:
         self._slot = dict(zip(self._ids.tolist(), range(self._ids.size)))
