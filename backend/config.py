@@ -44,6 +44,8 @@ class FilterConfig:
     imu_flip: str = "auto"  # auto | yes | no: flip the IMU's y and z axes, diag(1,-1,-1,1) @ imu_T_cam
     velocity_index: str = "auto"  # auto | this | next: velocity stamped k (this) or k+1 (next) drives step k -> k+1
     convention_horizon: int = 3  # steps between triangulation and reprojection in the convention test
+    online_convention_steps: int = 100  # image input (one pass): the test runs on the first frames, from 20 on
+    # every 10 until one variant fits >= 10 % better than all others, at most this many frames
 
     # --- IMU noise: white noise per axis of the velocity measurements (None: estimated from the data)
     linear_velocity_sigma: Optional[float] = None  # m/s
@@ -112,7 +114,7 @@ class FilterConfig:
             raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
         if self.min_disparity < 0:
             raise ConfigError(f"config key 'min_disparity': must be >= 0, got {self.min_disparity!r}")
-        for name in ("convention_horizon", "nis_window", "blas_threads", "max_consecutive_gated"):
+        for name in ("convention_horizon", "online_convention_steps", "nis_window", "blas_threads", "max_consecutive_gated"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"config key '{name}': must be an integer >= 1, got {getattr(self, name)!r}")
         return self

@@ -19,9 +19,10 @@ from backend.config import FilterConfig
 from backend.conventions import ConventionDecision, decide_conventions
 from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
-from backend.imu import NoiseDecision, dead_reckoning, decide_imu_noise, step_velocities
+from backend import se3
+from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, decide_imu_noise
 from backend.sequence import Sequence
-from backend.timing import repeated_steps
+from backend.timing import repeats_previous
 
 
 @dataclass
@@ -91,6 +92,136 @@ def prepare(seq: Sequence, config: FilterConfig) -> tuple[ConventionDecision, No
     return conventions, noise
 
 
+class OnlineRun:
+    """The filter over a stream, one call of :meth:`step` per time stamp; :func:`run_sequence` and the
+    one-pass image path (tools/track.py) are loops over it.
+
+    ``step(t, v, w, ids, pixels)`` takes the IMU sample stamped t and the stereo observations of
+    the frame at t. It applies the velocity timing of ``conventions`` (the sample stamped k
+    ("this") or k+1 ("next") drives the step k -> k+1: both are known once step k+1 arrives), the
+    repeated-frame policy (backend.timing), keeps dead reckoning alongside, and collects the run
+    statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
+    """
+
+    def __init__(
+        self,
+        camera: StereoCamera,
+        conventions: ConventionDecision,
+        noise: NoiseDecision,
+        config: FilterConfig,
+        expected_landmarks: int | None = None,
+        observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
+    ) -> None:
+        config.validate()
+        if noise.gyro_bias != config.estimate_gyro_bias:
+            config = dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias)
+        self.config = config
+        self.conventions = conventions
+        self.noise = noise
+        self.ekf = VisualInertialEKF(camera, conventions.imu_T_cam, config,
+                                     ImuNoise(noise.linear_sigma, noise.angular_sigma),
+                                     expected_landmarks=expected_landmarks)
+        self.observer = observer
+        self.stats = RunStats()
+        self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
+        self._t: list[float] = []
+        self._poses: list[np.ndarray] = []
+        self._dr: list[np.ndarray] = []
+        self._prev_sample = None  # (t, v, w) of the previous step
+        self._prev_frame = None  # (ids, pixels) of the last step that was not a repeat
+        self._active_sum = 0
+        self._nis_sum = 0.0
+        self._wall = 0.0
+
+    @property
+    def num_steps(self) -> int:
+        return len(self._t)
+
+    def step(self, t: float, linear_velocity, angular_velocity, ids, pixels) -> Optional[StepStats]:
+        """Predict into t (from the second call on), then use the observations (ids (n,), pixels (n,4))."""
+        t0 = time.perf_counter()
+        v = np.asarray(linear_velocity, dtype=float)
+        w = np.asarray(angular_velocity, dtype=float)
+        k = len(self._t)
+        if k:
+            t_prev, v_prev, w_prev = self._prev_sample
+            dt = float(t) - t_prev
+            if not dt > 0:
+                raise InputError(f"step {k}: time stamp {t!r} does not increase (previous {t_prev!r})")
+            v_step, w_step = (v, w) if self._next else (v_prev, w_prev)
+            self.ekf.predict(dt, v_step, w_step)
+            self._dr.append(self._dr[-1] @ se3.exp_se3(dt * np.concatenate([v_step, w_step])))
+        else:
+            self._dr.append(self.ekf.world_T_imu.copy())
+        t1 = time.perf_counter()
+        self._prev_sample = (float(t), v, w)
+        step_stats = self._observe(np.asarray(ids, dtype=np.int64), np.asarray(pixels, dtype=float).reshape(-1, 4))
+        if self.observer is not None:
+            self.observer(k, self.ekf, step_stats)
+        self._t.append(float(t))
+        self._poses.append(self.ekf.world_T_imu.copy())
+        t2 = time.perf_counter()
+        self.stats.seconds_predict += t1 - t0
+        self.stats.seconds_update += t2 - t1
+        self._wall += t2 - t0
+        return step_stats
+
+    def _observe(self, ids: np.ndarray, pixels: np.ndarray) -> Optional[StepStats]:
+        """Use a frame's observations as the repeated-frame policy says (backend.timing)."""
+        stats = self.stats
+        stats.observations += ids.size
+        repeated = self._prev_frame is not None and repeats_previous(ids, pixels, *self._prev_frame)
+        if repeated:
+            stats.repeated_frames += 1
+        else:
+            self._prev_frame = (ids, pixels)
+        policy = self.config.repeated_frames
+        if repeated and policy != "use":
+            if policy == "cut":
+                self.ekf.finish()  # no track bridges a stalled camera
+            return None
+        step_stats = self.ekf.update(ids, pixels)
+        stats.observations_used += step_stats.used
+        stats.observations_gated += step_stats.gated
+        stats.landmarks_initialized += step_stats.initialized
+        stats.landmarks_dropped += step_stats.dropped
+        stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
+        self._active_sum += step_stats.active
+        self._nis_sum += step_stats.nis_sum
+        return step_stats
+
+    def result(self, setup_seconds: float = 0.0) -> RunResult:
+        """Marginalize the active landmarks into the map; the run's trajectory, map and statistics."""
+        if not self._t:
+            raise InputError("no steps: nothing to estimate")
+        t0 = time.perf_counter()
+        self.ekf.finish()
+        stats = self.stats
+        stats.steps = len(self._t)
+        stats.wall_seconds = self._wall + time.perf_counter() - t0
+        stats.setup_seconds = setup_seconds
+        stats.sequence_seconds = self._t[-1] - self._t[0]
+        stats.real_time_factor = stats.sequence_seconds / max(stats.wall_seconds + setup_seconds, 1e-9)
+        stats.active_landmarks_mean = self._active_sum / stats.steps
+        stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
+        stats.health_messages = list(self.ekf.health.messages)
+        map_ids, map_pos, map_cov = self.ekf.landmark_map()
+        stats.landmarks_mapped = int(map_ids.size)
+        return RunResult(
+            time_stamps=np.array(self._t),
+            world_T_imu=np.array(self._poses),
+            dead_reckoning=np.array(self._dr),
+            map_ids=map_ids,
+            map_positions=map_pos,
+            map_covariances=map_cov,
+            gyro_bias=self.ekf.gyro_bias.copy(),
+            stats=stats,
+            conventions=self.conventions,
+            imu_noise=self.noise,
+            config=self.config,
+        )
+
+
 def run_sequence(
     seq: Sequence,
     config: FilterConfig,
@@ -98,7 +229,7 @@ def run_sequence(
     decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
     observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
 ) -> RunResult:
-    """Run the filter over every step and every observation of ``seq``.
+    """Run the filter over every step and every observation of ``seq`` (a loop over :class:`OnlineRun`).
 
     ``progress(k)`` is called after each step; ``observer(k, ekf, step_stats)`` too, with the
     filter itself (step_stats is None where the step's observations were not used);
@@ -111,87 +242,12 @@ def run_sequence(
         t_setup = time.perf_counter()
         conventions, noise = decisions if decisions is not None else prepare(seq, config)
         setup_seconds = time.perf_counter() - t_setup
-
-        ekf = VisualInertialEKF(
-            StereoCamera(seq.K, seq.baseline),
-            conventions.imu_T_cam,
-            config if noise.gyro_bias == config.estimate_gyro_bias else dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias),
-            ImuNoise(noise.linear_sigma, noise.angular_sigma),
-            expected_landmarks=seq.num_features,
-        )
-        v_steps, w_steps = step_velocities(seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
-        poses = np.empty((seq.num_steps, 4, 4))
-        stats = RunStats(steps=seq.num_steps, observations=seq.num_observations,
-                         observations_dropped_input=dict(seq.dropped))
-        active_sum = 0
-        nis_sum = 0.0
-        t_predict = t_update = 0.0
-
-        def absorb(step_stats) -> None:
-            nonlocal active_sum, nis_sum
-            stats.observations_used += step_stats.used
-            stats.observations_gated += step_stats.gated
-            stats.landmarks_initialized += step_stats.initialized
-            stats.landmarks_dropped += step_stats.dropped
-            stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
-            active_sum += step_stats.active
-            nis_sum += step_stats.nis_sum
-
-        repeated = repeated_steps(seq)
-        stats.repeated_frames = int(repeated.sum())
-        policy = config.repeated_frames
-        dts = np.diff(seq.time_stamps)
-
-        def step(k: int) -> None:
-            """Use the observations of step k as the repeated-frame policy says (backend.timing)."""
-            step_stats = None
-            if not repeated[k] or policy == "use":
-                step_stats = ekf.update(*seq.observations(k))
-                absorb(step_stats)
-            elif policy == "cut":
-                ekf.finish()  # no track bridges a stalled camera
-            if observer is not None:
-                observer(k, ekf, step_stats)
-
-        t_loop = time.perf_counter()
-        step(0)
-        poses[0] = ekf.world_T_imu
-        if progress:
-            progress(0)
-        for k in range(seq.num_steps - 1):
-            t0 = time.perf_counter()
-            ekf.predict(dts[k], v_steps[k], w_steps[k])
-            t1 = time.perf_counter()
-            step(k + 1)
-            t_update += time.perf_counter() - t1
-            t_predict += t1 - t0
-            poses[k + 1] = ekf.world_T_imu
+        run = OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config,
+                        expected_landmarks=seq.num_features, observer=observer)
+        for k in range(seq.num_steps):
+            run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
             if progress:
-                progress(k + 1)
-        ekf.finish()
-        stats.wall_seconds = time.perf_counter() - t_loop
-
-    stats.setup_seconds = setup_seconds
-    stats.seconds_predict = t_predict
-    stats.seconds_update = t_update
-    stats.sequence_seconds = float(seq.time_stamps[-1] - seq.time_stamps[0])
-    stats.real_time_factor = stats.sequence_seconds / max(stats.wall_seconds + setup_seconds, 1e-9)
-    stats.active_landmarks_mean = active_sum / seq.num_steps
-    stats.mean_nis = nis_sum / stats.observations_used if stats.observations_used else float("nan")
-    stats.health_messages = list(ekf.health.messages)
-    map_ids, map_pos, map_cov = ekf.landmark_map()
-    stats.landmarks_mapped = int(map_ids.size)
-    dr = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, conventions.velocity_index)
-    return RunResult(
-        time_stamps=seq.time_stamps.copy(),
-        world_T_imu=poses,
-        dead_reckoning=dr,
-        map_ids=map_ids,
-        map_positions=map_pos,
-        map_covariances=map_cov,
-        gyro_bias=ekf.gyro_bias.copy(),
-        stats=stats,
-        conventions=conventions,
-        imu_noise=noise,
-        config=config,
-    )
+                progress(k)
+        result = run.result(setup_seconds)
+    result.stats.observations_dropped_input = dict(seq.dropped)
+    return result

@@ -21,14 +21,19 @@ import numpy as np
 from backend.sequence import Sequence
 
 
+def repeats_previous(ids: np.ndarray, pixels: np.ndarray, prev_ids: np.ndarray, prev_pixels: np.ndarray) -> bool:
+    """True when every feature seen in both frames has identical pixels (and one at least is shared)."""
+    _, i_now, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
+    return bool(i_now.size) and np.array_equal(pixels[i_now], prev_pixels[i_prev])
+
+
 def repeated_steps(seq: Sequence) -> np.ndarray:
-    """(N,) bool: step k > 0 repeats step k-1 (every feature seen in both has identical pixels)."""
+    """(N,) bool: step k > 0 repeats the last step before it that was not a repeat (:func:`repeats_previous`)."""
     repeated = np.zeros(seq.num_steps, dtype=bool)
     prev_ids, prev_px = seq.observations(0)
     for k in range(1, seq.num_steps):
         ids, px = seq.observations(k)
-        _, i_now, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
-        if i_now.size and np.array_equal(px[i_now], prev_px[i_prev]):
+        if repeats_previous(ids, px, prev_ids, prev_px):
             repeated[k] = True
         else:
             prev_ids, prev_px = ids, px

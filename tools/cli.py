@@ -63,13 +63,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = _config_from_args(args, filter_set)
     out_dir = outputs.prepare_output_dir(args.out, args.force)
     gt = outputs.read_tum(args.gt) if args.gt else None
-    if images:
-        from tools.track import track_images
-
-        seq = track_images(args, tracker_set, args.quiet)
-    else:
-        seq = load_sequence(args.data, image_size=config.image_size)
     say = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    if images:
+        from tools.track import run_images
+
+        say("configuration:\n" + config.describe())
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
+            result = run_images(args, tracker_set, config, args.quiet)
+        summary = write_run_outputs(result, out_dir, str(args.data), gt)
+        print(format_summary(summary, out_dir))
+        return 0
+    seq = load_sequence(args.data, image_size=config.image_size)
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
         f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))
     say("configuration:\n" + config.describe())

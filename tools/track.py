@@ -1,11 +1,14 @@
 """`vislam track IMAGES_DIR --imu IMU --out DATA.npz`: stereo images -> course-layout observations,
-and the image input of `vislam run IMAGES_DIR --imu IMU` (thin over frontend/)."""
+and `vislam run IMAGES_DIR --imu IMU`: tracking and the filter in one pass, frame by frame
+(thin over frontend/ and backend.pipeline.OnlineRun)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from backend.errors import InputError
 
@@ -48,6 +51,96 @@ def track_images(args: argparse.Namespace, assignments: list[str], quiet: bool =
         if bar is not None:
             bar.close()
     return seq
+
+
+def decisive(errors_px: dict, margin: float = 1.1) -> bool:
+    """True when the convention test has nothing to choose (one variant) or its best variant fits at
+    least ``margin`` times better than every other."""
+    finite = sorted(v for v in errors_px.values() if np.isfinite(v))
+    return len(errors_px) <= 1 or (len(finite) >= 2 and finite[1] >= margin * finite[0])
+
+
+def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: bool = False):
+    """`vislam run IMAGES --imu IMU` in one pass: each frame is tracked and handed to the filter at once.
+
+    The convention test (extrinsic flip, velocity timing) needs tracks, so the first frames are
+    tracked and tested (backend.conventions) from 20 frames on, every 10 frames, until the test
+    is :func:`decisive` or ``config.online_convention_steps`` frames are in; those frames then go
+    to the filter, and every later frame as soon as it is tracked. The IMU
+    noise comes from the whole IMU file. Returns the :class:`backend.pipeline.RunResult`.
+    """
+    import time
+
+    from backend.camera import StereoCamera
+    from backend.conventions import decide_conventions
+    from backend.imu import decide_imu_noise
+    from backend.pipeline import OnlineRun
+    from frontend.images import open_stereo_directory
+    from frontend.track import check_imu, iter_tracks, tracks_to_sequence
+    from frontend.tracker import StereoTracker
+    from threadpoolctl import threadpool_limits
+
+    images = args.data
+    if not args.imu:
+        raise InputError(f"{images}: an image directory needs the IMU velocities: --imu FILE (.csv or course .npz)")
+    tracker_config_ = tracker_config(args, tracker_set)
+    stereo = open_stereo_directory(images)  # refuse a bad layout before any work
+    imu = check_imu(args.imu, stereo, getattr(args, "imu_T_cam", None))
+    say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr))
+    say("tracker configuration:\n" + tracker_config_.describe())
+    n = len(stereo)
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, unit="frame", file=sys.stderr, desc="track+filter")
+    tracker = StereoTracker(tracker_config_, stereo.K, stereo.baseline)
+    frames = iter_tracks(stereo, tracker_config_, getattr(args, "draw", None), tracker)
+    warm_ids, warm_pixels = [], []
+    setup = 0.0
+    run = None
+    try:
+        with threadpool_limits(limits=config.blas_threads):
+            for index, ids, pixels in frames:
+                if run is None:
+                    warm_ids.append(ids)
+                    warm_pixels.append(pixels)
+                    k = len(warm_ids)
+                    last = k >= min(config.online_convention_steps, n)
+                    if not last and (k < 20 or k % 10):
+                        continue
+                    t0 = time.perf_counter()
+                    warm = tracks_to_sequence(stereo, imu, warm_ids, warm_pixels, tracker.num_ids)
+                    conventions = decide_conventions(warm, config.imu_flip, config.velocity_index, config.convention_horizon)
+                    setup += time.perf_counter() - t0
+                    if not last and not decisive(conventions.errors_px):
+                        continue
+                    t0 = time.perf_counter()
+                    noise = decide_imu_noise(
+                        imu.linear_velocity, imu.angular_velocity, config.linear_velocity_sigma,
+                        config.angular_velocity_sigma, config.linear_velocity_sigma_floor,
+                        config.angular_velocity_sigma_floor, config.estimate_gyro_bias,
+                        warm.num_observations / warm.num_steps, config.gyro_bias_min_observations,
+                    )
+                    setup += time.perf_counter() - t0
+                    say(f"conventions from the first {warm.num_steps} frames: " + conventions.describe())
+                    say(noise.describe())
+                    run = OnlineRun(StereoCamera(stereo.K, stereo.baseline), conventions, noise, config)
+                    for k in range(warm.num_steps):
+                        run.step(imu.time_stamps[k], imu.linear_velocity[k], imu.angular_velocity[k], *warm.observations(k))
+                        if bar is not None:
+                            bar.update(1)
+                    warm_ids = warm_pixels = None
+                    continue
+                run.step(imu.time_stamps[index], imu.linear_velocity[index], imu.angular_velocity[index], ids, pixels)
+                if bar is not None:
+                    bar.update(1)
+            if run is None:
+                raise InputError(f"{images}: no frames")
+            return run.result(setup)
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def cmd_track(args: argparse.Namespace) -> int:

@@ -1,0 +1,60 @@
+"""backend.pipeline.OnlineRun: the streaming loop that run_sequence and the one-pass image path share."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.camera import StereoCamera
+from backend.config import FilterConfig
+from backend.conventions import ConventionDecision
+from backend.errors import InputError
+from backend.imu import dead_reckoning, decide_imu_noise
+from backend.pipeline import OnlineRun, run_sequence
+from synth.scene import SceneConfig, make_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(SceneConfig(steps=60, seed=4))
+
+
+def _run(seq, velocity_index: str, config: FilterConfig) -> OnlineRun:
+    conventions = ConventionDecision(False, velocity_index, seq.imu_T_cam, {}, "configured", "configured")
+    noise = decide_imu_noise(seq.linear_velocity, seq.angular_velocity, None, None, 0.05, 0.002)
+    return OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config)
+
+
+@pytest.mark.parametrize("velocity_index", ["this", "next"])
+def test_online_dead_reckoning_matches_batch(scene, velocity_index):
+    """The dead reckoning kept alongside, step by step, equals backend.imu.dead_reckoning; the
+    filter in dead-reckoning mode follows it exactly."""
+    seq = scene.sequence
+    run = _run(seq, velocity_index, FilterConfig(mode="dead-reckoning"))
+    for k in range(seq.num_steps):
+        run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
+    result = run.result()
+    batch = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
+    np.testing.assert_allclose(result.dead_reckoning, batch, atol=1e-9)
+    np.testing.assert_allclose(result.world_T_imu, batch, atol=1e-9)
+    assert result.stats.steps == seq.num_steps
+
+
+def test_online_run_equals_run_sequence(scene):
+    seq = scene.sequence
+    config = FilterConfig(pixel_sigma=scene.config.pixel_sigma, velocity_index="this", imu_flip="no")
+    batch = run_sequence(seq, config)
+    run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.conventions, batch.imu_noise, config)
+    for k in range(seq.num_steps):
+        run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
+    result = run.result()
+    np.testing.assert_allclose(result.world_T_imu, batch.world_T_imu, atol=1e-12)
+    assert result.stats.observations_used == batch.stats.observations_used > 0
+
+
+def test_online_run_refuses_time_going_back(scene):
+    seq = scene.sequence
+    run = _run(seq, "this", FilterConfig())
+    run.step(1.0, seq.linear_velocity[0], seq.angular_velocity[0], *seq.observations(0))
+    with pytest.raises(InputError, match="does not increase"):
+        run.step(1.0, seq.linear_velocity[1], seq.angular_velocity[1], *seq.observations(1))
