@@ -49,6 +49,7 @@ theta = g(z, mu) with Jacobians J_z and J_xi (backend.landmarks.initialize), and
 
 from __future__ import annotations
 
+import time
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
@@ -317,6 +318,7 @@ class VisualInertialEKF:
 
         self.health = HealthMonitor(config.nis_window, config.nis_warn_factor)
         self.step_index = 0
+        self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
 
     # ------------------------------------------------------------------ public state
     @property
@@ -413,6 +415,7 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self._use_vision:
             return stats
+        t0 = time.perf_counter()
         slots = self._slots_of(ids)
         if not self.config.full_state and self._ids.size:
             ended = np.ones(self._ids.size, dtype=bool)
@@ -422,10 +425,13 @@ class VisualInertialEKF:
                 self._remove(ended, to_map=True)
                 slots = self._slots_of(ids)
         known = slots >= 0
+        t1 = time.perf_counter()
         if known.any():
             self._joint_update(slots[known], pixels[known], stats)
+        t2 = time.perf_counter()
         if (~known).any():
             self._initialize(ids[~known], pixels[~known], stats)
+        self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
         stats.active = self._ids.size
         if stats.used or stats.gated:
             self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)

@@ -46,7 +46,8 @@ class RunStats:
     sequence_seconds: float = 0.0
     real_time_factor: float = 0.0  # sequence duration / (setup + loop)
     seconds_predict: float = 0.0
-    seconds_update: float = 0.0
+    seconds_update: float = 0.0  # the joint updates (gate, RANSAC, update), without bookkeeping
+    seconds_bookkeeping: float = 0.0  # ended tracks marginalized to the map, new landmarks initialized
     health_messages: list = field(default_factory=list)
 
     @property
@@ -205,6 +206,8 @@ class OnlineRun:
         stats.active_landmarks_mean = self._active_sum / stats.steps
         stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
         stats.health_messages = list(self.ekf.health.messages)
+        stats.seconds_bookkeeping = self.ekf.seconds_bookkeeping
+        stats.seconds_update -= self.ekf.seconds_bookkeeping
         map_ids, map_pos, map_cov = self.ekf.landmark_map()
         stats.landmarks_mapped = int(map_ids.size)
         return RunResult(

@@ -5,7 +5,9 @@
 Each file runs in a fresh subprocess (so peak RSS is that run's own), single BLAS thread as the
 filter configures itself. Reported: wall seconds of the filter loop and of the whole run
 (load + convention check + filter + outputs), real-time factor (sequence seconds / run
-seconds without output writing), peak RSS, and time per step split into predict / update.
+seconds without output writing), peak RSS, and time per step split into predict / update /
+bookkeeping (ended tracks to the map, new landmarks into the state). The filter runs REPEATS (3)
+times per file and the fastest run is reported: other work on the machine only slows a run down.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 FILES = ["ece276a_03.npz", "ece276a_0027.npz", "ece276a2019_0042.npz"]
 
+REPEATS = 3
+
 CHILD = r"""
 import json, resource, sys, tempfile, time, warnings
 from pathlib import Path
@@ -33,7 +37,8 @@ t1 = time.perf_counter()
 seq = load_sequence(sys.argv[1])
 t_load = time.perf_counter() - t1
 warnings.simplefilter("ignore")
-result = run_sequence(seq, FilterConfig())
+runs = [run_sequence(seq, FilterConfig()) for _ in range(REPEATS)]
+result = min(runs, key=lambda r: r.stats.wall_seconds)  # best of REPEATS: the machine is shared
 t2 = time.perf_counter()
 with tempfile.TemporaryDirectory() as out:
     write_run_outputs(result, Path(out), sys.argv[1])
@@ -43,7 +48,7 @@ print(json.dumps({
     "steps": s.steps, "observations": s.observations, "used": s.observations_used,
     "active_mean": s.active_landmarks_mean, "active_max": s.active_landmarks_max,
     "sequence_s": s.sequence_seconds, "setup_s": s.setup_seconds, "filter_s": s.wall_seconds,
-    "predict_s": s.seconds_predict, "update_s": s.seconds_update,
+    "predict_s": s.seconds_predict, "update_s": s.seconds_update, "bookkeeping_s": s.seconds_bookkeeping,
     "import_s": t_import, "load_s": t_load, "write_s": t_write,
     "rtf": s.sequence_seconds / (t_load + s.setup_seconds + s.wall_seconds),
     "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -52,7 +57,7 @@ print(json.dumps({
 
 
 def measure(path: Path) -> dict:
-    out = subprocess.run([sys.executable, "-c", CHILD, str(path)], cwd=ROOT, check=True,
+    out = subprocess.run([sys.executable, "-c", CHILD.replace("REPEATS", str(REPEATS)), str(path)], cwd=ROOT, check=True,
                          capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -68,14 +73,15 @@ def main() -> int:
         print(name, json.dumps(r), file=sys.stderr)
     lines = [
         "| file | steps | obs used / valid | active mean / max | load s | conventions s | filter s | "
-        "predict ms/step | update ms/step | outputs s | real-time factor | peak RSS MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "predict ms/step | update ms/step | bookkeeping ms/step | outputs s | real-time factor | peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in rows:
         lines.append(
             f"| {name} | {r['steps']} | {r['used']} / {r['observations']} | {r['active_mean']:.0f} / {r['active_max']} "
             f"| {r['load_s']:.2f} | {r['setup_s']:.2f} | {r['filter_s']:.2f} "
             f"| {1000 * r['predict_s'] / r['steps']:.2f} | {1000 * r['update_s'] / r['steps']:.2f} "
+            f"| {1000 * r['bookkeeping_s'] / r['steps']:.2f} "
             f"| {r['write_s']:.2f} | {r['rtf']:.0f}x | {r['peak_rss_mb']:.0f} |"
         )
     table = "\n".join(lines)
@@ -84,7 +90,8 @@ def main() -> int:
     bench = ROOT / "BENCHMARKS.md"
     text = bench.read_text() if bench.exists() else ""
     start, end = "<!-- speed:start -->", "<!-- speed:end -->"
-    block = f"{start}\nMachine: {machine}. Command: `python benchmarks/run_benchmarks.py`.\n\n{table}\n{end}"
+    block = (f"{start}\nMachine: {machine}. Command: `python benchmarks/run_benchmarks.py` "
+             f"(best of {REPEATS} runs).\n\n{table}\n{end}")
     if start in text and end in text:
         text = text[: text.index(start)] + block + text[text.index(end) + len(end):]
     else:

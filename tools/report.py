@@ -62,6 +62,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) 
             "setup_seconds": stats.setup_seconds,
             "predict_seconds": stats.seconds_predict,
             "update_seconds": stats.seconds_update,
+            "bookkeeping_seconds": stats.seconds_bookkeeping,
             "sequence_seconds": stats.sequence_seconds,
             "real_time_factor": stats.real_time_factor,
         },
