@@ -35,10 +35,15 @@ def dead_reckoning(
         w = w - gyro_bias
     tau = np.diff(time_stamps)
     twists = np.concatenate([v, w], axis=1) * tau[:, None]
-    poses = np.empty((time_stamps.size, 4, 4))
+    return compose_steps(se3.exp_se3_batch(twists), world_T_imu0)
+
+
+def compose_steps(steps: np.ndarray, world_T_imu0: np.ndarray | None = None) -> np.ndarray:
+    """Poses (N+1,4,4) T_0 = world_T_imu0 (identity by default), T_{k+1} = T_k steps[k]."""
+    poses = np.empty((steps.shape[0] + 1, 4, 4))
     poses[0] = np.eye(4) if world_T_imu0 is None else world_T_imu0
-    for k, twist in enumerate(twists):
-        poses[k + 1] = poses[k] @ se3.exp_se3(twist)
+    for k in range(steps.shape[0]):
+        np.matmul(poses[k], steps[k], out=poses[k + 1])
     return poses
 
 

@@ -20,7 +20,7 @@ from backend.conventions import ConventionDecision, decide_conventions
 from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
 from backend import se3
-from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, decide_imu_noise
+from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, compose_steps, decide_imu_noise
 from backend.sequence import Sequence
 from backend.timing import repeats_previous
 
@@ -100,7 +100,7 @@ class OnlineRun:
     ``step(t, v, w, ids, pixels)`` takes the IMU sample stamped t and the stereo observations of
     the frame at t. It applies the velocity timing of ``conventions`` (the sample stamped k
     ("this") or k+1 ("next") drives the step k -> k+1: both are known once step k+1 arrives), the
-    repeated-frame policy (backend.timing), keeps dead reckoning alongside, and collects the run
+    repeated-frame policy (backend.timing), records dead reckoning alongside, and collects the run
     statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
     """
 
@@ -127,7 +127,7 @@ class OnlineRun:
         self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
         self._t: list[float] = []
         self._poses: list[np.ndarray] = []
-        self._dr: list[np.ndarray] = []
+        self._dr_twists: list[np.ndarray] = []  # dead reckoning, composed in result()
         self._prev_sample = None  # (t, v, w) of the previous step
         self._prev_frame = None  # (ids, pixels) of the last step that was not a repeat
         self._active_sum = 0
@@ -151,9 +151,7 @@ class OnlineRun:
                 raise InputError(f"step {k}: time stamp {t!r} does not increase (previous {t_prev!r})")
             v_step, w_step = (v, w) if self._next else (v_prev, w_prev)
             self.ekf.predict(dt, v_step, w_step)
-            self._dr.append(self._dr[-1] @ se3.exp_se3(dt * np.concatenate([v_step, w_step])))
-        else:
-            self._dr.append(self.ekf.world_T_imu.copy())
+            self._dr_twists.append(dt * np.concatenate([v_step, w_step]))
         t1 = time.perf_counter()
         self._prev_sample = (float(t), v, w)
         step_stats = self._observe(np.asarray(ids, dtype=np.int64), np.asarray(pixels, dtype=float).reshape(-1, 4))
@@ -213,7 +211,7 @@ class OnlineRun:
         return RunResult(
             time_stamps=np.array(self._t),
             world_T_imu=np.array(self._poses),
-            dead_reckoning=np.array(self._dr),
+            dead_reckoning=compose_steps(se3.exp_se3_batch(np.array(self._dr_twists).reshape(-1, 6))),
             map_ids=map_ids,
             map_positions=map_pos,
             map_covariances=map_cov,

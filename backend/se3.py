@@ -161,6 +161,34 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def exp_se3_batch(xi: np.ndarray) -> np.ndarray:
+    """:func:`exp_se3` of many twists at once (Barfoot eqs. 7.14, 7.37, 7.39); (n, 6) -> (n, 4, 4).
+
+    The coefficients a = sin t/t, b = (1-cos t)/t^2, c = (t-sin t)/t^3 use the same Taylor series
+    below ``_SMALL_ANGLE`` as :func:`_coefficients`.
+    """
+    xi = np.asarray(xi, dtype=float).reshape(-1, 6)
+    t = np.linalg.norm(xi[:, 3:], axis=1)
+    t2 = t * t
+    t4, t6, t8 = t2 * t2, t2 * t2 * t2, t2 * t2 * t2 * t2
+    small = t < _SMALL_ANGLE
+    ts = np.where(small, 1.0, t)  # no division by zero in the branch not taken
+    s, co = np.sin(ts), np.cos(ts)
+    a = np.where(small, 1.0 - t2 / 6.0 + t4 / 120.0 - t6 / 5040.0 + t8 / 362880.0, s / ts)
+    b = np.where(small, 0.5 - t2 / 24.0 + t4 / 720.0 - t6 / 40320.0 + t8 / 3628800.0, (1.0 - co) / (ts * ts))
+    c = np.where(small, 1.0 / 6.0 - t2 / 120.0 + t4 / 5040.0 - t6 / 362880.0 + t8 / 39916800.0,
+                 (ts - s) / (ts * ts * ts))
+    W = hat3(xi[:, 3:])
+    WW = W @ W
+    eye = np.eye(3)
+    out = np.zeros((xi.shape[0], 4, 4))
+    out[:, :3, :3] = eye + a[:, None, None] * W + b[:, None, None] * WW
+    J = eye + b[:, None, None] * W + c[:, None, None] * WW
+    out[:, :3, 3] = np.einsum("nij,nj->ni", J, xi[:, :3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
 def log_se3(T: np.ndarray) -> np.ndarray:
     """[J_l(theta)^-1 p, theta] with theta = log_so3(R) (inverse of Barfoot eq. 7.39)."""
     T = np.asarray(T, dtype=float)

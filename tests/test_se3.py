@@ -56,6 +56,16 @@ def test_exp_se3_matches_expm(xi):
 
 
 @SETTINGS
+@given(st.lists(_twist(), min_size=1, max_size=8), st.floats(0.0, 0.2))
+def test_exp_se3_batch_matches_expm(twists, small):
+    """Batch of twists, including rotations below and around the series switch (0.1 rad) and zero."""
+    xis = np.array(twists + [np.r_[1.0, 2.0, 3.0, small, 0.0, 0.0], np.zeros(6)])
+    batch = se3.exp_se3_batch(xis)
+    for xi, T in zip(xis, batch):
+        assert np.allclose(T, expm(se3.hat(xi)), atol=1e-10, rtol=0)
+
+
+@SETTINGS
 @given(_twist(max_angle=np.pi - 0.1))
 def test_log_exp_se3_roundtrip(xi):
     assert np.allclose(se3.log_se3(se3.exp_se3(xi)), xi, atol=1e-9, rtol=0)
