@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Templates", "make_templates", "align"]
+__all__ = ["Templates", "make_templates", "isotropy", "align"]
 
 
 @dataclass
@@ -103,6 +103,24 @@ def make_templates(img: np.ndarray, centres: np.ndarray, size: int, min_texture:
     ok = (norm > 1e-3) & (smallest >= min_texture)
     H += np.eye(6) * (1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] + 1e-12)
     return Templates(patch.astype(np.float32), sd_t, np.linalg.inv(H).astype(np.float32)), ok
+
+
+def isotropy(img: np.ndarray, centres: np.ndarray, size: int) -> np.ndarray:
+    """(n,) smallest over largest eigenvalue (0..1) of the gradient matrix of the ``size`` x
+    ``size`` patches of the float32 image ``img`` centred on ``centres`` (n,2): near 0 for a patch
+    of edges all in one direction, 1 for texture alike in every direction."""
+    n = centres.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    big = size + 2
+    gx, gy = _grid(big)
+    eye = np.broadcast_to(np.eye(2, dtype=np.float32), (n, 2, 2))
+    raw = _sample(img, eye, centres.astype(np.float32), gx, gy).reshape(n, big, big)
+    dx = (raw[:, 1:-1, 2:] - raw[:, 1:-1, :-2]).reshape(n, -1)
+    dy = (raw[:, 2:, 1:-1] - raw[:, :-2, 1:-1]).reshape(n, -1)
+    a, b, c = (np.einsum("nk,nk->n", u, v).astype(np.float64) for u, v in ((dx, dx), (dx, dy), (dy, dy)))
+    root = np.sqrt((a - c) ** 2 + 4 * b * b)
+    return (a + c - root) / np.maximum(a + c + root, 1e-12)
 
 
 def align(img: np.ndarray, templates: Templates, A: np.ndarray, t: np.ndarray, iterations: int = 10,

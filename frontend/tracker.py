@@ -19,8 +19,11 @@
    ``fundamental_threshold_px`` from their epipolar line end;
 4. detection (:mod:`frontend.detect`): Shi-Tomasi corners of the half-size image, refined with
    ``cv2.cornerSubPix``, at least ``min_distance_px`` from live tracks, not about to leave the
-   image, added emptiest grid cell first (at most ``per_cell_budget`` a cell) until
-   ``target_tracks`` would be live;
+   image (the nearest track's motion; with ``birth_lookahead_frames`` > 1 the corner's stereo
+   point, at the nearest track's disparity, moved that many times by the last camera motion
+   must stay inside both images), optionally (``min_isotropy``) with texture in every direction
+   over the tracking patch, added emptiest grid cell first (at most ``per_cell_budget`` a cell)
+   until ``target_tracks`` would be live;
 5. stereo: every left point is followed into the right image with LK seeded at ``(u - d, v)``:
    ``d`` is a track's last disparity, or for a new point block matching of the shrunk pair
    (``stereo_seed_scale``), else its nearest track's disparity; then tracked back (within
@@ -70,7 +73,8 @@ class FrameStats:
 
     frame: int = 0
     live_in: int = 0  # tracks alive before this frame
-    lost_temporal: int = 0  # LK failed, round trip too long, or left the image
+    lost_border: int = 0  # left the image (predicted or tracked beyond the border)
+    lost_temporal: int = 0  # LK failed or its round trip was too long, inside the image
     lost_appearance: int = 0  # patch no longer matches its first frame (affine refinement)
     lost_fundamental: int = 0  # off their epipolar line
     lost_stereo: int = 0  # tracked, but no valid stereo match in this frame
@@ -84,7 +88,7 @@ class FrameStats:
     def describe(self) -> str:
         return (
             f"frame {self.frame}: {self.emitted} emitted, {self.new_ids} new ids, {self.born} born of "
-            f"{self.detected} detected; lost {self.lost_temporal} temporal, {self.lost_appearance} appearance, "
+            f"{self.detected} detected; lost {self.lost_border} leaving the image, {self.lost_temporal} temporal, {self.lost_appearance} appearance, "
             f"{self.lost_fundamental} epipolar, {self.lost_stereo} stereo, {self.lost_motion} motion; "
             f"{self.unverified} new points failed the check in the previous frame"
         )
@@ -175,8 +179,9 @@ class StereoTracker:
         if len(live) and self._prev_left is not None:
             # unpredicted: new points whose motion is a neighbour's guess, or every point without prediction
             unsure = ((live.age == 0) & (not self._predicted)) | (not cfg.predict_flow)
-            p1, ok = self._track_temporal(self._prev_left, left, live.left, live.motion, unsure)
-            stats.lost_temporal = int((~ok).sum())
+            p1, ok, out = self._track_temporal(self._prev_left, left, live.left, live.motion, unsure)
+            stats.lost_border = int((~ok & out).sum())
+            stats.lost_temporal = int((~ok & ~out).sum())
             keep = np.flatnonzero(ok)
             live, p0, p1 = live.take(keep), live.left[keep], p1[keep]
             if refine:
@@ -272,12 +277,15 @@ class StereoTracker:
         return p1, ok, back
 
     def _track_temporal(self, prev: np.ndarray, cur: np.ndarray, p0: np.ndarray, motion: np.ndarray, unsure: np.ndarray):
-        """(p1 (n,2), ok (n,)): forward LK, backward check, inside the border."""
+        """(p1 (n,2), ok (n,), out (n,)): forward LK, backward check, inside the border; ``out``:
+        the prediction or the tracked point lies beyond the border."""
         cfg = self.config
         seed = p0 + motion if cfg.predict_flow else p0
         p1, ok, back = self._lk_pair(prev, cur, p0, seed, unsure)
         round_trip = np.linalg.norm(back - p0, axis=1)
-        return p1, ok & (round_trip <= cfg.fb_threshold_px) & self._inside(p1)
+        inside = self._inside(p1)
+        out = ~self._inside(seed) | (ok & ~inside)
+        return p1, ok & (round_trip <= cfg.fb_threshold_px) & inside, out
 
     def _refine(self, img_f: np.ndarray, templates: affine.Templates, warp: np.ndarray, p: np.ndarray):
         """(warp, refined p, ok): align the first patches at the LK positions ``p``."""
@@ -329,6 +337,12 @@ class StereoTracker:
         if tree is not None and keep.any():
             dist, nearest = tree.query(p)
             keep &= (dist >= cfg.min_distance_px) & self._inside(p + live.motion[nearest])
+            if cfg.birth_lookahead_frames > 1 and self._pose_ok and keep.any():
+                idx = np.flatnonzero(keep)
+                keep[idx] = self._stays_in_view(p[idx], live.disparity[nearest[idx]], cfg.birth_lookahead_frames)
+        if img_f is not None and cfg.min_isotropy > 0 and keep.any():
+            idx = np.flatnonzero(keep)
+            keep[idx] = affine.isotropy(img_f, p[idx], cfg.affine_window) >= cfg.min_isotropy
         p, cell = p[keep], cell[keep]
         count = np.bincount(detect.cell_index(live.left, w, h, cfg.grid_cols, cfg.grid_rows), minlength=cfg.cells)
         p = self._subpix(img, p[detect.select(cell, count, cfg.per_cell_budget, want)])
@@ -349,6 +363,21 @@ class StereoTracker:
         warp = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
         return _Tracks(np.full(n, -1, np.int64), p, motion.astype(np.float32), disparity.astype(np.float32), warp,
                        np.zeros(n, np.int64), templates)
+
+    def _stays_in_view(self, p: np.ndarray, disparity: np.ndarray, frames: int) -> np.ndarray:
+        """(n,) bool: the stereo points of the left pixels ``p`` (n,2) at ``disparity`` (n,), moved
+        ``frames`` times by the last camera motion (constant velocity), stay in front and inside
+        the border of both images."""
+        d = np.maximum(disparity.astype(np.float64), 1e-3)
+        pixels = np.stack([p[:, 0], p[:, 1], p[:, 0] - d, p[:, 1]], axis=1)
+        points = rigid.triangulate(pixels, self.K, self.baseline, np.eye(4))
+        ok = np.ones(p.shape[0], dtype=bool)
+        moved = np.eye(4)
+        for _ in range(frames):
+            moved = self._cur_T_prev @ moved
+            projected, front = rigid.project_stereo(points, self.K, self.baseline, moved)
+            ok &= front & self._inside(projected[:, :2]) & self._inside(projected[:, 2:])
+        return ok
 
     def _check_motion(self, tracks: _Tracks, p0: np.ndarray, right: np.ndarray, ok: np.ndarray, n_old: int) -> int:
         """Estimate the camera motion since the previous frame (PnP RANSAC of the tracked points,

@@ -186,10 +186,53 @@ def test_ids_never_come_back_and_increase_within_a_frame(tracked):
     per_frame = np.array([ids.size for ids, _ in emitted])
     assert per_frame[1:].mean() >= 200  # measured 275 of the 300 targeted
     lengths = np.array([len(f) for f in seen_in.values()])
-    # issue target: median track length >= 10 frames. Not met: a street at 8.5 m/s and 10 Hz with
-    # walls 8-12 m away; new corners are found where tracks were lost (edges, the near road), and
-    # points born there stay in view a median 3 frames. Measured: median 2, 7 observation-weighted.
+    # issue target: median track length >= 10 frames. Not met: the camera moves 0.8-1.2 m a frame
+    # past walls 8-12 m away, new corners are found where tracks were lost (image edges, the near
+    # road), and the true points of the tracks started stay in view (both images, unoccluded) a
+    # median 3 frames (70 frames: 3, 11 observation-weighted; half the image area leaves view
+    # within 4 frames). Measured: median 2, 7 observation-weighted.
     assert np.median(np.repeat(lengths, lengths)) >= 5
+
+
+def test_frame_statistics_account_for_every_track(street):
+    """Every live track either survives a frame or is counted under exactly one reason."""
+    pairs, _, _, K, b = street
+    tracker = StereoTracker(TrackerConfig(), K, b)
+    ended, border = 0, 0
+    for left, right in pairs:
+        ids, _ = tracker.step(left, right)
+        s = tracker.last_stats
+        lost = s.lost_border + s.lost_temporal + s.lost_appearance + s.lost_fundamental + s.lost_stereo + s.lost_motion
+        assert s.live_in == lost + (s.emitted - s.new_ids)
+        assert s.emitted == ids.size and s.new_ids == s.born
+        ended, border = ended + lost, border + s.lost_border
+    # forward motion: the commonest end is leaving the image (measured 40 %; LK / round trip 30 %)
+    assert 0.25 <= border / ended <= 0.6
+
+
+def test_birth_options_trade_coverage_for_length(street):
+    """Two options, off by default (frontend.config says what each costs): birth_lookahead_frames
+    starts only points predicted to stay in view that many frames; min_isotropy skips corners
+    whose patch has edges nearly all in one direction, which LK and the affine refinement place
+    badly along the edge (measured: a quarter of new tracks with isotropy < 0.1 were off by
+    > 0.7 px after one frame, 9 % of those above 0.4)."""
+    pairs, depths, world_T_cam, K, b = street
+
+    def measure(**values):
+        emitted, _ = _track(pairs, K, b, tracker_config_from_dict(values))
+        errors = _errors(emitted, depths, world_T_cam, K, b)
+        lengths = np.array([len(e) for e in errors.values()])
+        worst = np.array([max(e) for e in errors.values()])
+        every = np.concatenate([np.array(e) for e in errors.values()])
+        per_frame = np.mean([ids.size for ids, _ in emitted[1:]])
+        return np.median(lengths), np.mean(worst > 2.0), np.median(every), per_frame
+
+    length, stray, median, per_frame = measure(birth_lookahead_frames=5)
+    assert length >= 3.5 and per_frame >= 250  # measured 4 (default 2), 277 a frame
+    assert stray <= 0.13 and median <= 0.25  # longer tracks stray more: measured 10.4 %, 0.22 px
+    length, stray, median, per_frame = measure(min_isotropy=0.2)
+    assert length >= 3 and per_frame >= 250  # measured 3, 278 a frame
+    assert stray <= 0.06 and median <= 0.17  # better than the default: measured 4.9 %, 0.159 px
 
 
 # ---------------------------------------------------------------------------------------------- real images
@@ -422,7 +465,8 @@ def test_tracker_config():
     assert (changed.target_tracks, changed.predict_flow, changed.fundamental_method) == (120, False, "ransac")
     assert config.target_tracks == 300  # the original is untouched
     for bad in (["lk_window=20"], ["target_tracks=0"], ["stereo_min_disparity_px=0"], ["fundamental_method=lmeds"],
-                ["stereo_max_disparity_px=0.05"], ["no_such_key=1"], ["target_tracks=many"], ["stereo_seed_scale=3"]):
+                ["stereo_max_disparity_px=0.05"], ["no_such_key=1"], ["target_tracks=many"], ["stereo_seed_scale=3"],
+                ["min_isotropy=1"], ["min_isotropy=-0.1"], ["birth_lookahead_frames=-1"]):
         with pytest.raises(ConfigError):
             apply_tracker_overrides(config, bad)
     filter_part, tracker_part = split_overrides(["pixel_sigma=2", "target_tracks=100", "lk-window=21"])
