@@ -64,7 +64,15 @@ from backend.config import FilterConfig
 from backend.errors import FilterError
 
 _potrf = get_lapack_funcs("potrf", dtype=np.float64)
+_syrk = get_blas_funcs("syrk", dtype=np.float64)
+_trsm = get_blas_funcs("trsm", dtype=np.float64)
 _trtrs = get_lapack_funcs("trtrs", dtype=np.float64)
+
+
+def _whiten_rows(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """L^-1 B for lower-triangular L and a C-ordered B (m,D), as (B^T L^-T)^T by BLAS trsm on the
+    right: B^T is the F-ordered view of B, so nothing is copied; the result is C-ordered."""
+    return _trsm(1.0, L, B.T, side=1, lower=1, trans_a=1).T
 
 
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -75,37 +83,8 @@ def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     return X
 
 
-def solve_3x3(blocks: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """B_i^-1 r_i for (k,3,3) blocks and (k,3) right-hand sides by the adjugate (Cramer's rule),
-    vectorized over k: several times faster than ``np.linalg.solve`` on small stacks. Singular
-    blocks (|det| <= 1e-12 * ||B||^3) give inf."""
-    B = blocks
-    c00 = B[:, 1, 1] * B[:, 2, 2] - B[:, 1, 2] * B[:, 2, 1]
-    c01 = B[:, 1, 2] * B[:, 2, 0] - B[:, 1, 0] * B[:, 2, 2]
-    c02 = B[:, 1, 0] * B[:, 2, 1] - B[:, 1, 1] * B[:, 2, 0]
-    det = B[:, 0, 0] * c00 + B[:, 0, 1] * c01 + B[:, 0, 2] * c02
-    adj = np.empty_like(B)  # adj[i, j] = cofactor[j, i]
-    adj[:, 0, 0], adj[:, 1, 0], adj[:, 2, 0] = c00, c01, c02
-    adj[:, 0, 1] = B[:, 0, 2] * B[:, 2, 1] - B[:, 0, 1] * B[:, 2, 2]
-    adj[:, 1, 1] = B[:, 0, 0] * B[:, 2, 2] - B[:, 0, 2] * B[:, 2, 0]
-    adj[:, 2, 1] = B[:, 0, 1] * B[:, 2, 0] - B[:, 0, 0] * B[:, 2, 1]
-    adj[:, 0, 2] = B[:, 0, 1] * B[:, 1, 2] - B[:, 0, 2] * B[:, 1, 1]
-    adj[:, 1, 2] = B[:, 0, 2] * B[:, 1, 0] - B[:, 0, 0] * B[:, 1, 2]
-    adj[:, 2, 2] = B[:, 0, 0] * B[:, 1, 1] - B[:, 0, 1] * B[:, 1, 0]
-    scale = np.abs(B).reshape(-1, 9).max(axis=1)
-    singular = np.abs(det) <= 1e-12 * scale**3
-    x = np.einsum("kij,kj->ki", adj, rhs) / np.where(singular, 1.0, det)[:, None]
-    x[singular] = np.inf
-    return x
-
-
 def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
     """r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals; inf where a block is singular."""
-    if blocks.shape[1:] == (3, 3):
-        x = solve_3x3(blocks, residual)
-        out = np.einsum("ki,ki->k", residual, np.where(np.isfinite(x), x, 0.0))
-        out[~np.isfinite(x).all(axis=1)] = np.inf
-        return out
     try:
         return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
     except np.linalg.LinAlgError:
@@ -119,7 +98,7 @@ def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
 
 
 def _sub(M: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
-    """M[rows][:, cols] (cols defaults to rows), without a copy when both select everything."""
+    """M[rows][:, cols] (cols defaults to rows; both increasing), without a copy when both select everything."""
     cols = rows if cols is None else cols
     if rows.size == M.shape[0] and cols.size == M.shape[1]:
         return M
@@ -138,8 +117,10 @@ def _three_rows(a: np.ndarray) -> np.ndarray:
 
 
 def _take_rows(M: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """M[rows], without a copy when ``rows`` selects every row."""
-    return M if rows.size == M.shape[0] else M[rows]
+    """M[rows], without a copy when ``rows`` is every row in order."""
+    if rows.size == M.shape[0] and (rows.size == 0 or (rows[0] == 0 and rows[-1] == rows.size - 1 and np.all(rows[1:] > rows[:-1]))):
+        return M
+    return M[rows]
 
 
 def _rows(select: np.ndarray) -> np.ndarray:
@@ -153,7 +134,6 @@ def _diagonal_blocks(S: np.ndarray, k: int) -> np.ndarray:
     return S.reshape(k, ROWS, k, ROWS)[idx, :, idx, :]
 
 
-_syrk = get_blas_funcs("syrk", dtype=np.float64)
 _MIRROR: dict[int, np.ndarray] = {}
 
 
@@ -532,15 +512,17 @@ class VisualInertialEKF:
                 rest = use & ~inlier
                 use = inlier
             if use.any():
-                L = self._cholesky(_sub(inn.S, _rows(use)))
-                if rest.any():  # (no consensus at all: nothing is rescued either)
-                    rescued = self._rescue(inn, L, use, rest)
-                    if rescued.size:
-                        use[rescued] = True
-                        L = self._cholesky(_sub(inn.S, _rows(use)))
                 rows = _rows(use)
-                A = _solve_lower(L, _take_rows(inn.HP, rows))
+                L = self._cholesky(_sub(inn.S, rows))
                 w = _solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
+                if rest.any():  # (no consensus at all: nothing is rescued either)
+                    rescued, joint = self._rescue(inn, L, w, use, rest)
+                    if rescued.size:  # rows ordered [inliers; rescued], as the joint factor
+                        use[rescued] = True
+                        rows = np.concatenate([rows, _rows(np.isin(np.arange(use.size), rescued))])
+                        L = joint
+                        w = _solve_lower(L, inn.residual.ravel()[rows].reshape(-1, 1))[:, 0]
+                A = _whiten_rows(L, _take_rows(inn.HP, rows))
                 _symmetric_downdate(self.P, A)
                 self._apply_correction(A.T @ w)
         except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
@@ -556,29 +538,43 @@ class VisualInertialEKF:
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
-    def _rescue(self, inn: "_Innovation", L: np.ndarray, inlier: np.ndarray, rest: np.ndarray) -> np.ndarray:
-        """Indices of the ``rest`` that pass the chi-square gate after the update with the ``inlier``
-        (Civera et al.'s rescue), L the Cholesky factor of the inliers' S_ii.
+    def _rescue(self, inn: "_Innovation", L: np.ndarray, w: np.ndarray, inlier: np.ndarray, rest: np.ndarray):
+        """The ``rest`` that pass the chi-square gate after the update with the ``inlier`` (Civera
+        et al.'s rescue), and the Cholesky factor of S over [inliers; rescued] (U3).
 
-        To first order, the update with the inliers leaves the others the residual and covariance
-        r_r - S_ri S_ii^-1 r_i = r_r - X^T L^-1 r_i  and  S_rr - X^T X  with X = L^-1 S_ir
-        (S_ri = H_r P H_i^T): no second linearization; only the 3x3 diagonal blocks of X^T X are
-        needed. The row differences d pass unchanged. The caller then updates with inliers and
-        rescued jointly, which equals the two updates in sequence (U3).
+        L is the Cholesky factor of the inliers' S_ii and w = L^-1 r_i. To first order, the update
+        with the inliers leaves the others the residual and covariance
+        r_r - S_ri S_ii^-1 r_i = r_r - X^T w  and  S_rr - X^T X  with X = L^-1 S_ir
+        (S_ri = H_r P H_i^T): no second linearization; the gate needs only the 3x3 diagonal blocks
+        of X^T X, and the row differences d pass unchanged. The joint factor of [inliers; rescued]
+        is the block Cholesky [[L, 0], [X_ok^T, chol(S_post,ok)]], so the joint update with both
+        (equal to the two in sequence) needs no second factorization of the whole S.
+        Returns (indices rescued, that factor or None when nothing is rescued).
         """
         ri, rr = _rows(inlier), _rows(rest)
         X = _solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
-        w = _solve_lower(L, inn.residual[inlier].reshape(-1, 1))[:, 0]
         m = rr.size // ROWS
         r_post = inn.residual[rest] - (X.T @ w).reshape(m, ROWS)
         X3 = X.reshape(-1, m, ROWS)
         S_post = _diagonal_blocks(inn.S, inn.slots.size)[rest] - np.einsum("ika,ikb->kab", X3, X3)
-        nis = block_nis(S_post, r_post) + inn.off_row[rest] ** 2 / self._R_pix
-        return np.flatnonzero(rest)[nis <= self._gate]
+        ok = block_nis(S_post, r_post) + inn.off_row[rest] ** 2 / self._R_pix <= self._gate
+        if not ok.any():
+            return np.flatnonzero(ok), None
+        ok_rows = _rows(ok)
+        X_ok = X[:, ok_rows]
+        L_post = self._cholesky(_sub(inn.S, rr[ok_rows]) - X_ok.T @ X_ok)
+        n_i = ri.size
+        joint = np.zeros((n_i + ok_rows.size,) * 2, order="F")
+        joint[:n_i, :n_i] = L
+        joint[n_i:, :n_i] = X_ok.T
+        joint[n_i:, n_i:] = L_post
+        return np.flatnonzero(rest)[ok], joint
 
     @staticmethod
     def _cholesky(S: np.ndarray) -> np.ndarray:
-        L, info = _potrf(S, lower=True, clean=True)
+        """Lower Cholesky factor of S; its upper triangle is left as it was (only triangular solves
+        with the lower triangle read it). An F-ordered S is factored without a copy."""
+        L, info = _potrf(S, lower=True, clean=False)
         if info != 0:
             raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {info})")
         return L
@@ -597,7 +593,7 @@ class VisualInertialEKF:
         m = idx.size
         S_c = _sub(S, _rows(candidates))
         r_c = residual[idx]
-        a = solve_3x3(_diagonal_blocks(S_c, m), r_c)[:, :, None]  # (m,3,1): S_jj^-1 r_j (gated: regular)
+        a = np.linalg.solve(_diagonal_blocks(S_c, m), r_c[:, :, None])  # (m,3,1): S_jj^-1 r_j (gated: regular)
         S_c = S_c.reshape(ROWS * m, m, ROWS)
         change = np.matmul(S_c.transpose(1, 0, 2), a)[:, :, 0].T  # (3m obs rows, m hypotheses): S_{:,j} a_j
         change[np.arange(ROWS * m), np.repeat(np.arange(m), ROWS)] -= self._R_pix * a.ravel()  # (S - R)
@@ -688,7 +684,8 @@ class VisualInertialEKF:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
         keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
-        self.P = self.P[keep][:, keep]
+        sub = self.P[keep][:, keep]  # numpy returns this F-ordered: its transpose is the same
+        self.P = sub.T if sub.flags.f_contiguous else np.ascontiguousarray(sub)  # (symmetric) matrix, C-ordered
         self._ids = self._ids[keep_lm]
         self._theta = self._theta[keep_lm]
         self._theta_first = self._theta_first[keep_lm]

@@ -56,7 +56,8 @@ def noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.n
     J = se3.right_jacobian_se3(twist)
     pose = se3.adjoint(world_T_imu_next) @ J
     R_phi = world_T_imu_next[:3, :3] @ J[3:6]  # (3,6): world-frame rotation error per unit d
-    lm = _hat_batch(np.asarray(points, dtype=float)) @ R_phi
+    points = np.asarray(points, dtype=float)
+    lm = (_hat_batch(points).reshape(-1, 3) @ R_phi).reshape(-1, 3, 6)  # one product, not K small ones
     return pose, lm
 
 
