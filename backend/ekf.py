@@ -519,7 +519,7 @@ class VisualInertialEKF:
                     rescued, joint = self._rescue(inn, L, w, use, rest)
                     if rescued.size:  # rows ordered [inliers; rescued], as the joint factor
                         use[rescued] = True
-                        rows = np.concatenate([rows, _rows(np.isin(np.arange(use.size), rescued))])
+                        rows = np.concatenate([rows, (ROWS * rescued[:, None] + np.arange(ROWS)).ravel()])
                         L = joint
                         w = _solve_lower(L, inn.residual.ravel()[rows].reshape(-1, 1))[:, 0]
                 A = _whiten_rows(L, _take_rows(inn.HP, rows))
