@@ -56,6 +56,10 @@ class StereoCamera:
         K.setflags(write=False)
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "baseline", baseline)
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        Ks = np.array([[fx, 0.0, cx, 0.0], [0.0, fy, cy, 0.0], [fx, 0.0, cx, -fx * baseline], [0.0, fy, cy, 0.0]])
+        Ks.setflags(write=False)
+        object.__setattr__(self, "_Ks", Ks)
 
     @property
     def fx(self) -> float:
@@ -75,24 +79,25 @@ class StereoCamera:
 
     @property
     def Ks(self) -> np.ndarray:
-        """Stereo calibration [[fx,0,cx,0],[0,fy,cy,0],[fx,0,cx,-fx b],[0,fy,cy,0]] (ECE276A)."""
-        fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
-        return np.array(
-            [
-                [fx, 0.0, cx, 0.0],
-                [0.0, fy, cy, 0.0],
-                [fx, 0.0, cx, -fx * self.baseline],
-                [0.0, fy, cy, 0.0],
-            ]
-        )
+        """Stereo calibration [[fx,0,cx,0],[0,fy,cy,0],[fx,0,cx,-fx b],[0,fy,cy,0]] (ECE276A); read-only."""
+        return self._Ks
 
     def project(self, p_in_cam: np.ndarray) -> np.ndarray:
         """Pixels z = Ks pi([p; 1]); (..., 3) -> (..., 4) = [uL, vL, uR, vR]."""
         return pi(_homogeneous(p_in_cam)) @ self.Ks.T
 
     def projection_jacobian(self, p_in_cam: np.ndarray) -> np.ndarray:
-        """dz/dp = Ks dpi/dq([p; 1]) P^T with P^T = [I3; 0]; (..., 3) -> (..., 4, 3)."""
-        return self.Ks @ dpi_dq(_homogeneous(p_in_cam))[..., :, :3]
+        """dz/dp = Ks dpi/dq([p; 1]) P^T with P^T = [I3; 0], in closed form; (..., 3) -> (..., 4, 3):
+        rows uL: [fx, 0, -fx x/z]/z, vL and vR: [0, fy, -fy y/z]/z, uR: [fx, 0, -fx (x - b)/z]/z."""
+        p = np.asarray(p_in_cam, dtype=float)
+        x, y, inv_z = p[..., 0], p[..., 1], 1.0 / p[..., 2]
+        J = np.zeros(p.shape[:-1] + (4, 3))
+        J[..., 0, 0] = J[..., 2, 0] = self.K[0, 0] * inv_z
+        J[..., 1, 1] = J[..., 3, 1] = self.K[1, 1] * inv_z
+        J[..., 0, 2] = -self.K[0, 0] * x * inv_z * inv_z
+        J[..., 2, 2] = -self.K[0, 0] * (x - self.baseline) * inv_z * inv_z
+        J[..., 1, 2] = J[..., 3, 2] = -self.K[1, 1] * y * inv_z * inv_z
+        return J
 
     def triangulate(self, z: np.ndarray) -> np.ndarray:
         """Point from pixels: depth = fx b / (uL - uR), x = (uL - cx) depth / fx,

@@ -454,7 +454,8 @@ class VisualInertialEKF:
         q[~in_front, 2] = 1.0  # placeholder, those rows are gated out
         Ks = self.camera.Ks
         residual = pixels - pi(q) @ Ks.T
-        M = Ks @ dpi_dq(q) @ cam_T_world[:, :3]  # (k,4,3): dz / d(world point)
+        k = slots.size
+        M = (self.camera.projection_jacobian(q[:, :3]).reshape(4 * k, 3) @ cam_T_world[:3, :3]).reshape(k, 4, 3)  # dz/d(world point)
         H_xi, H_theta = invariant.observation_jacobian(M)
         if not self._estimate_pose:
             H_xi = np.zeros_like(H_xi)
@@ -598,7 +599,8 @@ class VisualInertialEKF:
         change = np.matmul(S_c.transpose(1, 0, 2), a)[:, :, 0].T  # (3m obs rows, m hypotheses): S_{:,j} a_j
         change[np.arange(ROWS * m), np.repeat(np.arange(m), ROWS)] -= self._R_pix * a.ravel()  # (S - R)
         post = r_c.reshape(ROWS * m, 1) - change
-        err = np.sqrt((post.reshape(m, ROWS, m) ** 2).sum(axis=1) + off_row[idx, None] ** 2)  # (m obs, m hyp.)
+        post = post.reshape(m, ROWS, m)
+        err = np.sqrt(np.einsum("iaj,iaj->ij", post, post) + off_row[idx, None] ** 2)  # (m obs, m hypotheses)
         within = err <= self.config.ransac_threshold_px
         support = within.sum(axis=0)
         best = int(np.argmax(support - 1e-6 * np.minimum(err, 1e6).sum(axis=0) / (m * 1e3)))
