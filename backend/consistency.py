@@ -43,7 +43,7 @@ from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
 from backend import se3
-from backend.ekf import block_nis
+from backend.linalg import block_nis
 from backend.config import FilterConfig
 from backend.errors import ConfigError
 

@@ -55,55 +55,14 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import get_blas_funcs, get_lapack_funcs
 from scipy.stats import chi2
 
 from backend import invariant, landmarks, se3
 from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
-
-_potrf = get_lapack_funcs("potrf", dtype=np.float64)
-_syrk = get_blas_funcs("syrk", dtype=np.float64)
-_trsm = get_blas_funcs("trsm", dtype=np.float64)
-_trtrs = get_lapack_funcs("trtrs", dtype=np.float64)
-
-
-def _whiten_rows(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """L^-1 B for lower-triangular L and a C-ordered B (m,D), as (B^T L^-T)^T by BLAS trsm on the
-    right: B^T is the F-ordered view of B, so nothing is copied; the result is C-ordered."""
-    return _trsm(1.0, L, B.T, side=1, lower=1, trans_a=1).T
-
-
-def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """L^-1 B for lower-triangular L (LAPACK trtrs, no input checks: this is the hot path)."""
-    X, info = _trtrs(L, B, lower=True)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"singular triangular factor (trtrs info {info})")
-    return X
-
-
-def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
-    """r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals; inf where a block is singular."""
-    try:
-        return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
-    except np.linalg.LinAlgError:
-        out = np.full(residual.shape[0], np.inf)
-        for i in range(residual.shape[0]):
-            try:
-                out[i] = residual[i] @ np.linalg.solve(blocks[i], residual[i])
-            except np.linalg.LinAlgError:
-                pass
-        return out
-
-
-def _sub(M: np.ndarray, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
-    """M[rows][:, cols] (cols defaults to rows; both increasing), without a copy when both select everything."""
-    cols = rows if cols is None else cols
-    if rows.size == M.shape[0] and cols.size == M.shape[1]:
-        return M
-    return M[rows][:, cols]  # two gathers: faster than M[np.ix_(rows, cols)]
-
+from backend.linalg import (block_nis, cholesky_lower, mirror_lower, solve_lower, submatrix, symmetric_downdate,
+                            take_rows, whiten_rows)
 
 ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
 _SQRT_HALF = float(np.sqrt(0.5))
@@ -116,13 +75,6 @@ def _three_rows(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _take_rows(M: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """M[rows], without a copy when ``rows`` is every row in order."""
-    if rows.size == M.shape[0] and (rows.size == 0 or (rows[0] == 0 and rows[-1] == rows.size - 1 and np.all(rows[1:] > rows[:-1]))):
-        return M
-    return M[rows]
-
-
 def _rows(select: np.ndarray) -> np.ndarray:
     """Rows of the stacked 3-row blocks of the selected observations."""
     return (ROWS * np.flatnonzero(select)[:, None] + np.arange(ROWS)).ravel()
@@ -132,32 +84,6 @@ def _diagonal_blocks(S: np.ndarray, k: int) -> np.ndarray:
     """The k diagonal 3x3 blocks (k,3,3) of a (3k,3k) matrix."""
     idx = np.arange(k)
     return S.reshape(k, ROWS, k, ROWS)[idx, :, idx, :]
-
-
-_MIRROR: dict[int, np.ndarray] = {}
-
-
-def _symmetric_downdate(P: np.ndarray, A: np.ndarray) -> None:
-    """P <- P - A^T A in place for a symmetric C-ordered P: BLAS syrk on one triangle, then mirrored.
-
-    P.T is the Fortran-ordered view of the same (symmetric) matrix, so syrk updates it in place.
-    """
-    if A.flags.f_contiguous:  # A^T A from A itself (trans=1), else from A^T (trans=0): no copy either way
-        out = _syrk(-1.0, A, beta=1.0, c=P.T, trans=1, lower=0, overwrite_c=1)
-    else:
-        out = _syrk(-1.0, A.T, beta=1.0, c=P.T, trans=0, lower=0, overwrite_c=1)
-    if not np.shares_memory(out, P):  # not updated in place (P not C-contiguous): copy back
-        P[...] = out.T
-    _mirror_lower(P)  # syrk wrote the upper triangle of P.T, i.e. the lower triangle of P
-
-
-def _mirror_lower(P: np.ndarray) -> None:
-    """Copy the lower triangle of the square P onto its upper triangle (exact symmetry), in place."""
-    n = P.shape[0]
-    mask = _MIRROR.get(n)
-    if mask is None:
-        mask = _MIRROR.setdefault(n, np.triu(np.ones((n, n), dtype=bool), 1))
-    np.copyto(P, P.T, where=mask)
 
 
 @dataclass
@@ -383,7 +309,7 @@ class VisualInertialEKF:
         else:
             Z = X
         P += Z @ X.T
-        _mirror_lower(P)
+        mirror_lower(P)
         if bias:
             P[_BIAS_DIAG] += self.config.gyro_bias_random_walk**2 * dt
 
@@ -514,17 +440,17 @@ class VisualInertialEKF:
                 use = inlier
             if use.any():
                 rows = _rows(use)
-                L = self._cholesky(_sub(inn.S, rows))
-                w = _solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
+                L = cholesky_lower(submatrix(inn.S, rows))
+                w = solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
                 if rest.any():  # (no consensus at all: nothing is rescued either)
                     rescued, joint = self._rescue(inn, L, w, use, rest)
                     if rescued.size:  # rows ordered [inliers; rescued], as the joint factor
                         use[rescued] = True
                         rows = np.concatenate([rows, (ROWS * rescued[:, None] + np.arange(ROWS)).ravel()])
                         L = joint
-                        w = _solve_lower(L, inn.residual.ravel()[rows].reshape(-1, 1))[:, 0]
-                A = _whiten_rows(L, _take_rows(inn.HP, rows))
-                _symmetric_downdate(self.P, A)
+                        w = solve_lower(L, inn.residual.ravel()[rows].reshape(-1, 1))[:, 0]
+                A = whiten_rows(L, take_rows(inn.HP, rows))
+                symmetric_downdate(self.P, A)
                 self._apply_correction(A.T @ w)
         except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
             self.health.report(f"step {self.step_index}: update skipped ({exc})")
@@ -553,7 +479,7 @@ class VisualInertialEKF:
         Returns (indices rescued, that factor or None when nothing is rescued).
         """
         ri, rr = _rows(inlier), _rows(rest)
-        X = _solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
+        X = solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
         m = rr.size // ROWS
         r_post = inn.residual[rest] - (X.T @ w).reshape(m, ROWS)
         X3 = X.reshape(-1, m, ROWS)
@@ -563,22 +489,13 @@ class VisualInertialEKF:
             return np.flatnonzero(ok), None
         ok_rows = _rows(ok)
         X_ok = X[:, ok_rows]
-        L_post = self._cholesky(_sub(inn.S, rr[ok_rows]) - X_ok.T @ X_ok)
+        L_post = cholesky_lower(submatrix(inn.S, rr[ok_rows]) - X_ok.T @ X_ok)
         n_i = ri.size
         joint = np.zeros((n_i + ok_rows.size,) * 2, order="F")
         joint[:n_i, :n_i] = L
         joint[n_i:, :n_i] = X_ok.T
         joint[n_i:, n_i:] = L_post
         return np.flatnonzero(rest)[ok], joint
-
-    @staticmethod
-    def _cholesky(S: np.ndarray) -> np.ndarray:
-        """Lower Cholesky factor of S; its upper triangle is left as it was (only triangular solves
-        with the lower triangle read it). An F-ordered S is factored without a copy."""
-        L, info = _potrf(S, lower=True, clean=False)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {info})")
-        return L
 
     def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, off_row: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.
@@ -592,7 +509,7 @@ class VisualInertialEKF:
         """
         idx = np.flatnonzero(candidates)
         m = idx.size
-        S_c = _sub(S, _rows(candidates))
+        S_c = submatrix(S, _rows(candidates))
         r_c = residual[idx]
         a = np.linalg.solve(_diagonal_blocks(S_c, m), r_c[:, :, None])  # (m,3,1): S_jj^-1 r_j (gated: regular)
         S_c = S_c.reshape(ROWS * m, m, ROWS)
