@@ -71,6 +71,7 @@ class FilterConfig:
     error_model: str = "invariant"  # invariant (right-invariant, xyz landmarks; backend.invariant) | body (mu exp(xi^))
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    landmark_random_walk: float = 0.05  # m/sqrt(s): tracker drift, each xyz landmark's position random-walks (0: static)
     repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
 
     # --- health checks
@@ -112,6 +113,8 @@ class FilterConfig:
             raise ConfigError("config keys 'image_width' and 'image_height': set both or neither")
         if not 0.5 < self.gate_probability < 1.0:
             raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
+        if not (math.isfinite(self.landmark_random_walk) and self.landmark_random_walk >= 0):
+            raise ConfigError(f"config key 'landmark_random_walk': must be a finite number >= 0, got {self.landmark_random_walk!r}")
         if self.min_disparity < 0:
             raise ConfigError(f"config key 'min_disparity': must be >= 0, got {self.min_disparity!r}")
         for name in ("convention_horizon", "online_convention_steps", "nis_window", "blas_threads", "max_consecutive_gated"):

@@ -207,6 +207,8 @@ class VisualInertialEKF:
             if config.estimate_gyro_bias:
                 self.P[BIAS, BIAS] = np.eye(3) * config.gyro_bias_sigma0**2
         self._R_pix = config.pixel_sigma**2
+        # tracker drift: the point a track follows is not quite static (world xyz landmarks only)
+        self._landmark_walk = config.landmark_random_walk**2 if config.landmark_parametrization == "xyz" else 0.0
         self._gate = float(chi2.ppf(config.gate_probability, 4))
 
         # active landmarks, in state order
@@ -255,12 +257,16 @@ class VisualInertialEKF:
 
     # ------------------------------------------------------------------ prediction
     def predict(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
-        """mu <- mu exp(tau u^);  P_x <- F P_x F^T + Q  (module docstring)."""
+        """mu <- mu exp(tau u^);  P_x <- F P_x F^T + Q  (module docstring); xyz landmarks take a
+        random walk of ``landmark_random_walk`` (m/sqrt s): P_mm += q^2 tau I."""
         self.step_index += 1
         u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.gyro_bias])
         twist = dt * u
         step = se3.exp_se3(twist)
         self.mu = self.mu @ step
+        if self._landmark_walk and self._ids.size:
+            diag = np.arange(CORE, self.P.shape[0])
+            self.P[diag, diag] += self._landmark_walk * dt
         if not self._estimate_pose:
             return
         if self._invariant:

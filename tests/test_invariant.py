@@ -233,7 +233,8 @@ def test_prediction_keeps_covariance_symmetric_with_landmarks():
 
 
 def test_prediction_without_noise_is_the_identity():
-    """No velocity noise and no bias uncertainty: F = I, so only the bias random walk is added."""
+    """No velocity noise and no bias uncertainty: F = I, so only the random walks of the bias and
+    of the landmarks are added."""
     rng = np.random.default_rng(10)
     tiny = ImuNoise(np.zeros(3), np.zeros(3))
     ekf, _, _ = _filter_with_landmarks(rng)
@@ -243,4 +244,7 @@ def test_prediction_without_noise_is_the_identity():
     before = ekf.P.copy()
     ekf.predict(0.1, np.array([8.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.2]))
     before[np.arange(6, 9), np.arange(6, 9)] += CONFIG.gyro_bias_random_walk**2 * 0.1
+    landmarks = np.arange(CORE, before.shape[0])
+    assert landmarks.size and CONFIG.landmark_random_walk > 0
+    before[landmarks, landmarks] += CONFIG.landmark_random_walk**2 * 0.1
     np.testing.assert_allclose(ekf.P, before, rtol=0, atol=1e-20)

@@ -63,10 +63,11 @@ def test_conventions_chosen_as_measured(run_0027, run_03, run_0042):
 
 
 def test_0027_every_feature_beats_dead_reckoning(run_0027):
-    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 5.5 m vs 16.4 m."""
+    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 4.4 m vs 16.4 m (5.3 m without
+    the landmark random walk; issue target 3.0 m, not met)."""
     est, dr = _ate(run_0027, "ece276a_0027_gt_tum.txt")
     assert dr == pytest.approx(16.4, abs=0.3)  # the documented dead-reckoning baseline
-    assert est <= 0.5 * dr
+    assert est <= 0.3 * dr
     stats = run_0027.stats
     assert stats.observations_used >= 0.8 * stats.observations  # every feature, not a sample
     assert 1.0 <= stats.mean_nis <= 6.0
@@ -82,7 +83,7 @@ def test_0042_dead_reckoning_baseline():
 
 
 def test_0042_vision_does_not_make_weak_vision_worse(run_0042):
-    """Issue target: no worse than 1.1x dead reckoning (measured 1.66 m vs 1.70 m). With 3.5
+    """Issue target: no worse than 1.1x dead reckoning (measured 1.61 m vs 1.70 m). With 3.5
     observations per step the gyro bias is not estimated, and the summary says why."""
     est, dr = _ate(run_0042, "ece276a2019_0042_gt_tum.txt")
     assert est <= 1.1 * dr
@@ -93,13 +94,14 @@ def test_0042_vision_does_not_make_weak_vision_worse(run_0042):
 
 
 def test_03_bias_state_keeps_the_car_upright(run_03):
-    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 16.1 deg with the filter."""
+    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 15.2 deg with the filter
+    (issue target 8 deg, not met; BENCHMARKS.md, finding 7)."""
     def max_tilt(poses):
         z0 = poses[0, :3, 2]
         return np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1, 1))).max()
 
     assert max_tilt(run_03.dead_reckoning) > 45
-    assert max_tilt(run_03.world_T_imu) < 25
+    assert max_tilt(run_03.world_T_imu) < 18
     assert np.all(run_03.gyro_bias[:2] < -0.005)  # roll and pitch bias found, sign as documented
 
 
