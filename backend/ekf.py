@@ -6,7 +6,9 @@ State (right perturbation, ECE276A / Barfoot ch. 7-9):
     b_g                                                             (gyro bias, 3)
     theta_1 .. theta_n  (backend.landmarks)                         (active landmarks, 3 each)
 
-with one dense covariance ``P`` over ``[xi, b_g, theta_1 .. theta_n]``. Only landmarks whose track is
+with one dense covariance ``P`` over ``[xi, b_g, theta_1 .. theta_n]``. World-xyz landmarks take a
+small random walk (``landmark_random_walk``, m/sqrt s: P_mm += q^2 tau I at each prediction):
+the point a tracker follows drifts with the track's age. Only landmarks whose track is
 live are in the state; when a track ends its landmark is marginalized (rows and columns
 dropped, exact for a Gaussian) and moves to the map with its mean and 3x3 covariance.
 
