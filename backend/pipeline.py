@@ -79,18 +79,24 @@ class RunResult:
 def prepare(seq: Sequence, config: FilterConfig) -> tuple[ConventionDecision, NoiseDecision]:
     """Decide the extrinsic, the velocity timing and the IMU noise for this sequence."""
     conventions = decide_conventions(seq, config.imu_flip, config.velocity_index, config.convention_horizon)
-    noise = decide_imu_noise(
-        seq.linear_velocity,
-        seq.angular_velocity,
+    noise = imu_noise(config, seq.linear_velocity, seq.angular_velocity, seq.num_observations / max(seq.num_steps, 1))
+    return conventions, noise
+
+
+def imu_noise(config: FilterConfig, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
+              observations_per_step: float) -> NoiseDecision:
+    """The IMU noise and gyro-bias decision of ``config`` for these velocities (backend.imu)."""
+    return decide_imu_noise(
+        linear_velocity,
+        angular_velocity,
         config.linear_velocity_sigma,
         config.angular_velocity_sigma,
         config.linear_velocity_sigma_floor,
         config.angular_velocity_sigma_floor,
         config.estimate_gyro_bias,
-        seq.num_observations / max(seq.num_steps, 1),
+        observations_per_step,
         config.gyro_bias_min_observations,
     )
-    return conventions, noise
 
 
 class OnlineRun:

@@ -73,8 +73,7 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
 
     from backend.camera import StereoCamera
     from backend.conventions import decide_conventions
-    from backend.imu import decide_imu_noise
-    from backend.pipeline import OnlineRun
+    from backend.pipeline import OnlineRun, imu_noise
     from frontend.images import open_stereo_directory
     from frontend.track import check_imu, iter_tracks, tracks_to_sequence
     from frontend.tracker import StereoTracker
@@ -116,12 +115,8 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
                     if not last and not decisive(conventions.errors_px):
                         continue
                     t0 = time.perf_counter()
-                    noise = decide_imu_noise(
-                        imu.linear_velocity, imu.angular_velocity, config.linear_velocity_sigma,
-                        config.angular_velocity_sigma, config.linear_velocity_sigma_floor,
-                        config.angular_velocity_sigma_floor, config.estimate_gyro_bias,
-                        warm.num_observations / warm.num_steps, config.gyro_bias_min_observations,
-                    )
+                    noise = imu_noise(config, imu.linear_velocity, imu.angular_velocity,
+                                      warm.num_observations / warm.num_steps)
                     setup += time.perf_counter() - t0
                     say(f"conventions from the first {warm.num_steps} frames: " + conventions.describe())
                     say(noise.describe())
