@@ -568,8 +568,8 @@ class VisualInertialEKF:
         P_new = np.zeros((D + 3 * n, D + 3 * n))
         P_new[:D, :D] = self.P
         block = np.zeros((3 * n, 3 * n))
-        for i in range(n):  # block diagonal pixel part
-            block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = new_cov[i]
+        idx = np.arange(n)
+        block.reshape(n, 3, n, 3)[idx, :, idx, :] = new_cov  # block diagonal pixel part
         if self._estimate_pose:
             J_xi = J_xi.reshape(3 * n, 6)
             cross = J_xi @ self.P[POSE, :]  # (3n, D)

@@ -77,8 +77,7 @@ def initialization_pose_jacobian(n: int) -> np.ndarray:
 
 def retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_points: np.ndarray):
     """(I5): exp(dx) X_hat for the pose (4,4) and the landmarks (K,3); returns new copies."""
-    R_d = se3.exp_so3(d_pose[3:])
-    J_l = se3.left_jacobian_so3(d_pose[3:])
+    R_d, J_l = se3.exp_so3_and_left_jacobian(d_pose[3:])
     E = np.eye(4)  # exp(d_pose^) (Barfoot eq. 7.39) from the same R_d and J_l
     E[:3, :3] = R_d
     E[:3, 3] = J_l @ d_pose[:3]

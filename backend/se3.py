@@ -152,12 +152,23 @@ def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- SE(3)
 
 
+def exp_so3_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(exp(w^), J_l(w)) from one set of coefficients (Barfoot eqs. 7.14, 7.37)."""
+    w = np.asarray(w, dtype=float)
+    a, b, c, *_ = _coefficients(float(np.linalg.norm(w)))
+    W = hat3(w)
+    WW = W @ W
+    eye = np.eye(3)
+    return eye + a * W + b * WW, eye + b * W + c * WW
+
+
 def exp_se3(xi: np.ndarray) -> np.ndarray:
     """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)."""
     xi = np.asarray(xi, dtype=float)
+    R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
-    T[:3, :3] = exp_so3(xi[3:])
-    T[:3, 3] = left_jacobian_so3(xi[3:]) @ xi[:3]
+    T[:3, :3] = R
+    T[:3, 3] = J @ xi[:3]
     return T
 
 

@@ -56,6 +56,13 @@ def test_exp_se3_matches_expm(xi):
 
 
 @SETTINGS
+@given(_rotvec(3.0))
+def test_exp_so3_and_left_jacobian_match_the_separate_forms(w):
+    R, J = se3.exp_so3_and_left_jacobian(w)
+    assert np.array_equal(R, se3.exp_so3(w)) and np.array_equal(J, se3.left_jacobian_so3(w))
+
+
+@SETTINGS
 @given(st.lists(_twist(), min_size=1, max_size=8), st.floats(0.0, 0.2))
 def test_exp_se3_batch_matches_expm(twists, small):
     """Batch of twists, including rotations below and around the series switch (0.1 rad) and zero."""
