@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from backend.errors import InputError
+from backend.textio import content_lines, finite_numbers, read_lines
 
 __all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey"]
 
@@ -29,20 +30,6 @@ LEFT_DIR, RIGHT_DIR = "image_0", "image_1"
 
 #: Relative tolerance of "P0 and P1 have the same K" and of the zero translations.
 _K_TOL = 1e-6
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
-
-
-def read_lines(path: Path, missing: str = "file does not exist") -> list[str]:
-    """The lines of a text file; InputError naming it (``missing`` says what the file should hold)."""
-    try:
-        return Path(path).read_text(encoding="utf-8").splitlines()
-    except FileNotFoundError:
-        raise InputError(f"{path}: {missing}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read as text: {_one_line(e)}") from None
 
 
 def read_calibration(path: Path) -> tuple[np.ndarray, float]:
@@ -89,19 +76,9 @@ def read_calibration(path: Path) -> tuple[np.ndarray, float]:
 def read_times(path: Path, n_frames: int) -> np.ndarray:
     """(n_frames,) strictly increasing seconds from ``times.txt`` (one number a line)."""
     path = Path(path)
-    lines = read_lines(path, "missing (need one time stamp a frame)")
     values, numbers = [], []
-    for number, line in enumerate(lines, start=1):
-        text = line.strip()
-        if not text or text.startswith("#"):
-            continue
-        try:
-            t = float(text)
-        except ValueError:
-            raise InputError(f"{path}: line {number}: not a number: {text[:40]!r}") from None
-        if not np.isfinite(t):
-            raise InputError(f"{path}: line {number}: non-finite time stamp {text!r}")
-        values.append(t)
+    for number, text in content_lines(read_lines(path, "missing (need one time stamp a frame)")):
+        values.extend(finite_numbers([text], f"{path}: line {number}", "time stamp"))
         numbers.append(number)
     if len(values) != n_frames:
         raise InputError(f"{path}: {len(values)} time stamps for {n_frames} frames (need one a frame)")

@@ -25,7 +25,7 @@ import numpy as np
 
 from backend.errors import InputError
 from backend.sequence import load_sequence
-from frontend.images import read_lines
+from backend.textio import content_lines, read_lines
 
 __all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam"]
 
@@ -58,13 +58,9 @@ def _numbers(text: str) -> list[float] | None:
 def read_imu_csv(path, n_frames: int) -> ImuVelocities:
     """The first ``n_frames`` rows ``t,vx,vy,vz,wx,wy,wz`` of a CSV (see the module docstring)."""
     path = Path(path)
-    lines = read_lines(path)
     rows, numbers = [], []
     first = True
-    for number, line in enumerate(lines, start=1):
-        text = line.strip()
-        if not text or text.startswith("#"):
-            continue
+    for number, text in content_lines(read_lines(path)):
         values = _numbers(text)
         if values is None and first:
             first = False

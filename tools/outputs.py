@@ -20,6 +20,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from backend.errors import InputError, VislamError
+from backend.textio import content_lines, finite_numbers, read_lines
 
 __all__ = [
     "atomic_write",
@@ -155,34 +156,16 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """
     from scipy.spatial.transform import Rotation
 
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not a text file ({exc.reason})") from exc
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-
     stamps: list[float] = []
     rows: list[list[float]] = []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
+    for lineno, line in content_lines(read_lines(path)):
         tokens = line.split()
         if len(tokens) != 8:
             raise InputError(
                 f"{path}:{lineno}: expected 8 columns (t tx ty tz qx qy qz qw), "
                 f"found {len(tokens)}"
             )
-        values: list[float] = []
-        for token in tokens:
-            try:
-                value = float(token)
-            except ValueError:
-                raise InputError(f"{path}:{lineno}: not a number: {token!r}") from None
-            if not math.isfinite(value):
-                raise InputError(f"{path}:{lineno}: non-finite value {token!r}")
-            values.append(value)
+        values = finite_numbers(tokens, f"{path}:{lineno}")
         norm = math.sqrt(sum(v * v for v in values[4:]))
         if norm < 1e-12:
             raise InputError(f"{path}:{lineno}: quaternion has zero norm")

@@ -1,0 +1,46 @@
+"""Line-oriented text input with one-line errors naming the file and the line (pure helpers).
+
+Used by every small text format vislam reads: KITTI ``calib.txt`` and ``times.txt``, the IMU
+CSV, the ``--imu-T-cam`` matrix and TUM trajectories.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Iterator
+
+from backend.errors import InputError
+
+
+def read_lines(path, missing: str = "file does not exist") -> list[str]:
+    """The lines of a text file; InputError naming it (``missing`` says what the file should hold)."""
+    try:
+        return Path(path).read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise InputError(f"{path}: {missing}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read as text: {' '.join(str(e).split())}") from None
+
+
+def content_lines(lines: list[str]) -> Iterator[tuple[int, str]]:
+    """(1-based line number, stripped text) of the lines that are neither blank nor ``#`` comments."""
+    for number, line in enumerate(lines, start=1):
+        text = line.strip()
+        if text and not text.startswith("#"):
+            yield number, text
+
+
+def finite_numbers(tokens: list[str], where: str, what: str = "value") -> list[float]:
+    """The tokens as finite floats; else InputError ``<where>: not a number: 'x'`` or
+    ``<where>: non-finite <what> 'nan'``."""
+    values = []
+    for token in tokens:
+        try:
+            value = float(token)
+        except ValueError:
+            raise InputError(f"{where}: not a number: {token[:40]!r}") from None
+        if not math.isfinite(value):
+            raise InputError(f"{where}: non-finite {what} {token!r}")
+        values.append(value)
+    return values
