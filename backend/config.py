@@ -27,6 +27,11 @@ IMU_FLIP_CHOICES = ("auto", "yes", "no")
 VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
 REPEATED_FRAME_CHOICES = ("use", "skip", "cut")
 ERROR_MODELS = ("invariant", "body")
+REANCHOR_CHOICES = ("auto", "yes", "no")
+
+# Feature tracks that follow static points exactly (synthetic scenes, `vislam demo`, `vislam mc`):
+# the tracker-drift model of the defaults (landmark random walk, re-anchoring) only costs accuracy there.
+EXACT_TRACKS = {"landmark_random_walk": 0.0, "reanchor": "no"}
 
 
 @dataclass
@@ -73,6 +78,10 @@ class FilterConfig:
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
     landmark_random_walk: float = 0.05  # m/sqrt(s): tracker drift, each xyz landmark's position random-walks (0: static)
     repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
+    reanchor: str = "auto"  # auto | yes | no: re-anchor landmarks (tracker drift); auto: not for tracks from vislam's own tracker
+    reanchor_observations: int = 3  # a landmark is re-triangulated after this many observations (0: never)
+    reanchor_far_observations: int = 25  # ... or this many when it was anchored with disparity < reanchor_far_disparity (0: never)
+    reanchor_far_disparity: float = 6.0  # px
 
     # --- health checks
     nis_window: int = 50  # steps in the moving NIS average
@@ -89,6 +98,7 @@ class FilterConfig:
         _choice("landmark_parametrization", self.landmark_parametrization, PARAMETRIZATIONS)
         _choice("repeated_frames", self.repeated_frames, REPEATED_FRAME_CHOICES)
         _choice("error_model", self.error_model, ERROR_MODELS)
+        _choice("reanchor", self.reanchor, REANCHOR_CHOICES)
         if self.error_model == "invariant" and self.landmark_parametrization != "xyz":
             raise ConfigError(
                 "config key 'error_model': 'invariant' needs landmark_parametrization 'xyz'; "
@@ -115,6 +125,11 @@ class FilterConfig:
             raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
         if not (math.isfinite(self.landmark_random_walk) and self.landmark_random_walk >= 0):
             raise ConfigError(f"config key 'landmark_random_walk': must be a finite number >= 0, got {self.landmark_random_walk!r}")
+        for name in ("reanchor_observations", "reanchor_far_observations"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"config key '{name}': must be an integer >= 0 (0: never), got {getattr(self, name)!r}")
+        if not (math.isfinite(self.reanchor_far_disparity) and self.reanchor_far_disparity >= 0):
+            raise ConfigError(f"config key 'reanchor_far_disparity': must be a finite number >= 0, got {self.reanchor_far_disparity!r}")
         if self.min_disparity < 0:
             raise ConfigError(f"config key 'min_disparity': must be >= 0, got {self.min_disparity!r}")
         for name in ("convention_horizon", "online_convention_steps", "nis_window", "blas_threads", "max_consecutive_gated"):

@@ -43,6 +43,19 @@ the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain
 by BLAS syrk and mirrored, so P stays exactly symmetric; its positive definiteness is checked
 every 100 steps.
 
+Re-anchoring (tracker drift). Feature tracks drift with their age: on the real drives the image
+motion of a track older than ~10 frames is 5-10 % shorter than the true motion (BENCHMARKS.md),
+which biases both the scale and the rotation a long-lived landmark tells the filter. So a
+landmark lives for at most ``reanchor_observations`` observations (``reanchor_far_observations``
+when it was anchored with a disparity below ``reanchor_far_disparity``: distant points drift
+little and hold the rotation): then it is marginalized to the map and the same track starts a
+new landmark from its current stereo observation, which is used once, for the initialization.
+Marginalization is exact and the new landmark's cross covariance comes from the augmentation
+below, so nothing is counted twice. The first segment of each track is shortened by
+``id mod limit`` observations, so that landmarks born together are not all re-anchored at once.
+Off with ``reanchor = "no"`` and in full-state mode; vislam's own tracker aligns every patch to
+its track's first patch, so its tracks do not drift (``backend.pipeline.decide_reanchoring``).
+
 Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation:
 theta = g(z, mu) with Jacobians J_z and J_xi (backend.landmarks.initialize), and
 
@@ -127,6 +140,7 @@ class StepStats:
     initialized: int = 0  # new landmarks added to the state
     deferred: int = 0  # new features not initialized (disparity too small or too far): retried later
     marginalized: int = 0  # landmarks moved from the state to the map
+    reanchored: int = 0  # landmarks re-triangulated from their current observation (tracker drift)
     dropped: int = 0  # landmarks removed as repeatedly gated
     nis_sum: float = 0.0  # sum over used observations of r_i^T S_ii^-1 r_i (expectation 4 each)
     active: int = 0  # landmarks in the state after the step
@@ -220,6 +234,11 @@ class VisualInertialEKF:
         self._theta_first = np.zeros((0, 3))  # their values at initialization (first-estimate Jacobians)
         self._anchors = np.zeros((0, 4, 4))
         self._gated_run = np.zeros(0, dtype=np.int64)
+        self._obs_count = np.zeros(0, dtype=np.int64)  # observations since the landmark was anchored
+        self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
+        self._reanchor = (config.reanchor != "no" and not config.full_state
+                          and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
+        self._reanchored_ids = np.zeros(0, dtype=np.int64)
         self._slot: dict[int, int] = {}
         # marginalized landmarks (the map), appended in batches
         self._map_ids: list[np.ndarray] = []
@@ -330,6 +349,7 @@ class VisualInertialEKF:
         if not self._use_vision:
             return stats
         t0 = time.perf_counter()
+        self._reanchored_ids = self._ids[:0]
         slots = self._slots_of(ids)
         if not self.config.full_state and self._ids.size:
             ended = np.ones(self._ids.size, dtype=bool)
@@ -339,6 +359,16 @@ class VisualInertialEKF:
                 self._remove(ended, to_map=True)
                 slots = self._slots_of(ids)
         known = slots >= 0
+        if self._reanchor and known.any():
+            self._obs_count[slots[known]] += 1
+            expired = np.zeros(self._ids.size, dtype=bool)
+            expired[slots[known]] = self._obs_count[slots[known]] > self._obs_limit[slots[known]]
+            if expired.any():  # their observations start new landmarks below
+                stats.reanchored = int(expired.sum())
+                self._reanchored_ids = self._ids[expired]
+                self._remove(expired, to_map=True)
+                slots = self._slots_of(ids)
+                known = slots >= 0
         t1 = time.perf_counter()
         if known.any():
             self._joint_update(slots[known], pixels[known], stats)
@@ -584,8 +614,27 @@ class VisualInertialEKF:
         self._theta_first = np.concatenate([self._theta_first, theta])
         self._anchors = np.concatenate([self._anchors, anchors])
         self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
+        self._obs_count = np.concatenate([self._obs_count, self._first_counts(ids, pixels[:, 0] - pixels[:, 2])])
+        self._obs_limit = np.concatenate([self._obs_limit, self._limits(pixels[:, 0] - pixels[:, 2])])
         self._reindex()
         stats.initialized = n
+
+    def _limits(self, disparity: np.ndarray) -> np.ndarray:
+        """Observations a landmark anchored at ``disparity`` lives for before re-anchoring (module docstring)."""
+        cfg = self.config
+        never = np.iinfo(np.int64).max
+        near = cfg.reanchor_observations or never
+        far = cfg.reanchor_far_observations or never
+        return np.where(disparity < cfg.reanchor_far_disparity, far, near).astype(np.int64)
+
+    def _first_counts(self, ids: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """Count of the anchoring observation: 1, or 1 + id mod limit on a track's first landmark
+        (staggers the re-anchoring of landmarks born together)."""
+        if not self._reanchor:
+            return np.ones(ids.size, dtype=np.int64)
+        limits = self._limits(disparity)
+        first = ~np.isin(ids, self._reanchored_ids)
+        return 1 + np.where(first & (limits < np.iinfo(np.int64).max), ids % limits, 0)
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
         """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
@@ -618,6 +667,8 @@ class VisualInertialEKF:
         self._theta_first = self._theta_first[keep_lm]
         self._anchors = self._anchors[keep_lm]
         self._gated_run = self._gated_run[keep_lm]
+        self._obs_count = self._obs_count[keep_lm]
+        self._obs_limit = self._obs_limit[keep_lm]
         self._reindex()
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:

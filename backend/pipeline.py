@@ -21,7 +21,7 @@ from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
 from backend import se3
 from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, compose_steps, decide_imu_noise
-from backend.sequence import Sequence
+from backend.sequence import VISLAM_TRACKER, Sequence
 from backend.timing import repeats_previous
 
 
@@ -37,6 +37,8 @@ class RunStats:
     repeated_frames: int = 0  # steps whose pixels repeat the previous step's exactly (vision skipped)
     landmarks_initialized: int = 0
     landmarks_dropped: int = 0  # removed after repeated gating
+    landmarks_reanchored: int = 0  # re-triangulated after reanchor_observations (tracker drift)
+    reanchoring: str = ""  # the decision and why (decide_reanchoring)
     landmarks_mapped: int = 0
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
@@ -99,6 +101,30 @@ def imu_noise(config: FilterConfig, linear_velocity: np.ndarray, angular_velocit
     )
 
 
+def decide_reanchoring(config: FilterConfig, tracker: str) -> tuple[FilterConfig, str]:
+    """Resolve ``reanchor = "auto"`` for tracks made by ``tracker`` (backend.ekf, re-anchoring).
+
+    Tracks from an unknown front end (the course files) drift with their age, so their landmarks
+    are re-anchored; vislam's own tracker aligns every patch to its track's first patch, and on
+    its tracks re-anchoring only discards information (BENCHMARKS.md, finding 9).
+    Returns the config with ``reanchor`` "yes" or "no" and one line saying why.
+    """
+    if config.reanchor == "auto":
+        own = tracker == VISLAM_TRACKER
+        config = dataclasses.replace(config, reanchor="no" if own else "yes")
+        source = "auto: " + ("tracks from vislam's tracker, which do not drift" if own
+                             else "tracks from another tracker, which drift with age")
+    else:
+        source = "configured"
+    if config.reanchor == "no":
+        return config, f"landmark re-anchoring: off ({source})"
+    if config.full_state:
+        return config, "landmark re-anchoring: off (--full-state keeps every landmark)"
+    return config, (f"landmark re-anchoring: on, after {config.reanchor_observations} observations "
+                    f"({config.reanchor_far_observations} when anchored below {config.reanchor_far_disparity:g} px "
+                    f"disparity; 0: never) ({source})")
+
+
 class OnlineRun:
     """The filter over a stream, one call of :meth:`step` per time stamp; :func:`run_sequence` and the
     one-pass image path (tools/track.py) are loops over it.
@@ -118,10 +144,12 @@ class OnlineRun:
         config: FilterConfig,
         expected_landmarks: int | None = None,
         observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
+        tracker: str = "",
     ) -> None:
         config.validate()
         if noise.gyro_bias != config.estimate_gyro_bias:
             config = dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias)
+        config, reanchoring = decide_reanchoring(config, tracker)
         self.config = config
         self.conventions = conventions
         self.noise = noise
@@ -129,7 +157,7 @@ class OnlineRun:
                                      ImuNoise(noise.linear_sigma, noise.angular_sigma),
                                      expected_landmarks=expected_landmarks)
         self.observer = observer
-        self.stats = RunStats()
+        self.stats = RunStats(reanchoring=reanchoring)
         self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
         self._t: list[float] = []
         self._poses: list[np.ndarray] = []
@@ -190,6 +218,7 @@ class OnlineRun:
         stats.observations_gated += step_stats.gated
         stats.landmarks_initialized += step_stats.initialized
         stats.landmarks_dropped += step_stats.dropped
+        stats.landmarks_reanchored += step_stats.reanchored
         stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
         self._active_sum += step_stats.active
         self._nis_sum += step_stats.nis_sum
@@ -250,7 +279,7 @@ def run_sequence(
         conventions, noise = decisions if decisions is not None else prepare(seq, config)
         setup_seconds = time.perf_counter() - t_setup
         run = OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config,
-                        expected_landmarks=seq.num_features, observer=observer)
+                        expected_landmarks=seq.num_features, observer=observer, tracker=seq.tracker)
         for k in range(seq.num_steps):
             run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
             if progress:

@@ -21,6 +21,10 @@ the key and what is wrong. Bad *observations* are not fatal: they are dropped an
   -1 observation (some channels -1, not all). Takes precedence over the disparity test.
 * ``nonpositive_disparity``: uL - uR <= 0 (a point at or beyond infinity, or a mismatch).
 
+An optional key ``tracker`` (a string) names the front end that made the tracks; ``vislam
+track`` writes ``"vislam"`` (:data:`VISLAM_TRACKER`), and the filter's re-anchoring decision
+reads it (``backend.pipeline.decide_reanchoring``). Course files have none.
+
 The files carry no image size. Unless ``image_size=(width, height)`` is given it is inferred
 from K as ``width = 2 cx * 1.25``, ``height = 2 cy * 1.25``; the 25 % margin is needed because the
 principal point is not centred (the KITTI-360 file has uL up to 1405 with 2 cx = 1364).
@@ -63,6 +67,8 @@ _LAYOUTS = {
     "2019": ("rotational_velocity", "cam_T_imu"),
 }
 _COMMON_KEYS = ("time_stamps", "features", "linear_velocity", "K", "b")
+#: ``tracker`` key of files written by vislam's own front end (frontend/)
+VISLAM_TRACKER = "vislam"
 _DROP_KEYS = ("nonpositive_disparity", "outside_image")
 
 
@@ -177,6 +183,7 @@ class Sequence:
     source: str = ""  # file path, for messages
     layout: str = "2022"  # "2022" (angular_velocity/imu_T_cam) or "2019" (rotational_velocity/cam_T_imu)
     dropped: dict[str, int] = field(default_factory=dict)  # {"nonpositive_disparity": n, "outside_image": n}
+    tracker: str = ""  # the front end that made the tracks (optional key 'tracker'; "" unknown)
     # The cam_T_imu read from a 2019-layout file, kept so that saving in that layout writes it back
     # bit for bit. Used only while rigid_inverse(it) still equals imu_T_cam exactly.
     _cam_T_imu_file: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -522,6 +529,7 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         ext = get(ext_key)
         _check_rigid(src, ext_key, ext)
         wh = _image_bounds(src, K, image_size)
+        tracker = _read_tracker(src, npz) if "tracker" in keys else ""
 
     m, steps, ids, pixels, dropped = _read_features(path, src, n, wh)
     ptr = np.zeros(n + 1, dtype=np.int64)
@@ -547,10 +555,22 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         source=src,
         layout=layout,
         dropped=dropped,
+        tracker=tracker,
         _cam_T_imu_file=cam_T_imu_file,
     )
     validate_sequence(seq)
     return seq
+
+
+def _read_tracker(src: str, npz) -> str:
+    """The optional ``tracker`` key: one string."""
+    try:
+        a = npz["tracker"]
+    except ValueError as e:  # an object array, refused by allow_pickle=False
+        raise _err(src, "tracker", f"cannot read: {e}") from None
+    if a.dtype.kind != "U" or a.size != 1:
+        raise _err(src, "tracker", f"expected one string, got dtype {a.dtype} and shape {a.shape}")
+    return str(a.reshape(()))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -586,6 +606,8 @@ def save_sequence(seq: Sequence, path, *, layout: str | None = None) -> None:
         "b": np.asarray(float(seq.baseline), dtype=np.float64),
         ext_key: seq.cam_T_imu if layout == "2019" else np.asarray(seq.imu_T_cam, dtype=np.float64),
     }
+    if seq.tracker:
+        arrays["tracker"] = np.asarray(seq.tracker)
 
     path = Path(path)
     directory = path.parent

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from backend.errors import InputError
-from backend.sequence import Sequence, validate_sequence
+from backend.sequence import VISLAM_TRACKER, Sequence, validate_sequence
 from frontend.config import TrackerConfig
 from frontend.draw import TrackDrawer
 from frontend.images import StereoDirectory, open_stereo_directory
@@ -94,6 +94,7 @@ def tracks_to_sequence(stereo: StereoDirectory, imu: ImuVelocities, ids: list, p
         num_features=int(num_ids),
         source=str(Path(stereo.root)),
         layout=imu.layout,
+        tracker=VISLAM_TRACKER,
     )
     validate_sequence(seq)
     return seq

@@ -110,6 +110,7 @@ def test_unknown_key(tmp_path):
         ("full_state", "maybe"),
         ("mode", 3),
         ("linear_velocity_sigma", "fast"),
+        ("reanchor_observations", 2.5),
     ],
 )
 def test_wrong_type(key, value):
@@ -151,6 +152,9 @@ def test_bad_choice(key, value):
         ("min_disparity", -1.0),
         ("nis_window", 0),
         ("max_consecutive_gated", 0),
+        ("reanchor_observations", -1),
+        ("reanchor_far_observations", -3),
+        ("reanchor_far_disparity", float("nan")),
     ],
 )
 def test_invalid_value(key, value):

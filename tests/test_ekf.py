@@ -150,7 +150,8 @@ def to_sequence(drive: Drive) -> Sequence:
 
 def slam_config(**kw) -> FilterConfig:
     values = dict(pixel_sigma=PIX_SIGMA, linear_velocity_sigma=LIN_SIGMA, angular_velocity_sigma=ANG_SIGMA,
-                  imu_flip="no", velocity_index="this")
+                  imu_flip="no", velocity_index="this",
+                  reanchor="no")  # exact tracks (tested on its own below)
     values.update(kw)
     if values.get("landmark_parametrization", "xyz") != "xyz":
         values.setdefault("error_model", "body")  # the invariant error needs world xyz landmarks
@@ -526,6 +527,67 @@ def test_full_state_matches_marginalized(seq60, error_model):
     np.testing.assert_allclose(full.world_T_imu[:, :3, 3], marg.world_T_imu[:, :3, 3], rtol=0, atol=1e-8)
     np.testing.assert_allclose(full.world_T_imu[:, :3, :3], marg.world_T_imu[:, :3, :3], rtol=0, atol=1e-8)
     np.testing.assert_array_equal(full.map_ids, marg.map_ids)
+
+
+def _relabel_segments(seq: Sequence, near: int, far: int, far_disparity: float) -> Sequence:
+    """The re-anchoring rule of backend.ekf written as new track ids: track i's s-th landmark gets id
+    1000 i + s; its first segment is shortened by i mod limit (limit from the anchoring disparity)."""
+    limit = lambda px: far if px[0] - px[2] < far_disparity else near  # noqa: E731
+    state: dict[int, list[int]] = {}  # id -> [count, segment, limit]
+    new_ids = np.empty_like(seq.obs_ids)
+    for row, (i, px) in enumerate(zip(seq.obs_ids.tolist(), seq.obs_pixels)):
+        if i not in state:
+            lim = limit(px)
+            state[i] = [1 + i % lim, 0, lim]
+        else:
+            st = state[i]
+            st[0] += 1
+            if st[0] > st[2]:
+                st[:] = [1, st[1] + 1, limit(px)]
+        new_ids[row] = 1000 * i + state[i][1]
+    return dataclasses.replace(seq, obs_ids=new_ids, num_features=int(new_ids.max()) + 1)
+
+
+@pytest.mark.parametrize("error_model", ["invariant", "body"])
+def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
+    """Re-anchoring (backend.ekf docstring) marginalizes a landmark and starts a new one from the same
+    observation: the same filter as one that sees each track segment as a separate track."""
+    seq = to_sequence(make_drive(80, seed=5, density=1.5, track=(8, 30)))
+    near, far, far_disparity = 3, 7, 20.0  # depth 5-40 m here: disparity 10-77 px
+    on = run_sequence(seq, slam_config(error_model=error_model, reanchor="yes", reanchor_observations=near,
+                                       reanchor_far_observations=far, reanchor_far_disparity=far_disparity))
+    cut = run_sequence(_relabel_segments(seq, near, far, far_disparity), slam_config(error_model=error_model))
+    assert on.stats.landmarks_dropped == 0 == cut.stats.landmarks_dropped  # (a dropped track restarts its phase)
+    assert on.stats.landmarks_reanchored > 300
+    assert on.stats.landmarks_initialized == cut.stats.landmarks_initialized
+    assert on.stats.observations_used == cut.stats.observations_used
+    np.testing.assert_allclose(on.world_T_imu, cut.world_T_imu, rtol=0, atol=1e-9)
+    # the map keeps one estimate per track (the most certain of its segments)
+    assert np.unique(on.map_ids).size == on.map_ids.size == np.unique(cut.map_ids // 1000).size
+    best = {}
+    for i, c in zip(cut.map_ids.tolist(), cut.map_covariances):
+        t = float(np.trace(c))
+        if i // 1000 not in best or t < best[i // 1000][0]:
+            best[i // 1000] = (t, i)
+    order = np.searchsorted(cut.map_ids, [best[i][1] for i in on.map_ids.tolist()])
+    np.testing.assert_allclose(on.map_positions, cut.map_positions[order], rtol=0, atol=1e-9)
+
+
+def test_no_reanchoring_in_full_state(seq60):
+    config = slam_config(full_state=True, reanchor="yes", reanchor_observations=2, reanchor_far_observations=2)
+    result = run_sequence(seq60, config)
+    assert result.stats.landmarks_reanchored == 0
+    assert "off (--full-state" in result.stats.reanchoring
+
+
+@pytest.mark.parametrize("tracker, reanchored", [("", True), ("vislam", False), ("someone else", True)])
+def test_reanchoring_auto_follows_the_tracker(seq60, tracker, reanchored):
+    """reanchor = "auto": on for tracks of unknown origin, off for vislam's own (which do not drift)."""
+    seq = dataclasses.replace(seq60, tracker=tracker)
+    result = run_sequence(seq, slam_config(reanchor="auto", reanchor_observations=2))
+    assert (result.stats.landmarks_reanchored > 0) is reanchored
+    assert result.config.reanchor == ("yes" if reanchored else "no")
+    assert ("vislam's tracker" in result.stats.reanchoring) is (tracker == "vislam")
 
 
 def test_mapping_mode_poses_are_dead_reckoning(seq60):

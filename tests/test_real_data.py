@@ -63,14 +63,26 @@ def test_conventions_chosen_as_measured(run_0027, run_03, run_0042):
 
 
 def test_0027_every_feature_beats_dead_reckoning(run_0027):
-    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 4.4 m vs 16.4 m (5.3 m without
-    the landmark random walk; issue target 3.0 m, not met)."""
+    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 3.4 m vs 16.4 m (issue target
+    3.0 m, not met; 4.4 m without re-anchoring, 5.3 m without the landmark random walk either)."""
     est, dr = _ate(run_0027, "ece276a_0027_gt_tum.txt")
     assert dr == pytest.approx(16.4, abs=0.3)  # the documented dead-reckoning baseline
-    assert est <= 0.3 * dr
+    assert est <= 0.25 * dr
     stats = run_0027.stats
-    assert stats.observations_used >= 0.8 * stats.observations  # every feature, not a sample
+    # every feature, not a sample: each observation updates, is gated or (re-)starts a landmark
+    assert stats.observations_used + stats.observations_gated + stats.landmarks_initialized >= 0.99 * stats.observations
+    assert stats.observations_used >= 0.6 * stats.observations
     assert 1.0 <= stats.mean_nis <= 6.0
+
+
+def test_0027_reanchoring_helps(run_0027):
+    """Tracks drift with age (BENCHMARKS.md, finding 9): re-anchoring landmarks after 3 (near) or
+    25 (far) observations gives 3.4 m where landmarks that live as long as their track give 4.4 m."""
+    off = _run("ece276a_0027.npz", reanchor_observations=0, reanchor_far_observations=0)
+    assert off.stats.landmarks_reanchored == 0 < run_0027.stats.landmarks_reanchored
+    est_on, _ = _ate(run_0027, "ece276a_0027_gt_tum.txt")
+    est_off, _ = _ate(off, "ece276a_0027_gt_tum.txt")
+    assert est_on < 0.85 * est_off
 
 
 def test_0042_dead_reckoning_baseline():
@@ -83,25 +95,26 @@ def test_0042_dead_reckoning_baseline():
 
 
 def test_0042_vision_does_not_make_weak_vision_worse(run_0042):
-    """Issue target: no worse than 1.1x dead reckoning (measured 1.61 m vs 1.70 m). With 3.5
+    """Issue target: no worse than 1.1x dead reckoning (measured 1.48 m vs 1.70 m). With 3.5
     observations per step the gyro bias is not estimated, and the summary says why."""
     est, dr = _ate(run_0042, "ece276a2019_0042_gt_tum.txt")
     assert est <= 1.1 * dr
     assert run_0042.imu_noise.gyro_bias is False
     assert "observations per step" in run_0042.imu_noise.gyro_bias_reason
-    considered = run_0042.stats.observations_used + run_0042.stats.observations_gated
-    assert considered >= 0.85 * run_0042.stats.observations  # the rest start tracks
+    stats = run_0042.stats
+    assert stats.observations_used + stats.observations_gated >= 0.75 * stats.observations  # the rest start landmarks
+    assert stats.observations_used + stats.observations_gated + stats.landmarks_initialized >= 0.98 * stats.observations
 
 
 def test_03_bias_state_keeps_the_car_upright(run_03):
-    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 15.2 deg with the filter
+    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 13.6 deg with the filter
     (issue target 8 deg, not met; BENCHMARKS.md, finding 7)."""
     def max_tilt(poses):
         z0 = poses[0, :3, 2]
         return np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1, 1))).max()
 
     assert max_tilt(run_03.dead_reckoning) > 45
-    assert max_tilt(run_03.world_T_imu) < 18
+    assert max_tilt(run_03.world_T_imu) < 16
     assert np.all(run_03.gyro_bias[:2] < -0.005)  # roll and pitch bias found, sign as documented
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import tempfile
@@ -18,7 +19,7 @@ from numpy.lib import format as npformat
 
 import backend.sequence as sequence_mod
 from backend.errors import InputError, VislamError
-from backend.sequence import Sequence, load_sequence, save_sequence, validate_sequence
+from backend.sequence import VISLAM_TRACKER, Sequence, load_sequence, save_sequence, validate_sequence
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REAL = {  # file: (layout, N, M) as documented in shared/data/SOURCES.md
@@ -787,3 +788,20 @@ def test_real_round_trip(tmp_path, name, dst_layout):
     # to ~1e-8 (ece276a_03) the translation comes back as R R^T p, off by ~1e-8 m.
     assert_same(seq, back, exact_extrinsic=not (seq.layout == "2022" and dst_layout == "2019"), atol=1e-7)
     assert [p.name for p in tmp_path.iterdir()] == ["rt.npz"]
+
+
+def test_tracker_key_round_trip_and_checked(tmp_path):
+    """The optional 'tracker' key (who made the tracks) is read, written back, and checked."""
+    seq = load_sequence(write_npz(tmp_path / "in.npz", course_arrays("2022")))
+    assert seq.tracker == ""  # course files have none
+    save_sequence(seq, tmp_path / "plain.npz")
+    with np.load(tmp_path / "plain.npz", allow_pickle=False) as z:
+        assert "tracker" not in z.files
+    tagged = dataclasses.replace(seq, tracker=VISLAM_TRACKER)
+    save_sequence(tagged, tmp_path / "tagged.npz")
+    assert load_sequence(tmp_path / "tagged.npz").tracker == VISLAM_TRACKER
+    for bad in (np.array([1.0, 2.0]), np.array(["a", "b"])):
+        path = write_npz(tmp_path / "bad.npz", {**course_arrays("2022"), "tracker": bad})
+        with pytest.raises(InputError) as e:
+            load_sequence(path)
+        assert "expected one string" in assert_one_line_error(e, "bad.npz", "tracker")

@@ -74,6 +74,7 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
     from backend.camera import StereoCamera
     from backend.conventions import decide_conventions
     from backend.pipeline import OnlineRun, imu_noise
+    from backend.sequence import VISLAM_TRACKER
     from frontend.images import open_stereo_directory
     from frontend.track import check_imu, iter_tracks, tracks_to_sequence
     from frontend.tracker import StereoTracker
@@ -120,7 +121,9 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
                     setup += time.perf_counter() - t0
                     say(f"conventions from the first {warm.num_steps} frames: " + conventions.describe())
                     say(noise.describe())
-                    run = OnlineRun(StereoCamera(stereo.K, stereo.baseline), conventions, noise, config)
+                    run = OnlineRun(StereoCamera(stereo.K, stereo.baseline), conventions, noise, config,
+                                    tracker=VISLAM_TRACKER)
+                    say(run.stats.reanchoring)
                     for k in range(warm.num_steps):
                         run.step(imu.time_stamps[k], imu.linear_velocity[k], imu.angular_velocity[k], *warm.observations(k))
                         if bar is not None:
