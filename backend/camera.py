@@ -120,13 +120,16 @@ class StereoCamera:
         Depth from disparity is biased, E[f b / d] ~ (f b / d) (1 + 2 sigma^2 / d^2) > f b / d, so the
         point at the measured pixels sits too near. Where a sigma point would halve the disparity
         (d <= 2 sqrt(3) sigma) the expansion is meaningless and the plain triangulation is returned.
+        The point is linear in vL and vR, so their four sigma points sum to 4 x the centre and
+        only the four shifts of uL and uR are evaluated: mean = centre / 3 + (sum of those) / 6.
         """
         z = np.asarray(z, dtype=float)
         c = np.sqrt(3.0) * float(pixel_sigma)
-        shifts = np.concatenate([c * np.eye(4), -c * np.eye(4)])  # (8,4)
-        points = self.triangulate(z[..., None, :] + shifts)  # (..., 8, 3)
+        shifts = np.zeros((4, 4))
+        shifts[[0, 1, 2, 3], [0, 0, 2, 2]] = [c, -c, c, -c]
+        points = self.triangulate(z[..., None, :] + shifts)  # (..., 4, 3)
         centre = self.triangulate(z)
-        mean = (-1.0 / 3.0) * centre + points.sum(axis=-2) / 6.0
+        mean = centre / 3.0 + points.sum(axis=-2) / 6.0
         valid = (z[..., 0] - z[..., 2]) > 2.0 * c
         return np.where(valid[..., None], mean, centre)
 

@@ -238,7 +238,10 @@ class VisualInertialEKF:
         self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
         self._reanchor = (config.reanchor != "no" and not config.full_state
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
-        self._reanchored_ids = np.zeros(0, dtype=np.int64)
+        never = np.iinfo(np.int64).max
+        self._near_limit = config.reanchor_observations or never
+        self._far_limit = config.reanchor_far_observations or never
+        self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
         self._slot: dict[int, int] = {}
         # marginalized landmarks (the map), appended in batches
         self._map_ids: list[np.ndarray] = []
@@ -349,26 +352,25 @@ class VisualInertialEKF:
         if not self._use_vision:
             return stats
         t0 = time.perf_counter()
-        self._reanchored_ids = self._ids[:0]
+        self._restarting = set()
         slots = self._slots_of(ids)
-        if not self.config.full_state and self._ids.size:
-            ended = np.ones(self._ids.size, dtype=bool)
-            ended[slots[slots >= 0]] = False
-            if ended.any():
-                stats.marginalized = int(ended.sum())
-                self._remove(ended, to_map=True)
-                slots = self._slots_of(ids)
+        seen = slots[slots >= 0]
+        leaving = np.zeros(self._ids.size, dtype=bool)  # to the map, in one marginalization
+        if not self.config.full_state:
+            leaving[:] = True  # ended tracks
+            leaving[seen] = False
+            stats.marginalized = int(leaving.sum())
+        if self._reanchor and seen.size:
+            self._obs_count[seen] += 1
+            expired = seen[self._obs_count[seen] > self._obs_limit[seen]]
+            if expired.size:  # their observations start new landmarks below
+                stats.reanchored = expired.size
+                self._restarting = set(self._ids[expired].tolist())
+                leaving[expired] = True
+        if leaving.any():
+            self._remove(leaving, to_map=True)
+            slots = self._slots_of(ids)
         known = slots >= 0
-        if self._reanchor and known.any():
-            self._obs_count[slots[known]] += 1
-            expired = np.zeros(self._ids.size, dtype=bool)
-            expired[slots[known]] = self._obs_count[slots[known]] > self._obs_limit[slots[known]]
-            if expired.any():  # their observations start new landmarks below
-                stats.reanchored = int(expired.sum())
-                self._reanchored_ids = self._ids[expired]
-                self._remove(expired, to_map=True)
-                slots = self._slots_of(ids)
-                known = slots >= 0
         t1 = time.perf_counter()
         if known.any():
             self._joint_update(slots[known], pixels[known], stats)
@@ -614,26 +616,22 @@ class VisualInertialEKF:
         self._theta_first = np.concatenate([self._theta_first, theta])
         self._anchors = np.concatenate([self._anchors, anchors])
         self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
-        self._obs_count = np.concatenate([self._obs_count, self._first_counts(ids, pixels[:, 0] - pixels[:, 2])])
-        self._obs_limit = np.concatenate([self._obs_limit, self._limits(pixels[:, 0] - pixels[:, 2])])
+        limits = self._limits(pixels[:, 0] - pixels[:, 2])
+        self._obs_count = np.concatenate([self._obs_count, self._first_counts(ids, limits)])
+        self._obs_limit = np.concatenate([self._obs_limit, limits])
         self._reindex()
         stats.initialized = n
 
     def _limits(self, disparity: np.ndarray) -> np.ndarray:
         """Observations a landmark anchored at ``disparity`` lives for before re-anchoring (module docstring)."""
-        cfg = self.config
-        never = np.iinfo(np.int64).max
-        near = cfg.reanchor_observations or never
-        far = cfg.reanchor_far_observations or never
-        return np.where(disparity < cfg.reanchor_far_disparity, far, near).astype(np.int64)
+        return np.where(disparity < self.config.reanchor_far_disparity, self._far_limit, self._near_limit)
 
-    def _first_counts(self, ids: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+    def _first_counts(self, ids: np.ndarray, limits: np.ndarray) -> np.ndarray:
         """Count of the anchoring observation: 1, or 1 + id mod limit on a track's first landmark
         (staggers the re-anchoring of landmarks born together)."""
         if not self._reanchor:
             return np.ones(ids.size, dtype=np.int64)
-        limits = self._limits(disparity)
-        first = ~np.isin(ids, self._reanchored_ids)
+        first = np.fromiter((i not in self._restarting for i in ids.tolist()), dtype=bool, count=ids.size)
         return 1 + np.where(first & (limits < np.iinfo(np.int64).max), ids % limits, 0)
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:

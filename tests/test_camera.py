@@ -135,6 +135,19 @@ def test_triangulate_mean_matches_monte_carlo_expectation():
     np.testing.assert_allclose(mean[:, 2], p[:, 2] * (1 + 2 * sigma**2 / d**2), rtol=2e-3)
 
 
+def test_triangulate_mean_equals_the_nine_point_unscented_transform():
+    """The shortcut (vL, vR enter linearly, so only the uL and uR sigma points are evaluated) is the
+    full 2N+1 = 9 point transform with weights -1/3 and 1/6."""
+    rng = np.random.default_rng(3)
+    z = CAM.project(np.column_stack([rng.uniform(-10, 10, 50), rng.uniform(-2, 2, 50), rng.uniform(4, 80, 50)]))
+    c = np.sqrt(3.0) * 1.5
+    shifts = np.concatenate([c * np.eye(4), -c * np.eye(4)])
+    full = -CAM.triangulate(z) / 3.0 + CAM.triangulate(z[:, None, :] + shifts).sum(axis=1) / 6.0
+    valid = z[:, 0] - z[:, 2] > 2 * c  # (elsewhere the plain triangulation, tested below)
+    assert 20 < valid.sum() < z.shape[0]
+    np.testing.assert_allclose(CAM.triangulate_mean(z, 1.5)[valid], full[valid], rtol=1e-12, atol=1e-12)
+
+
 def test_triangulate_mean_falls_back_where_the_expansion_fails():
     z = CAM.project(np.array([[1.0, 0.0, 500.0], [1.0, 0.0, 20.0]]))  # disparities 0.77 px and 19 px
     mean = CAM.triangulate_mean(z, 1.0)
