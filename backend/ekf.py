@@ -148,7 +148,11 @@ class StepStats:
 
 @dataclass
 class HealthMonitor:
-    """Watches the NIS and the covariance; collects one message per episode of trouble."""
+    """Watches the NIS and the covariance; collects one message per episode of trouble.
+
+    An episode starts when the windowed NIS per observation leaves [4/f, 4 f] (f = warn_factor)
+    or more than half the observations are gated, and ends when it is back inside [4/sqrt f, 4 sqrt f]
+    with at most 40 % gated."""
 
     window: int
     warn_factor: float
@@ -182,7 +186,10 @@ class HealthMonitor:
                 f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} (expected about 4) "
                 f"and {100 * gated_share:.0f} % gated over the last {self.window} steps; tune pixel_sigma or the IMU noise"
             )
-        self._inconsistent = bad
+            self._inconsistent = True
+        elif self._inconsistent:  # the episode ends well inside the band (hysteresis: no flapping at its edge)
+            f = self.warn_factor**0.5
+            self._inconsistent = not (4.0 / f <= mean <= 4.0 * f and gated_share <= 0.4)
 
     def report(self, message: str) -> None:
         self.messages.append(message)

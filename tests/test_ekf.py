@@ -716,6 +716,20 @@ def test_health_reports_inconsistent_nis_with_default_gates():
     assert silent == []
 
 
+def test_health_one_message_per_episode_with_hysteresis():
+    """An episode starts outside [4/f, 4 f] and ends only inside [4/sqrt f, 4 sqrt f] (f = 3): a NIS
+    hovering at the band's edge is one episode, a return to 4 and a new excursion a second one."""
+    from backend.ekf import HealthMonitor
+
+    monitor = HealthMonitor(window=1, warn_factor=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for step, nis in enumerate([4.0, 1.2, 1.4, 1.2, 1.4, 2.0, 1.2, 4.0, 1.2, 4.0, 13.0, 11.0, 13.0, 6.0]):
+            monitor.add_nis(step, 100 * nis, 100)
+    assert [m.split(":")[0] for m in monitor.messages] == ["step 1", "step 8", "step 10"]
+    assert monitor._inconsistent is False  # 6.0 < 4 sqrt 3: the last episode is over
+
+
 def test_health_quiet_when_consistent():
     drive = make_drive(60, seed=5)
     with warnings.catch_warnings():
