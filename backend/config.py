@@ -27,11 +27,11 @@ IMU_FLIP_CHOICES = ("auto", "yes", "no")
 VELOCITY_INDEX_CHOICES = ("auto", "this", "next")
 REPEATED_FRAME_CHOICES = ("use", "skip", "cut")
 ERROR_MODELS = ("invariant", "body")
-REANCHOR_CHOICES = ("auto", "yes", "no")
+TRACK_DRIFT_CHOICES = ("auto", "yes", "no")
 
 # Feature tracks that follow static points exactly (synthetic scenes, `vislam demo`, `vislam mc`):
-# the tracker-drift model of the defaults (landmark random walk, re-anchoring) only costs accuracy there.
-EXACT_TRACKS = {"landmark_random_walk": 0.0, "reanchor": "no"}
+# the tracker-drift model (landmark random walk, re-anchoring) only costs accuracy there.
+EXACT_TRACKS = {"track_drift": "no"}
 
 
 @dataclass
@@ -76,10 +76,10 @@ class FilterConfig:
     error_model: str = "invariant"  # invariant (right-invariant, xyz landmarks; backend.invariant) | body (mu exp(xi^))
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
-    landmark_random_walk: float = 0.05  # m/sqrt(s): tracker drift, each xyz landmark's position random-walks (0: static)
+    track_drift: str = "auto"  # auto | yes | no: model tracks that drift with age (the two below); auto: not for vislam's or synthetic tracks
+    landmark_random_walk: float = 0.05  # m/sqrt(s): with track drift, each xyz landmark's position random-walks
     repeated_frames: str = "use"  # use | skip | cut: steps repeating the previous step's pixels (backend.timing)
-    reanchor: str = "auto"  # auto | yes | no: re-anchor landmarks (tracker drift); auto: not for tracks from vislam's own tracker
-    reanchor_observations: int = 3  # a landmark is re-triangulated after this many observations (0: never)
+    reanchor_observations: int = 3  # with track drift, a landmark is re-triangulated after this many observations (0: never)
     reanchor_far_observations: int = 25  # ... or this many when it was anchored with disparity < reanchor_far_disparity (0: never)
     reanchor_far_disparity: float = 6.0  # px
 
@@ -98,7 +98,7 @@ class FilterConfig:
         _choice("landmark_parametrization", self.landmark_parametrization, PARAMETRIZATIONS)
         _choice("repeated_frames", self.repeated_frames, REPEATED_FRAME_CHOICES)
         _choice("error_model", self.error_model, ERROR_MODELS)
-        _choice("reanchor", self.reanchor, REANCHOR_CHOICES)
+        _choice("track_drift", self.track_drift, TRACK_DRIFT_CHOICES)
         if self.error_model == "invariant" and self.landmark_parametrization != "xyz":
             raise ConfigError(
                 "config key 'error_model': 'invariant' needs landmark_parametrization 'xyz'; "

@@ -53,8 +53,9 @@ new landmark from its current stereo observation, which is used once, for the in
 Marginalization is exact and the new landmark's cross covariance comes from the augmentation
 below, so nothing is counted twice. The first segment of each track is shortened by
 ``id mod limit`` observations, so that landmarks born together are not all re-anchored at once.
-Off with ``reanchor = "no"`` and in full-state mode; vislam's own tracker aligns every patch to
-its track's first patch, so its tracks do not drift (``backend.pipeline.decide_reanchoring``).
+Off with ``track_drift = "no"`` (as the landmark random walk) and in full-state mode; vislam's
+own tracker aligns every patch to its track's first patch, so its tracks do not drift
+(``backend.pipeline.decide_track_drift``).
 
 Landmark initialization (EKF-SLAM state augmentation) from the first stereo observation:
 theta = g(z, mu) with Jacobians J_z and J_xi (backend.landmarks.initialize), and
@@ -231,7 +232,8 @@ class VisualInertialEKF:
                 self.P[BIAS, BIAS] = np.eye(3) * config.gyro_bias_sigma0**2
         self._R_pix = config.pixel_sigma**2
         # tracker drift: the point a track follows is not quite static (world xyz landmarks only)
-        self._landmark_walk = config.landmark_random_walk**2 if config.landmark_parametrization == "xyz" else 0.0
+        drift = config.track_drift != "no"
+        self._landmark_walk = config.landmark_random_walk**2 if drift and config.landmark_parametrization == "xyz" else 0.0
         self._gate = float(chi2.ppf(config.gate_probability, 4))
 
         # active landmarks, in state order
@@ -243,7 +245,7 @@ class VisualInertialEKF:
         self._gated_run = np.zeros(0, dtype=np.int64)
         self._obs_count = np.zeros(0, dtype=np.int64)  # observations since the landmark was anchored
         self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
-        self._reanchor = (config.reanchor != "no" and not config.full_state
+        self._reanchor = (drift and not config.full_state
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
         never = np.iinfo(np.int64).max
         self._near_limit = config.reanchor_observations or never

@@ -21,7 +21,7 @@ from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
 from backend import se3
 from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, compose_steps, decide_imu_noise
-from backend.sequence import VISLAM_TRACKER, Sequence
+from backend.sequence import SYNTHETIC_TRACKER, VISLAM_TRACKER, Sequence
 from backend.timing import repeats_previous
 
 
@@ -38,7 +38,7 @@ class RunStats:
     landmarks_initialized: int = 0
     landmarks_dropped: int = 0  # removed after repeated gating
     landmarks_reanchored: int = 0  # re-triangulated after reanchor_observations (tracker drift)
-    reanchoring: str = ""  # the decision and why (decide_reanchoring)
+    track_drift: str = ""  # the decision and why (decide_track_drift)
     landmarks_mapped: int = 0
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
@@ -101,26 +101,28 @@ def imu_noise(config: FilterConfig, linear_velocity: np.ndarray, angular_velocit
     )
 
 
-def decide_reanchoring(config: FilterConfig, tracker: str) -> tuple[FilterConfig, str]:
-    """Resolve ``reanchor = "auto"`` for tracks made by ``tracker`` (backend.ekf, re-anchoring).
+def decide_track_drift(config: FilterConfig, tracker: str) -> tuple[FilterConfig, str]:
+    """Resolve ``track_drift = "auto"`` for tracks made by ``tracker`` (``Sequence.tracker``).
 
-    Tracks from an unknown front end (the course files) drift with their age, so their landmarks
-    are re-anchored; vislam's own tracker aligns every patch to its track's first patch, and on
-    its tracks re-anchoring only discards information (BENCHMARKS.md, finding 9).
-    Returns the config with ``reanchor`` "yes" or "no" and one line saying why.
+    Tracks from another front end (the course files) drift with their age (BENCHMARKS.md,
+    finding 9), so their landmarks random-walk (``landmark_random_walk``) and are re-anchored
+    (backend.ekf); vislam's own tracker aligns every patch to its track's first patch and
+    synthetic tracks are exact projections: there the drift model only discards information.
+    Returns the config with ``track_drift`` "yes" or "no" and one line saying why.
     """
-    if config.reanchor == "auto":
-        own = tracker == VISLAM_TRACKER
-        config = dataclasses.replace(config, reanchor="no" if own else "yes")
-        source = "auto: " + ("tracks from vislam's tracker, which do not drift" if own
+    if config.track_drift == "auto":
+        exact = tracker in (VISLAM_TRACKER, SYNTHETIC_TRACKER)
+        config = dataclasses.replace(config, track_drift="no" if exact else "yes")
+        source = "auto: " + (f"tracks from the {tracker} tracker, which do not drift" if exact
                              else "tracks from another tracker, which drift with age")
     else:
         source = "configured"
-    if config.reanchor == "no":
-        return config, f"landmark re-anchoring: off ({source})"
+    if config.track_drift == "no":
+        return config, f"track drift: not modelled ({source})"
+    walk = f"landmark random walk {config.landmark_random_walk:g} m/sqrt(s)"
     if config.full_state:
-        return config, "landmark re-anchoring: off (--full-state keeps every landmark)"
-    return config, (f"landmark re-anchoring: on, after {config.reanchor_observations} observations "
+        return config, f"track drift: {walk}, no re-anchoring (--full-state keeps every landmark) ({source})"
+    return config, (f"track drift: {walk}; re-anchoring after {config.reanchor_observations} observations "
                     f"({config.reanchor_far_observations} when anchored below {config.reanchor_far_disparity:g} px "
                     f"disparity; 0: never) ({source})")
 
@@ -134,6 +136,8 @@ class OnlineRun:
     ("this") or k+1 ("next") drives the step k -> k+1: both are known once step k+1 arrives), the
     repeated-frame policy (backend.timing), records dead reckoning alongside, and collects the run
     statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
+    ``tracker`` names what made the tracks (``Sequence.tracker``; "" unknown) for
+    ``track_drift = "auto"`` (:func:`decide_track_drift`).
     """
 
     def __init__(
@@ -149,7 +153,7 @@ class OnlineRun:
         config.validate()
         if noise.gyro_bias != config.estimate_gyro_bias:
             config = dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias)
-        config, reanchoring = decide_reanchoring(config, tracker)
+        config, track_drift = decide_track_drift(config, tracker)
         self.config = config
         self.conventions = conventions
         self.noise = noise
@@ -157,7 +161,7 @@ class OnlineRun:
                                      ImuNoise(noise.linear_sigma, noise.angular_sigma),
                                      expected_landmarks=expected_landmarks)
         self.observer = observer
-        self.stats = RunStats(reanchoring=reanchoring)
+        self.stats = RunStats(track_drift=track_drift)
         self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
         self._t: list[float] = []
         self._poses: list[np.ndarray] = []

@@ -21,9 +21,10 @@ the key and what is wrong. Bad *observations* are not fatal: they are dropped an
   -1 observation (some channels -1, not all). Takes precedence over the disparity test.
 * ``nonpositive_disparity``: uL - uR <= 0 (a point at or beyond infinity, or a mismatch).
 
-An optional key ``tracker`` (a string) names the front end that made the tracks; ``vislam
-track`` writes ``"vislam"`` (:data:`VISLAM_TRACKER`), and the filter's re-anchoring decision
-reads it (``backend.pipeline.decide_reanchoring``). Course files have none.
+An optional key ``tracker`` (a string) names what made the tracks: ``vislam track`` writes
+``"vislam"`` (:data:`VISLAM_TRACKER`), ``vislam synth`` ``"synthetic"`` (:data:`SYNTHETIC_TRACKER`);
+the filter's track-drift decision reads it (``backend.pipeline.decide_track_drift``). Course
+files have none.
 
 The files carry no image size. Unless ``image_size=(width, height)`` is given it is inferred
 from K as ``width = 2 cx * 1.25``, ``height = 2 cy * 1.25``; the 25 % margin is needed because the
@@ -67,8 +68,9 @@ _LAYOUTS = {
     "2019": ("rotational_velocity", "cam_T_imu"),
 }
 _COMMON_KEYS = ("time_stamps", "features", "linear_velocity", "K", "b")
-#: ``tracker`` key of files written by vislam's own front end (frontend/)
+#: ``tracker`` key of files written by vislam's own front end (frontend/) and by synth/
 VISLAM_TRACKER = "vislam"
+SYNTHETIC_TRACKER = "synthetic"
 _DROP_KEYS = ("nonpositive_disparity", "outside_image")
 
 

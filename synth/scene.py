@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from backend.errors import ConfigError
-from backend.sequence import Sequence, save_sequence, validate_sequence
+from backend.sequence import SYNTHETIC_TRACKER, Sequence, save_sequence, validate_sequence
 from synth._random import generator
 from synth.imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
 from synth.landmarks import LANDMARKS
@@ -155,6 +155,7 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
         source=cfg.source if noise == seed else f"{cfg.source}:noise{noise}",
         layout="2022",
         dropped={"nonpositive_disparity": 0, "outside_image": 0},
+        tracker=SYNTHETIC_TRACKER,
     )
     validate_sequence(sequence)
     return Scene(

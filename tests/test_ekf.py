@@ -151,7 +151,7 @@ def to_sequence(drive: Drive) -> Sequence:
 def slam_config(**kw) -> FilterConfig:
     values = dict(pixel_sigma=PIX_SIGMA, linear_velocity_sigma=LIN_SIGMA, angular_velocity_sigma=ANG_SIGMA,
                   imu_flip="no", velocity_index="this",
-                  reanchor="no")  # exact tracks (tested on its own below)
+                  track_drift="no")  # exact tracks; the drift model is tested on its own below
     values.update(kw)
     if values.get("landmark_parametrization", "xyz") != "xyz":
         values.setdefault("error_model", "body")  # the invariant error needs world xyz landmarks
@@ -554,9 +554,11 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
     observation: the same filter as one that sees each track segment as a separate track."""
     seq = to_sequence(make_drive(80, seed=5, density=1.5, track=(8, 30)))
     near, far, far_disparity = 3, 7, 20.0  # depth 5-40 m here: disparity 10-77 px
-    on = run_sequence(seq, slam_config(error_model=error_model, reanchor="yes", reanchor_observations=near,
+    on = run_sequence(seq, slam_config(error_model=error_model, track_drift="yes", reanchor_observations=near,
                                        reanchor_far_observations=far, reanchor_far_disparity=far_disparity))
-    cut = run_sequence(_relabel_segments(seq, near, far, far_disparity), slam_config(error_model=error_model))
+    cut = run_sequence(_relabel_segments(seq, near, far, far_disparity),  # same random walk, no re-anchoring
+                       slam_config(error_model=error_model, track_drift="yes", reanchor_observations=0,
+                                   reanchor_far_observations=0))
     assert on.stats.landmarks_dropped == 0 == cut.stats.landmarks_dropped  # (a dropped track restarts its phase)
     assert on.stats.landmarks_reanchored > 300
     assert on.stats.landmarks_initialized == cut.stats.landmarks_initialized
@@ -574,20 +576,37 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
 
 
 def test_no_reanchoring_in_full_state(seq60):
-    config = slam_config(full_state=True, reanchor="yes", reanchor_observations=2, reanchor_far_observations=2)
+    config = slam_config(full_state=True, track_drift="yes", reanchor_observations=2, reanchor_far_observations=2)
     result = run_sequence(seq60, config)
     assert result.stats.landmarks_reanchored == 0
-    assert "off (--full-state" in result.stats.reanchoring
+    assert "no re-anchoring (--full-state" in result.stats.track_drift
 
 
-@pytest.mark.parametrize("tracker, reanchored", [("", True), ("vislam", False), ("someone else", True)])
-def test_reanchoring_auto_follows_the_tracker(seq60, tracker, reanchored):
-    """reanchor = "auto": on for tracks of unknown origin, off for vislam's own (which do not drift)."""
+@pytest.mark.parametrize("tracker, drift", [("", True), ("vislam", False), ("synthetic", False), ("someone else", True)])
+def test_track_drift_auto_follows_the_tracker(seq60, tracker, drift):
+    """track_drift = "auto": modelled for tracks of unknown origin, not for vislam's own tracker
+    (patches aligned to the track's first) nor for synthetic projections."""
     seq = dataclasses.replace(seq60, tracker=tracker)
-    result = run_sequence(seq, slam_config(reanchor="auto", reanchor_observations=2))
-    assert (result.stats.landmarks_reanchored > 0) is reanchored
-    assert result.config.reanchor == ("yes" if reanchored else "no")
-    assert ("vislam's tracker" in result.stats.reanchoring) is (tracker == "vislam")
+    result = run_sequence(seq, slam_config(track_drift="auto", reanchor_observations=2))
+    assert (result.stats.landmarks_reanchored > 0) is drift
+    assert result.config.track_drift == ("yes" if drift else "no")
+    assert ("not modelled" in result.stats.track_drift) is not drift
+    assert (f"the {tracker} tracker" in result.stats.track_drift) is not drift
+
+
+def test_landmark_random_walk_only_with_track_drift():
+    """The random walk inflates the landmark block at each prediction only when tracks drift."""
+    drive = make_drive(10, seed=6)
+    inflation = {}
+    for drift in ("yes", "no"):
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(track_drift=drift, landmark_random_walk=0.3), NOISE)
+        ekf.update(*drive.observations(0))
+        n = ekf.num_active
+        before = np.diag(ekf.P)[CORE:].copy()
+        ekf.predict(DT, drive.v_true[0], drive.w_true[0])
+        inflation[drift] = np.diag(ekf.P)[CORE:CORE + 3 * n] - before
+    assert n > 10
+    np.testing.assert_allclose(inflation["yes"] - inflation["no"], 0.3**2 * DT, rtol=1e-9)
 
 
 def test_mapping_mode_poses_are_dead_reckoning(seq60):

@@ -44,7 +44,8 @@ def test_online_run_equals_run_sequence(scene):
     seq = scene.sequence
     config = FilterConfig(pixel_sigma=scene.config.pixel_sigma, velocity_index="this", imu_flip="no")
     batch = run_sequence(seq, config)
-    run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.conventions, batch.imu_noise, config)
+    run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.conventions, batch.imu_noise, config,
+                    tracker=seq.tracker)
     for k in range(seq.num_steps):
         run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
     result = run.result()

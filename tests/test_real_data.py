@@ -78,7 +78,7 @@ def test_0027_every_feature_beats_dead_reckoning(run_0027):
 def test_0027_reanchoring_helps(run_0027):
     """Tracks drift with age (BENCHMARKS.md, finding 9): re-anchoring landmarks after 3 (near) or
     25 (far) observations gives 3.3 m where landmarks that live as long as their track give 4.4 m."""
-    off = _run("ece276a_0027.npz", reanchor_observations=0, reanchor_far_observations=0)
+    off = _run("ece276a_0027.npz", reanchor_observations=0, reanchor_far_observations=0)  # (random walk kept)
     assert off.stats.landmarks_reanchored == 0 < run_0027.stats.landmarks_reanchored
     est_on, _ = _ate(run_0027, "ece276a_0027_gt_tum.txt")
     est_off, _ = _ate(off, "ece276a_0027_gt_tum.txt")

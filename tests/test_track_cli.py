@@ -43,7 +43,7 @@ def test_track_writes_the_course_layout(rendered, tracked):
     assert seq.baseline == pytest.approx(imu.baseline, abs=1e-9)
     assert seq.num_observations / seq.num_steps >= 100
     assert np.all(seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2] > 0)  # positive disparity
-    assert seq.tracker == "vislam"  # so that `vislam run` does not re-anchor its landmarks
+    assert seq.tracker == "vislam"  # so that `vislam run` does not model track drift
 
 
 def test_images_to_trajectory_beats_dead_reckoning(rendered, tracked, tmp_path):

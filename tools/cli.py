@@ -45,7 +45,7 @@ def _add_filter_options(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from backend.pipeline import decide_reanchoring, prepare, run_sequence
+    from backend.pipeline import decide_track_drift, prepare, run_sequence
     from backend.sequence import load_sequence
     from tools import outputs
     from tools.report import format_summary, write_run_outputs
@@ -81,7 +81,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     decisions = prepare(seq, config)
     say(decisions[0].describe())
     say(decisions[1].describe())
-    say(decide_reanchoring(config, seq.tracker)[1])
+    say(decide_track_drift(config, seq.tracker)[1])
     progress = None
     bar = None
     if not args.quiet:

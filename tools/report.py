@@ -51,7 +51,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) 
             "initialized": stats.landmarks_initialized,
             "dropped_as_outliers": stats.landmarks_dropped,
             "reanchored": stats.landmarks_reanchored,
-            "reanchoring": stats.reanchoring,
+            "track_drift": stats.track_drift,
             "mapped": stats.landmarks_mapped,
             "active_mean": stats.active_landmarks_mean,
             "active_max": stats.active_landmarks_max,

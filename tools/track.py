@@ -123,7 +123,7 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
                     say(noise.describe())
                     run = OnlineRun(StereoCamera(stereo.K, stereo.baseline), conventions, noise, config,
                                     tracker=VISLAM_TRACKER)
-                    say(run.stats.reanchoring)
+                    say(run.stats.track_drift)
                     for k in range(warm.num_steps):
                         run.step(imu.time_stamps[k], imu.linear_velocity[k], imu.angular_velocity[k], *warm.observations(k))
                         if bar is not None:
