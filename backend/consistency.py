@@ -153,7 +153,6 @@ def run_one(
     kept in the trace instead of being printed (safe under a thread pool too: see
     :func:`monte_carlo`).
     """
-    from backend.ekf import POSE
     from backend.pipeline import run_sequence
 
     t0 = time.perf_counter()
