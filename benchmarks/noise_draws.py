@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from backend import se3  # noqa: E402
 from backend.config import FilterConfig, apply_overrides  # noqa: E402
+from backend.errors import VislamError  # noqa: E402
 from backend.metrics import trajectory_errors  # noqa: E402
 from backend.pipeline import run_sequence  # noqa: E402
 from backend.sequence import Sequence, load_sequence  # noqa: E402
@@ -57,11 +58,14 @@ def main() -> int:
     parser.add_argument("--shared", type=Path, default=ROOT.parent / "shared")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
-
-    seq = load_sequence(args.shared / "data" / "ece276a_0027.npz")
-    gt_t, gt = read_tum(args.shared / "data" / "gt" / "ece276a_0027_gt_tum.txt")
+    try:
+        seq = load_sequence(args.shared / "data" / "ece276a_0027.npz")
+        gt_t, gt = read_tum(args.shared / "data" / "gt" / "ece276a_0027_gt_tum.txt")
+        config = apply_overrides(FilterConfig(imu_flip="no", velocity_index="next"), args.set).validate()
+    except VislamError as e:  # missing ../shared, a bad --set
+        print(f"noise_draws: error: {e}", file=sys.stderr)
+        return 2
     linear, angular = true_velocities(seq, gt)
-    config = apply_overrides(FilterConfig(imu_flip="no", velocity_index="next"), args.set).validate()
     a = args.noise_scale
     print(f"ece276a_0027.npz, velocities from ground truth + noise ({a * LINEAR_SIGMA:g} m/s, {a * ANGULAR_SIGMA:g} rad/s "
           f"white, gyro bias sigma {a * BIAS_SIGMA:g} rad/s); overrides: {' '.join(args.set) or 'none'}")
