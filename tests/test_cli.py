@@ -97,3 +97,4 @@ def test_check_prints_both_convention_numbers(capsys):
     out = capsys.readouterr().out
     assert "flip=yes,velocity=next" in out and "flip=no,velocity=this" in out
     assert "IMU y,z flipped" in out
+    assert "track drift: landmark random walk" in out and "(auto: tracks from another tracker" in out

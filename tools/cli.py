@@ -102,7 +102,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from backend.pipeline import prepare
+    from backend.pipeline import decide_track_drift, prepare
     from backend.sequence import load_sequence
     from backend.timing import repeated_steps
 
@@ -120,6 +120,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  {key:<28} {value:8.2f}")
     print(decision.describe())
     print(noise.describe())
+    print(decide_track_drift(defaults, seq.tracker)[1])
     return 0
 
 
