@@ -82,7 +82,7 @@ from backend.linalg import (block_nis, cholesky_lower, mirror_lower, solve_lower
 
 ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
 _SQRT_HALF = float(np.sqrt(0.5))
-
+_NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
 
 def _three_rows(a: np.ndarray) -> np.ndarray:
     """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
@@ -247,9 +247,8 @@ class VisualInertialEKF:
         self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
         self._reanchor = (drift and not config.full_state
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
-        never = np.iinfo(np.int64).max
-        self._near_limit = config.reanchor_observations or never
-        self._far_limit = config.reanchor_far_observations or never
+        self._near_limit = config.reanchor_observations or _NEVER
+        self._far_limit = config.reanchor_far_observations or _NEVER
         self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
         self._slot: dict[int, int] = {}
         # marginalized landmarks (the map), appended in batches
@@ -641,7 +640,7 @@ class VisualInertialEKF:
         if not self._reanchor:
             return np.ones(ids.size, dtype=np.int64)
         first = np.fromiter((i not in self._restarting for i in ids.tolist()), dtype=bool, count=ids.size)
-        return 1 + np.where(first & (limits < np.iinfo(np.int64).max), ids % limits, 0)
+        return 1 + np.where(first & (limits < _NEVER), ids % limits, 0)
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
         """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
