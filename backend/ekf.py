@@ -84,6 +84,7 @@ ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
 _SQRT_HALF = float(np.sqrt(0.5))
 _NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
 
+
 def _three_rows(a: np.ndarray) -> np.ndarray:
     """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
     out = a[:, :3].copy()
