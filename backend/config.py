@@ -73,6 +73,7 @@ class FilterConfig:
     max_depth: Optional[float] = 1000.0  # m: ... and nearer than this (xyz variance grows as depth^4; None: no limit)
     gate_probability: float = 0.999  # chi-square (4 dof) Mahalanobis gate per observation
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
+    persistent_outlier_steps: int = 10  # a track RANSAC rejects this many steps in a row is no longer rescued (0: always)
     error_model: str = "invariant"  # invariant (right-invariant, xyz landmarks; backend.invariant) | body (mu exp(xi^))
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
@@ -125,7 +126,7 @@ class FilterConfig:
             raise ConfigError(f"config key 'gate_probability': must lie in (0.5, 1), got {self.gate_probability!r}")
         if not (math.isfinite(self.landmark_random_walk) and self.landmark_random_walk >= 0):
             raise ConfigError(f"config key 'landmark_random_walk': must be a finite number >= 0, got {self.landmark_random_walk!r}")
-        for name in ("reanchor_observations", "reanchor_far_observations"):
+        for name in ("reanchor_observations", "reanchor_far_observations", "persistent_outlier_steps"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"config key '{name}': must be an integer >= 0 (0: never), got {getattr(self, name)!r}")
         if not (math.isfinite(self.reanchor_far_disparity) and self.reanchor_far_disparity >= 0):

@@ -251,6 +251,7 @@ class VisualInertialEKF:
         self._near_limit = config.reanchor_observations or _NEVER
         self._far_limit = config.reanchor_far_observations or _NEVER
         self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
+        self._outlier_run: dict[int, int] = {}  # track id -> steps in a row RANSAC rejected it (nonzero only)
         self._slot: dict[int, int] = {}
         # marginalized landmarks (the map), appended in batches
         self._map_ids: list[np.ndarray] = []
@@ -369,6 +370,8 @@ class VisualInertialEKF:
             leaving[:] = True  # ended tracks
             leaving[seen] = False
             stats.marginalized = int(leaving.sum())
+            for i in self._ids[leaving].tolist():
+                self._outlier_run.pop(i, None)
         if self._reanchor and seen.size:
             self._obs_count[seen] += 1
             expired = seen[self._obs_count[seen] > self._obs_limit[seen]]
@@ -486,6 +489,8 @@ class VisualInertialEKF:
             if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
                 inlier = self._one_point_ransac(inn.S, inn.residual, inn.off_row, use)
                 rest = use & ~inlier
+                if self.config.persistent_outlier_steps:
+                    rest &= ~self._persistent_outliers(slots, rest)
                 use = inlier
             if use.any():
                 rows = _rows(use)
@@ -545,6 +550,22 @@ class VisualInertialEKF:
         joint[n_i:, :n_i] = X_ok.T
         joint[n_i:, n_i:] = L_post
         return np.flatnonzero(rest)[ok], joint
+
+    def _persistent_outliers(self, slots: np.ndarray, rejected: np.ndarray) -> np.ndarray:
+        """Count per track the steps in a row the RANSAC rejected it; True where that reaches
+        ``persistent_outlier_steps``: such a track (a car ahead, followed by several features
+        that agree with each other and not with the scene) is not rescued. Counted by track id,
+        so across re-anchoring; any step the track is not rejected resets it."""
+        limit = self.config.persistent_outlier_steps
+        runs = self._outlier_run
+        out = np.zeros(slots.size, dtype=bool)
+        for j, (i, r) in enumerate(zip(self._ids[slots].tolist(), rejected.tolist())):
+            if r:
+                runs[i] = n = runs.get(i, 0) + 1
+                out[j] = n >= limit
+            else:
+                runs.pop(i, None)
+        return out
 
     def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, off_row: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.

@@ -155,6 +155,7 @@ def test_bad_choice(key, value):
         ("reanchor_observations", -1),
         ("reanchor_far_observations", -3),
         ("reanchor_far_disparity", float("nan")),
+        ("persistent_outlier_steps", -1),
     ],
 )
 def test_invalid_value(key, value):

@@ -575,6 +575,27 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
     np.testing.assert_allclose(on.map_positions, cut.map_positions[order], rtol=0, atol=1e-9)
 
 
+def test_persistent_ransac_outliers_are_not_rescued():
+    """A track rejected by the RANSAC persistent_outlier_steps times in a row is not rescued;
+    the count follows the track id (across re-anchoring) and any other outcome resets it."""
+    drive = make_drive(10, seed=6)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=3), NOISE)
+    ekf.update(*drive.observations(0))
+    slots = np.arange(4)
+    a, b, c, d = ekf._ids[:4].tolist()
+    steps = [[1, 1, 0, 1], [1, 1, 1, 1], [1, 0, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]]
+    flagged = [ekf._persistent_outliers(slots, np.array(r, dtype=bool)).tolist() for r in steps]
+    assert flagged == [[False] * 4, [False] * 4, [True, False, False, True], [True, False, True, True],
+                       [False, False, True, True]]
+    assert ekf._outlier_run == {b: 2, c: 4, d: 5}  # a was reset by its inlier step
+    off = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=0), NOISE)
+    off.update(*drive.observations(0))
+    for k in range(1, 6):  # never counted when the rule is off
+        off.predict(DT, drive.v_true[k - 1], drive.w_true[k - 1])
+        off.update(*drive.observations(k))
+    assert off._outlier_run == {}
+
+
 def test_no_reanchoring_in_full_state(seq60):
     config = slam_config(full_state=True, track_drift="yes", reanchor_observations=2, reanchor_far_observations=2)
     result = run_sequence(seq60, config)
