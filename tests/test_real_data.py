@@ -63,8 +63,10 @@ def test_conventions_chosen_as_measured(run_0027, run_03, run_0042):
 
 
 def test_0027_every_feature_beats_dead_reckoning(run_0027):
-    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 3.3 m vs 16.4 m (issue target
-    3.0 m, not met; 4.4 m without re-anchoring, 5.3 m without the landmark random walk either)."""
+    """Heavy velocity noise (0.5 m/s): vision must carry. Measured 2.9 m vs 16.4 m (issue target
+    3.0 m; 3.3 m without persistent_outlier_steps, 4.4 m without re-anchoring either, 5.3 m without
+    the landmark random walk either). Over six other draws of the noise 2.5-3.7 m
+    (benchmarks/noise_draws.py), so the bound keeps a margin."""
     est, dr = _ate(run_0027, "ece276a_0027_gt_tum.txt")
     assert dr == pytest.approx(16.4, abs=0.3)  # the documented dead-reckoning baseline
     assert est <= 0.25 * dr
@@ -77,7 +79,7 @@ def test_0027_every_feature_beats_dead_reckoning(run_0027):
 
 def test_0027_reanchoring_helps(run_0027):
     """Tracks drift with age (BENCHMARKS.md, finding 9): re-anchoring landmarks after 3 (near) or
-    25 (far) observations gives 3.3 m where landmarks that live as long as their track give 4.4 m."""
+    25 (far) observations gives 2.9 m where landmarks that live as long as their track give 4.3 m."""
     off = _run("ece276a_0027.npz", reanchor_observations=0, reanchor_far_observations=0)  # (random walk kept)
     assert off.stats.landmarks_reanchored == 0 < run_0027.stats.landmarks_reanchored
     est_on, _ = _ate(run_0027, "ece276a_0027_gt_tum.txt")
@@ -107,7 +109,7 @@ def test_0042_vision_does_not_make_weak_vision_worse(run_0042):
 
 
 def test_03_bias_state_keeps_the_car_upright(run_03):
-    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 13.6 deg with the filter
+    """Dead reckoning tilts 56 deg (gyro bias ~ -0.011 rad/s); measured 13.4 deg with the filter
     (issue target 8 deg, not met; BENCHMARKS.md, finding 7)."""
     def max_tilt(poses):
         z0 = poses[0, :3, 2]
