@@ -29,10 +29,6 @@ REPEATED_FRAME_CHOICES = ("use", "skip", "cut")
 ERROR_MODELS = ("invariant", "body")
 TRACK_DRIFT_CHOICES = ("auto", "yes", "no")
 
-# Feature tracks that follow static points exactly (synthetic scenes, `vislam demo`, `vislam mc`):
-# the tracker-drift model (landmark random walk, re-anchoring) only costs accuracy there.
-EXACT_TRACKS = {"track_drift": "no"}
-
 
 @dataclass
 class FilterConfig:

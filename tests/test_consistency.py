@@ -13,7 +13,7 @@ from scipy.stats import chi2
 from threadpoolctl import threadpool_info
 
 from backend import se3
-from backend.config import EXACT_TRACKS, FilterConfig
+from backend.config import FilterConfig
 from backend.consistency import (
     SKIP_STEPS,
     average_band,
@@ -80,7 +80,7 @@ def test_scene_with_noise_keeps_geometry_and_reproduces_make_scene():
 def tiny_mc():
     """5 noise realizations of a 100-step street at half landmark density, filter on its own model."""
     scene = SceneConfig(scenario="street", steps=100, landmark_density=0.5, seed=0)
-    config = FilterConfig(pixel_sigma=scene.pixel_sigma, **EXACT_TRACKS)
+    config = FilterConfig(pixel_sigma=scene.pixel_sigma)
     filters_before = list(warnings.filters)
     blas_before = [p["num_threads"] for p in threadpool_info()]
     ticks = []
@@ -166,7 +166,7 @@ def test_filter_is_consistent_over_20_runs():
     The filter is given the scene's own noise model; each run draws its gyro bias from the prior."""
     scene = SceneConfig(scenario="street", steps=300, seed=0)
     config = FilterConfig(pixel_sigma=scene.pixel_sigma, linear_velocity_sigma=float(np.max(scene.linear_sigma)),
-                          angular_velocity_sigma=float(np.max(scene.angular_sigma)), **EXACT_TRACKS)
+                          angular_velocity_sigma=float(np.max(scene.angular_sigma)))
     result = monte_carlo(scene, config, runs=20, seed0=0)
     assert result.pose_nees_in_band >= 0.90
     assert 5.5 <= result.pose_nees_time_average <= 7.5

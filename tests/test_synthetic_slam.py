@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from backend.config import EXACT_TRACKS, FilterConfig
+from backend.config import FilterConfig
 from backend.metrics import trajectory_errors
 from backend.pipeline import run_sequence
 from synth.scene import SceneConfig, make_scene
@@ -18,7 +18,7 @@ def _run(**scene_options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         # as `vislam demo` runs it: the filter on the scene's own noise (static landmarks, exact tracks)
-        result = run_sequence(scene.sequence, FilterConfig(pixel_sigma=scene.config.pixel_sigma, **EXACT_TRACKS))
+        result = run_sequence(scene.sequence, FilterConfig(pixel_sigma=scene.config.pixel_sigma))
     return scene, result
 
 
