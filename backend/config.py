@@ -51,10 +51,10 @@ class FilterConfig:
     # --- IMU noise: white noise per axis of the velocity measurements (None: estimated from the data)
     linear_velocity_sigma: Optional[float] = None  # m/s
     angular_velocity_sigma: Optional[float] = None  # rad/s
-    linear_velocity_sigma_floor: float = 0.05  # m/s: model error kept even for clean velocities
-    angular_velocity_sigma_floor: float = 0.002  # rad/s
+    linear_velocity_sigma_floor: float = 0.5  # m/s: an estimated white noise below this is raised to it (model error of clean-looking velocities)
+    angular_velocity_sigma_floor: float = 0.002  # rad/s, likewise
     gyro_bias_sigma0: float = 0.005  # rad/s: prior standard deviation of the gyro bias
-    gyro_bias_random_walk: float = 1e-4  # rad/s/sqrt(s)
+    gyro_bias_random_walk: float = 2e-4  # rad/s/sqrt(s)
     initial_pose_sigma: float = 1e-6  # the world frame is the first pose
 
     # --- camera

@@ -115,8 +115,11 @@ def decide_imu_noise(
     observations_per_step: float = float("inf"),
     gyro_bias_min_observations: float = 0.0,
 ) -> NoiseDecision:
-    """Configured sigmas are used as given; unset ones are estimated and combined with the floor
-    (model error) in quadrature: sigma = sqrt(sigma_white^2 + floor^2).
+    """Configured sigmas are used as given; unset ones are estimated and raised to the floor:
+    sigma = max(sigma_white, floor). The floor stands for the error a velocity signal carries
+    without showing it in its step-to-step roughness (scale, misalignment, the GPS/INS solution
+    it came from): clean-looking velocities are not believed beyond it, while a file whose white
+    noise already exceeds it keeps its estimate (BENCHMARKS.md, finding 13).
 
     The gyro bias is estimated (if configured) only where vision can tell it from track errors:
     with fewer than ``gyro_bias_min_observations`` stereo observations per step on average, a
@@ -126,12 +129,12 @@ def decide_imu_noise(
     lin_est = ang_est = None
     if linear_sigma is None:
         lin_est = estimate_white_noise(linear_velocity)
-        lin = np.sqrt(lin_est**2 + linear_floor**2)
+        lin = np.maximum(lin_est, linear_floor)
     else:
         lin = np.full(3, float(linear_sigma))
     if angular_sigma is None:
         ang_est = estimate_white_noise(angular_velocity)
-        ang = np.sqrt(ang_est**2 + angular_floor**2)
+        ang = np.maximum(ang_est, angular_floor)
     else:
         ang = np.full(3, float(angular_sigma))
     estimated = (lin_est is not None) + (ang_est is not None)

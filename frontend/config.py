@@ -19,7 +19,9 @@ dead reckoning's on five rendered streets of 80 frames, seeds 0-4, default 0.09-
 motion: median track length 4 instead of 2, SLAM/DR mean 0.13, but 10.4 % of tracks beyond 2 px
 and median error 0.22 px (longer tracks drift more); ``min_isotropy = 0.2`` skips corners whose
 patch has edges nearly all in one direction: length 3, 4.9 % beyond 2 px, 0.16 px, but SLAM/DR
-mean 0.28.
+mean 0.28. ``max_patch_scale`` ends a track whose patch area has grown or shrunk beyond that
+factor since its first frame: 3 gives 5.3 % beyond 2 px at SLAM/DR 0.18, 1.3 gives 1.7 % at 0.55
+(default 10, the earlier fixed bound: 6.5 %, 0.15; BENCHMARKS.md, front end).
 """
 
 from __future__ import annotations
@@ -80,6 +82,7 @@ class TrackerConfig:
     affine_iterations: int = 10  # Gauss-Newton iterations at most
     affine_max_residual: float = 0.7  # normalized patch difference (0 same .. 2 opposite) allowed
     affine_max_shift_px: float = 2.0  # px: refinement may move an LK result this far
+    max_patch_scale: float = 10.0  # patch area scale |det A| vs the first frame must lie in [1/this, this]
 
     # --- stereo (left -> right along the row, then back)
     stereo_row_tolerance_px: float = 1.0  # px: |vL - vR| allowed
@@ -132,6 +135,8 @@ class TrackerConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"config key '{name}': must be a finite number >= 0, got {value!r}")
+        if not (math.isfinite(self.max_patch_scale) and self.max_patch_scale > 1):
+            raise ConfigError(f"config key 'max_patch_scale': must be a finite number > 1, got {self.max_patch_scale!r}")
         if not (math.isfinite(self.min_isotropy) and 0 <= self.min_isotropy < 1):
             raise ConfigError(f"config key 'min_isotropy': must lie in [0, 1), got {self.min_isotropy!r}")
         if self.gftt_quality >= 1:

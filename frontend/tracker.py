@@ -12,8 +12,9 @@
    ``border_px`` frame, ends;
 2. refinement (``affine_window`` > 0): the position is refined by aligning the patch the track
    was born with (affine warp, :mod:`frontend.affine`), so frame-to-frame LK drift does not
-   accumulate; a track whose patch no longer matches (``affine_max_residual``) or that the
-   refinement moves more than ``affine_max_shift_px`` from the LK result ends;
+   accumulate; a track whose patch no longer matches (``affine_max_residual``), that the
+   refinement moves more than ``affine_max_shift_px`` from the LK result, or whose patch area
+   has grown or shrunk beyond ``max_patch_scale`` times its first frame's ends;
 3. outliers: a fundamental matrix is fitted to the temporal matches (``cv2.findFundamentalMat``,
    MAGSAC or RANSAC, >= 8 matches, else skipped); matches farther than
    ``fundamental_threshold_px`` from their epipolar line end;
@@ -62,9 +63,6 @@ from frontend.config import TrackerConfig
 __all__ = ["StereoTracker", "FrameStats"]
 
 _FUNDAMENTAL = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.FM_RANSAC}
-
-#: Accepted range of the area scale |det A| of a track's patch relative to its first frame.
-_SCALE_RANGE = (0.1, 10.0)
 
 
 @dataclass
@@ -291,9 +289,9 @@ class StereoTracker:
         """(warp, refined p, ok): align the first patches at the LK positions ``p``."""
         cfg = self.config
         warp, t, residual = affine.align(img_f, templates, warp, p, cfg.affine_iterations)
-        scale = np.abs(np.linalg.det(warp))
+        scale = np.abs(np.linalg.det(warp))  # area scale of the patch relative to its first frame
         ok = (residual <= cfg.affine_max_residual) & (np.linalg.norm(t - p, axis=1) <= cfg.affine_max_shift_px)
-        ok &= (scale >= _SCALE_RANGE[0]) & (scale <= _SCALE_RANGE[1]) & self._inside(t)
+        ok &= (scale >= 1.0 / cfg.max_patch_scale) & (scale <= cfg.max_patch_scale) & self._inside(t)
         return warp, t.astype(np.float32), ok
 
     def _epipolar_inliers(self, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from backend.config import FilterConfig
 from backend.errors import ConfigError
 from backend.sequence import SYNTHETIC_TRACKER, Sequence, save_sequence, validate_sequence
 from synth._random import generator
@@ -84,6 +85,19 @@ class SceneConfig:
     @property
     def source(self) -> str:
         return f"synthetic:{self.scenario}:seed{self.seed}"
+
+    def filter_config(self, **overrides) -> FilterConfig:
+        """The filter told this scene's own noise (pixel and velocity sigmas, the largest axis),
+        as `vislam demo` and `vislam mc` run it; ``overrides`` are further FilterConfig fields.
+        (Left to the defaults, the velocity noise would be estimated and raised to
+        ``linear_velocity_sigma_floor``, the model-error allowance meant for real data.)"""
+        values = dict(
+            pixel_sigma=self.pixel_sigma,
+            linear_velocity_sigma=float(np.max(self.linear_sigma)),
+            angular_velocity_sigma=float(np.max(self.angular_sigma)),
+        )
+        values.update(overrides)
+        return FilterConfig(**values).validate()
 
 
 @dataclass(eq=False)

@@ -80,7 +80,7 @@ def test_scene_with_noise_keeps_geometry_and_reproduces_make_scene():
 def tiny_mc():
     """5 noise realizations of a 100-step street at half landmark density, filter on its own model."""
     scene = SceneConfig(scenario="street", steps=100, landmark_density=0.5, seed=0)
-    config = FilterConfig(pixel_sigma=scene.pixel_sigma)
+    config = scene.filter_config()
     filters_before = list(warnings.filters)
     blas_before = [p["num_threads"] for p in threadpool_info()]
     ticks = []
@@ -165,8 +165,7 @@ def test_filter_is_consistent_over_20_runs():
     6.74), the NIS per observation is at its expectation and the landmark NEES near 3 (3.70).
     The filter is given the scene's own noise model; each run draws its gyro bias from the prior."""
     scene = SceneConfig(scenario="street", steps=300, seed=0)
-    config = FilterConfig(pixel_sigma=scene.pixel_sigma, linear_velocity_sigma=float(np.max(scene.linear_sigma)),
-                          angular_velocity_sigma=float(np.max(scene.angular_sigma)))
+    config = scene.filter_config()
     result = monte_carlo(scene, config, runs=20, seed0=0)
     assert result.pose_nees_in_band >= 0.90
     assert 5.5 <= result.pose_nees_time_average <= 7.5

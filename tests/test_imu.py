@@ -112,14 +112,17 @@ def test_decide_imu_noise_configured_and_estimated():
 
     estimated = decide_imu_noise(lin, ang, None, None, 0.05, 0.002)
     assert estimated.source == "estimated"
-    np.testing.assert_allclose(estimated.linear_sigma, np.sqrt(estimated.linear_estimated**2 + 0.05**2), rtol=1e-15)
-    np.testing.assert_allclose(estimated.angular_sigma, np.sqrt(estimated.angular_estimated**2 + 0.002**2), rtol=1e-15)
-    np.testing.assert_allclose(estimated.linear_sigma, np.hypot(0.3, 0.05), rtol=0.1)
-    np.testing.assert_allclose(estimated.angular_sigma, np.hypot(0.02, 0.002), rtol=0.1)
+    np.testing.assert_array_equal(estimated.linear_sigma, estimated.linear_estimated)  # above the floor: kept
+    np.testing.assert_array_equal(estimated.angular_sigma, estimated.angular_estimated)
+    np.testing.assert_allclose(estimated.linear_sigma, 0.3, rtol=0.1)
+    np.testing.assert_allclose(estimated.angular_sigma, 0.02, rtol=0.1)
+    raised = decide_imu_noise(lin, ang, None, None, 0.5, 0.05)  # floors above the white noise
+    np.testing.assert_array_equal(raised.linear_sigma, np.full(3, 0.5))
+    np.testing.assert_array_equal(raised.angular_sigma, np.full(3, 0.05))
 
     mixed = decide_imu_noise(lin, ang, None, 0.01, 0.05, 0.002)
     assert mixed.source == "mixed" and mixed.angular_estimated is None
     assert set(mixed.as_dict()) >= {"linear_velocity_sigma", "angular_velocity_sigma", "source"}
 
     clean = decide_imu_noise(smooth_signal(), smooth_signal(), None, None, 0.05, 0.002)
-    np.testing.assert_allclose(clean.linear_sigma, 0.05, rtol=0.05)  # the floor remains
+    np.testing.assert_array_equal(clean.linear_sigma, np.full(3, 0.05))  # the floor remains

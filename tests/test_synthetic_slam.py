@@ -7,7 +7,6 @@ import warnings
 import numpy as np
 import pytest
 
-from backend.config import FilterConfig
 from backend.metrics import trajectory_errors
 from backend.pipeline import run_sequence
 from synth.scene import SceneConfig, make_scene
@@ -18,7 +17,7 @@ def _run(**scene_options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         # as `vislam demo` runs it: the filter on the scene's own noise (static landmarks, exact tracks)
-        result = run_sequence(scene.sequence, FilterConfig(pixel_sigma=scene.config.pixel_sigma))
+        result = run_sequence(scene.sequence, scene.config.filter_config())
     return scene, result
 
 

@@ -47,7 +47,6 @@ def landmark_errors(scene, ids: np.ndarray, positions: np.ndarray, world_T_imu: 
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from backend.config import FilterConfig
     from backend.pipeline import run_sequence
     from synth.scene import SceneConfig, make_scene, write_scene
     from tools import outputs
@@ -64,8 +63,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"velocity noise and gyro bias as configured in synth.scene.SceneConfig")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        # the filter on the scene's own pixel noise; its exact tracks (tracker "synthetic") need no drift model
-        result = run_sequence(seq, FilterConfig(pixel_sigma=scene.config.pixel_sigma))
+        # the filter on the scene's own pixel and velocity noise; its exact tracks (tracker "synthetic") need no drift model
+        result = run_sequence(seq, scene.config.filter_config())
     gt = (seq.time_stamps, scene.world_T_imu_true)
     summary = write_run_outputs(result, out, "synthetic:street", gt)
     median_err, compared = landmark_errors(scene, result.map_ids, result.map_positions, result.world_T_imu)

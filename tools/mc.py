@@ -19,13 +19,9 @@ __all__ = ["add_parsers", "cmd_mc", "plot_consistency"]
 
 def _filter_config(args: argparse.Namespace, scene_config):
     """Defaults with the scene's noise (pixel, velocity; its tracks are exact: tracker "synthetic") < --config TOML < --set KEY=VALUE."""
-    from backend.config import FilterConfig, apply_overrides, load_config
+    from backend.config import apply_overrides, load_config
 
-    base = FilterConfig(
-        pixel_sigma=scene_config.pixel_sigma,
-        linear_velocity_sigma=float(np.max(scene_config.linear_sigma)),
-        angular_velocity_sigma=float(np.max(scene_config.angular_sigma)),
-    )
+    base = scene_config.filter_config()
     config = load_config(args.config, base) if getattr(args, "config", None) else base
     return apply_overrides(config, list(getattr(args, "set", None) or [])).validate()
 
