@@ -86,18 +86,15 @@ class SceneConfig:
     def source(self) -> str:
         return f"synthetic:{self.scenario}:seed{self.seed}"
 
-    def filter_config(self, **overrides) -> FilterConfig:
+    def filter_config(self) -> FilterConfig:
         """The filter told this scene's own noise (pixel and velocity sigmas, the largest axis),
-        as `vislam demo` and `vislam mc` run it; ``overrides`` are further FilterConfig fields.
-        (Left to the defaults, the velocity noise would be estimated and raised to
-        ``linear_velocity_sigma_floor``, the model-error allowance meant for real data.)"""
-        values = dict(
+        as `vislam demo` and `vislam mc` run it. (Left to the defaults, the velocity noise would be
+        estimated and raised to ``linear_velocity_sigma_floor``, an allowance meant for real data.)"""
+        return FilterConfig(
             pixel_sigma=self.pixel_sigma,
             linear_velocity_sigma=float(np.max(self.linear_sigma)),
             angular_velocity_sigma=float(np.max(self.angular_sigma)),
-        )
-        values.update(overrides)
-        return FilterConfig(**values).validate()
+        ).validate()
 
 
 @dataclass(eq=False)
