@@ -46,7 +46,6 @@ class RunStats:
     wall_seconds: float = 0.0  # the filter loop
     setup_seconds: float = 0.0  # convention checks and noise estimation (and loading, from `vislam run`)
     sequence_seconds: float = 0.0
-    real_time_factor: float = 0.0  # sequence duration / (setup + loop)
     seconds_predict: float = 0.0
     seconds_update: float = 0.0  # the joint updates (gate, RANSAC, update), without bookkeeping
     seconds_bookkeeping: float = 0.0  # ended tracks marginalized to the map, new landmarks initialized
@@ -57,16 +56,16 @@ class RunStats:
         total = self.observations_used + self.observations_gated
         return self.observations_gated / total if total else 0.0
 
+    @property
+    def real_time_factor(self) -> float:
+        """Sequence duration / (setup + loop)."""
+        return self.sequence_seconds / max(self.wall_seconds + self.setup_seconds, 1e-9)
+
     def as_dict(self) -> dict:
         out = dict(self.__dict__)
         out["gated_share"] = self.gated_share
+        out["real_time_factor"] = self.real_time_factor
         return out
-
-    def add_setup(self, seconds: float) -> None:
-        """Count ``seconds`` spent before the filter loop (loading, conventions decided by the
-        caller) as setup, in the real-time factor too."""
-        self.setup_seconds += seconds
-        self.real_time_factor = self.sequence_seconds / max(self.wall_seconds + self.setup_seconds, 1e-9)
 
 
 @dataclass
@@ -243,9 +242,8 @@ class OnlineRun:
         stats = self.stats
         stats.steps = len(self._t)
         stats.wall_seconds = self._wall + time.perf_counter() - t0
+        stats.setup_seconds = setup_seconds
         stats.sequence_seconds = self._t[-1] - self._t[0]
-        stats.setup_seconds = 0.0
-        stats.add_setup(setup_seconds)
         stats.active_landmarks_mean = self._active_sum / stats.steps
         stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
         stats.health_messages = list(self.ekf.health.messages)
