@@ -621,7 +621,7 @@ class VisualInertialEKF:
         n = ids.size
         theta, anchors, J_z, J_xi = landmarks.initialize(
             self._kind, self.camera, pixels, self.mu, self.imu_T_cam,
-            cfg.pixel_sigma if cfg.unbiased_triangulation else None,
+            cfg.pixel_sigma if cfg.unbiased_triangulation else None, pose_jacobian=not self._invariant,
         )
         if self._invariant:
             J_xi = invariant.initialization_pose_jacobian(n)  # (I4)

@@ -49,12 +49,13 @@ def basis(kind: str) -> np.ndarray:
 
 def initialize(
     kind: str, camera: StereoCamera, pixels: np.ndarray, world_T_imu: np.ndarray, imu_T_cam: np.ndarray,
-    pixel_sigma: float | None = None,
+    pixel_sigma: float | None = None, pose_jacobian: bool = True,
 ):
     """Parameters and Jacobians of new landmarks from stereo pixels (n,4).
 
     Returns theta (n,3), anchors (n,4,4), J_z (n,3,4) = dtheta/dz and J_xi (n,3,6) = dtheta/dxi
-    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from. For ``xyz`` with
+    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from (None unless
+    ``pose_jacobian``: the invariant error has its own, backend.invariant). For ``xyz`` with
     ``pixel_sigma``, the point is the expected triangulation under that pixel noise
     (:meth:`StereoCamera.triangulate_mean`), not the triangulation of the measured pixels.
     """
@@ -65,7 +66,7 @@ def initialize(
         p_imu = p_cam @ imu_T_cam[:3, :3].T + imu_T_cam[:3, 3]
         theta = p_imu @ R_wi.T + world_T_imu[:3, 3]
         J_z = (R_wi @ imu_T_cam[:3, :3]) @ camera.triangulation_jacobian(pixels)
-        J_xi = np.concatenate([np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2)
+        J_xi = np.concatenate([np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2) if pose_jacobian else None
         return theta, np.broadcast_to(np.eye(4), (n, 4, 4)).copy(), J_z, J_xi
     fx, fy, cx, cy, b = camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline
     alpha = (pixels[:, 0] - cx) / fx
