@@ -73,12 +73,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from backend import invariant, landmarks, se3
+from backend import invariant, kernels, landmarks, se3
 from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
-from backend.linalg import (block_nis, cholesky_lower, mirror_lower, solve_lower, submatrix, symmetric_downdate,
-                            take_rows, whiten_rows)
+from backend.linalg import cholesky_lower, solve_lower, submatrix, symmetric_downdate, take_rows, whiten_rows
 
 ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
 _SQRT_HALF = float(np.sqrt(0.5))
@@ -95,12 +94,6 @@ def _three_rows(a: np.ndarray) -> np.ndarray:
 def _rows(select: np.ndarray) -> np.ndarray:
     """Rows of the stacked 3-row blocks of the selected observations."""
     return (ROWS * np.flatnonzero(select)[:, None] + np.arange(ROWS)).ravel()
-
-
-def _diagonal_blocks(S: np.ndarray, k: int) -> np.ndarray:
-    """The k diagonal 3x3 blocks (k,3,3) of a (3k,3k) matrix."""
-    idx = np.arange(k)
-    return S.reshape(k, ROWS, k, ROWS)[idx, :, idx, :]
 
 
 @dataclass
@@ -252,7 +245,8 @@ class VisualInertialEKF:
         self._far_limit = config.reanchor_far_observations or _NEVER
         self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
         self._outlier_run: dict[int, int] = {}  # track id -> steps in a row RANSAC rejected it (nonzero only)
-        self._slot: dict[int, int] = {}
+        self._ids_sorted = np.zeros(0, dtype=np.int64)  # for the id -> slot look-up (_slots_of)
+        self._ids_order = np.zeros(0, dtype=np.int64)
         # marginalized landmarks (the map), appended in batches
         self._map_ids: list[np.ndarray] = []
         self._map_pos: list[np.ndarray] = []
@@ -322,36 +316,13 @@ class VisualInertialEKF:
             P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
 
     def _predict_invariant(self, dt: float, twist: np.ndarray) -> None:
-        """P <- F P F^T + G Q G^T with F = I + g e_b^T, g = -tau G_omega (backend.invariant, I2).
-
-        Both terms are low rank: with C = P[:, b] and P_bb = P[b, b],
-        F P F^T = P + g C^T + C g^T + g P_bb g^T, so  P += X M X^T  with X = [g, C, G sqrt(q)] (D x 12)
-        and M = [[P_bb, I, 0], [I, 0, 0], [0, 0, I]]: one product, then the lower triangle mirrored.
-        """
-        P = self.P
-        D = P.shape[0]
-        G_pose, G_lm = invariant.noise_jacobian(self.mu, twist, self._theta)
+        """P <- F P F^T + G Q G^T with F = I + g e_b^T, g = -tau G_omega (backend.invariant, I2):
+        both terms are low rank, P += X M X^T with X (D x 12) (``kernels.predict_invariant_inplace``)."""
+        G_pose, R_phi = invariant.noise_jacobian_pose(self.mu, twist)
         noise = self.imu_noise
         q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
-        bias = self.config.estimate_gyro_bias
-        X = np.zeros((D, 12 if bias else 6))
-        G = X[:, -6:]
-        G[:6] = G_pose
-        G[CORE:] = G_lm.reshape(-1, 6)
-        if bias:
-            X[:, 0:3] = -dt * G[:, 3:6]  # g
-            X[:, 3:6] = P[:, BIAS]
-        G *= q
-        if bias:
-            Z = X.copy()
-            Z[:, 0:3] = X[:, 0:3] @ P[BIAS, BIAS] + X[:, 3:6]
-            Z[:, 3:6] = X[:, 0:3]
-        else:
-            Z = X
-        P += Z @ X.T
-        mirror_lower(P)
-        if bias:
-            P[_BIAS_DIAG] += self.config.gyro_bias_random_walk**2 * dt
+        kernels.predict_invariant_inplace(self.P, G_pose, R_phi, self._theta, q, dt, self.config.estimate_gyro_bias,
+                                          self.config.gyro_bias_random_walk**2 * dt)
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -398,7 +369,9 @@ class VisualInertialEKF:
         return stats
 
     def _observation_model(self, slots: np.ndarray, pixels: np.ndarray):
-        """Innovations (k,4), H_xi (k,4,6), H_theta (k,4,3) and a mask of points in front of the camera.
+        """Innovations and Jacobians of the observed landmarks in the 3-row form (U1): residual (k,3),
+        off_row (k,) (the residual of (vL - vR)/sqrt 2, no state in it), H_xi (k,3,6), H_theta (k,3,3)
+        and a mask of points in front of the camera.
 
         Homogeneous form of backend.landmarks: q = cam_T_imu mu^-1 A (e + B theta), z = Ks pi(q).
         """
@@ -422,22 +395,17 @@ class VisualInertialEKF:
             H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
             H_xi = np.zeros((slots.size, 4, 6))
-        return residual, H_xi, H_theta, in_front
+        return _three_rows(residual), (residual[:, 1] - residual[:, 3]) * _SQRT_HALF, _three_rows(H_xi), _three_rows(H_theta), in_front
 
     def _observation_model_invariant(self, mu_inv: np.ndarray, slots: np.ndarray, pixels: np.ndarray):
-        """(I3) of backend.invariant: dz/drho = -M, dz/dphi = 0, dz/dzeta = M at the current estimate."""
-        cam_T_world = self._cam_T_imu @ mu_inv
-        q = self._theta[slots] @ cam_T_world[:, :3].T + cam_T_world[:, 3]  # (k,4) homogeneous, q4 = 1
-        in_front = q[:, 2] > 0.1
-        q[~in_front, 2] = 1.0  # placeholder, those rows are gated out
-        Ks = self.camera.Ks
-        residual = pixels - pi(q) @ Ks.T
-        k = slots.size
-        M = (self.camera.projection_jacobian(q[:, :3]).reshape(4 * k, 3) @ cam_T_world[:3, :3]).reshape(k, 4, 3)  # dz/d(world point)
-        H_xi, H_theta = invariant.observation_jacobian(M)
+        """(I3) of backend.invariant: dz/drho = -M, dz/dphi = 0, dz/dzeta = M at the current estimate
+        (``kernels.observe_invariant``)."""
+        cam = self.camera
+        residual, off_row, H_x, H_m, in_front = kernels.observe_invariant(
+            self._theta[slots], self._cam_T_imu @ mu_inv, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline, pixels)
         if not self._estimate_pose:
-            H_xi = np.zeros_like(H_xi)
-        return residual, H_xi, H_theta, in_front
+            H_x[:] = 0.0
+        return residual, off_row, H_x.reshape(-1, ROWS, 6), H_m, in_front
 
     def _project(self, mu_inv: np.ndarray, theta: np.ndarray, slots: np.ndarray):
         """q = cam_T_imu mu^-1 A (e + B theta) (k,4) and d(mu^-1 w)/d theta ((4,3) or (k,4,3))."""
@@ -452,33 +420,14 @@ class VisualInertialEKF:
         return w_world @ (self._cam_T_imu @ mu_inv).T, dw_dtheta
 
     def _innovation(self, slots: np.ndarray, pixels: np.ndarray) -> "_Innovation":
-        """The prior innovation of the observed landmarks, in the 3-row form (U1) of the module docstring."""
-        r4, H_x4, H_m4, in_front = self._observation_model(slots, pixels)
-        H_x = _three_rows(H_x4).reshape(-1, 6)
-        H_m = _three_rows(H_m4)
-        HP, S = self._project_covariance(H_x, H_m, slots)
-        residual = _three_rows(r4)
-        off_row = (r4[:, 1] - r4[:, 3]) * _SQRT_HALF
-        nis = block_nis(_diagonal_blocks(S, slots.size), residual) + off_row**2 / self._R_pix
+        """The prior innovation of the observed landmarks, in the 3-row form (U1) of the module docstring:
+        H P and S = H P H^T + R from the sparsity of H (each 3-row block touches 6 pose and 3 landmark
+        columns of P; ``kernels.innovation_covariance``)."""
+        residual, off_row, H_x, H_m, in_front = self._observation_model(slots, pixels)
+        H_x = np.ascontiguousarray(H_x.reshape(-1, 6))
+        HP, S, nis = kernels.innovation_covariance(self.P, H_x, np.ascontiguousarray(H_m), slots, self._R_pix,
+                                                   residual, off_row)
         return _Innovation(slots, residual, off_row, H_x, H_m, HP, S, nis, in_front)
-
-    def _project_covariance(self, H_x: np.ndarray, H_m: np.ndarray, slots: np.ndarray):
-        """H P (3k,D) and S = H P H^T + R (3k,3k) for H_x (3k,6) and H_m (k,3,3) at landmark ``slots``.
-
-        Uses the sparsity of H (each 3-row block touches 6 pose and 3 landmark columns) and the
-        symmetry of P (rows of P, not columns): H P = H_x P[pose] + H_m P[landmark];
-        row block i of S is H_m,i (H P)[:, landmark i]^T + H_x,i (H P)[:, pose]^T.
-        """
-        P = self.P
-        D = P.shape[0]
-        m = H_x.shape[0]
-        HP = H_x @ P[:6]
-        HP += (H_m @ P[CORE:].reshape(-1, 3, D)[slots]).reshape(m, D)
-        PHt_m = np.ascontiguousarray(HP[:, CORE:].T).reshape(-1, 3, m)[slots]  # (k,3,m)
-        S = (H_m @ PHt_m).reshape(m, m)
-        S += H_x @ HP[:, :6].T
-        S.flat[:: m + 1] += self._R_pix
-        return HP, S
 
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
         """Gate, select a consistent set (1-point RANSAC), update, rescue the rest (module docstring)."""
@@ -487,7 +436,8 @@ class VisualInertialEKF:
         rest = np.zeros_like(use)
         try:
             if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
-                inlier = self._one_point_ransac(inn.S, inn.residual, inn.off_row, use)
+                inlier = kernels.one_point_ransac(inn.S, inn.residual, inn.off_row, use, self._R_pix,
+                                                  self.config.ransac_threshold_px)
                 rest = use & ~inlier
                 if self.config.persistent_outlier_steps:
                     rest &= ~self._persistent_outliers(slots, rest)
@@ -534,11 +484,7 @@ class VisualInertialEKF:
         """
         ri, rr = _rows(inlier), _rows(rest)
         X = solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
-        m = rr.size // ROWS
-        r_post = inn.residual[rest] - (X.T @ w).reshape(m, ROWS)
-        X3 = X.reshape(-1, m, ROWS)
-        S_post = _diagonal_blocks(inn.S, inn.slots.size)[rest] - np.einsum("ika,ikb->kab", X3, X3)
-        ok = block_nis(S_post, r_post) + inn.off_row[rest] ** 2 / self._R_pix <= self._gate
+        ok = kernels.rescue_test(X, w, inn.S, np.flatnonzero(rest), inn.residual, inn.off_row, self._R_pix, self._gate)
         if not ok.any():
             return np.flatnonzero(ok), None
         ok_rows = _rows(ok)
@@ -565,34 +511,6 @@ class VisualInertialEKF:
                 out[j] = n >= limit
             else:
                 runs.pop(i, None)
-        return out
-
-    def _one_point_ransac(self, S: np.ndarray, residual: np.ndarray, off_row: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-        """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every observation a hypothesis.
-
-        Hypothesis j: the EKF update with observation j alone, dx_j = P H_j^T S_jj^-1 r_j. It changes
-        every residual by  H dx_j = (S - R)_{:,j} S_jj^-1 r_j,  so all hypotheses cost one product
-        with the S already formed. The hypothesis whose updated residuals leave the most observations
-        within ``ransac_threshold_px`` (norm of the 4 pixel residuals: the 3 rows and the row
-        difference, which no hypothesis changes) wins; its supporters are the inliers. A moving
-        car ahead, tracked by many features that agree with each other but not with the scene, loses.
-        """
-        idx = np.flatnonzero(candidates)
-        m = idx.size
-        S_c = submatrix(S, _rows(candidates))
-        r_c = residual[idx]
-        a = np.linalg.solve(_diagonal_blocks(S_c, m), r_c[:, :, None])  # (m,3,1): S_jj^-1 r_j (gated: regular)
-        S_c = S_c.reshape(ROWS * m, m, ROWS)
-        change = np.matmul(S_c.transpose(1, 0, 2), a)[:, :, 0].T  # (3m obs rows, m hypotheses): S_{:,j} a_j
-        change[np.arange(ROWS * m), np.repeat(np.arange(m), ROWS)] -= self._R_pix * a.ravel()  # (S - R)
-        post = r_c.reshape(ROWS * m, 1) - change
-        post = post.reshape(m, ROWS, m)
-        err = np.sqrt(np.einsum("iaj,iaj->ij", post, post) + off_row[idx, None] ** 2)  # (m obs, m hypotheses)
-        within = err <= self.config.ransac_threshold_px
-        support = within.sum(axis=0)
-        best = int(np.argmax(support - 1e-6 * np.minimum(err, 1e6).sum(axis=0) / (m * 1e3)))
-        out = np.zeros_like(candidates)
-        out[idx[within[:, best]]] = True
         return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:
@@ -625,22 +543,8 @@ class VisualInertialEKF:
         )
         if self._invariant:
             J_xi = invariant.initialization_pose_jacobian(n)  # (I4)
-        new_cov = self._R_pix * (J_z @ J_z.transpose(0, 2, 1))  # (n,3,3) pixel part
-        D = self.P.shape[0]
-        P_new = np.zeros((D + 3 * n, D + 3 * n))
-        P_new[:D, :D] = self.P
-        block = np.zeros((3 * n, 3 * n))
-        idx = np.arange(n)
-        block.reshape(n, 3, n, 3)[idx, :, idx, :] = new_cov  # block diagonal pixel part
-        if self._estimate_pose:
-            J_xi = J_xi.reshape(3 * n, 6)
-            cross = J_xi @ self.P[POSE, :]  # (3n, D)
-            block += cross[:, POSE] @ J_xi.T
-            block = 0.5 * (block + block.T)
-            P_new[D:, :D] = cross
-            P_new[:D, D:] = cross.T
-        P_new[D:, D:] = block
-        self.P = P_new
+        J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
+        self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
         self._ids = np.concatenate([self._ids, ids])
         self._theta = np.concatenate([self._theta, theta])
         self._theta_first = np.concatenate([self._theta_first, theta])
@@ -688,8 +592,7 @@ class VisualInertialEKF:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
         keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
-        sub = self.P[keep][:, keep]  # numpy returns this F-ordered: its transpose is the same
-        self.P = sub.T if sub.flags.f_contiguous else np.ascontiguousarray(sub)  # (symmetric) matrix, C-ordered
+        self.P = kernels.gather_symmetric(self.P, keep)  # C-ordered, one pass
         self._ids = self._ids[keep_lm]
         self._theta = self._theta[keep_lm]
         self._theta_first = self._theta_first[keep_lm]
@@ -701,10 +604,14 @@ class VisualInertialEKF:
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:
         """State slots of ``ids`` (-1 where not in the state)."""
-        return np.fromiter((self._slot.get(i, -1) for i in ids.tolist()), dtype=np.int64, count=ids.size)
+        if not self._ids.size:
+            return np.full(ids.size, -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._ids_sorted, ids), self._ids.size - 1)
+        return np.where(self._ids_sorted[pos] == ids, self._ids_order[pos], -1)
 
     def _reindex(self) -> None:
-        self._slot = dict(zip(self._ids.tolist(), range(self._ids.size)))
+        self._ids_order = np.argsort(self._ids, kind="stable")
+        self._ids_sorted = self._ids[self._ids_order]
 
     def finish(self) -> None:
         """Marginalize every active landmark into the map (end of the sequence)."""

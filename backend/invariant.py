@@ -48,24 +48,23 @@ def _hat_batch(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def noise_jacobian_pose(world_T_imu_next: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose part of G J_r(twist) in (I2): pose rows (6,6), and R_phi (3,6), the world-frame
+    rotation error per unit twist error, from which landmark i's rows are m_i^ R_phi."""
+    J = se3.right_jacobian_se3(twist)
+    return se3.adjoint(world_T_imu_next) @ J, world_T_imu_next[:3, :3] @ J[3:6]
+
+
 def noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.ndarray):
     """G J_r(twist) of (I2): how a body-twist error d (6,) moves the error state.
 
     Returns (pose rows (6,6), landmark rows (K,3,6)); xi_{k+1} = xi_k + [pose; landmarks] @ d.
+    (The filter's prediction forms the landmark rows inside ``backend.kernels``.)
     """
-    J = se3.right_jacobian_se3(twist)
-    pose = se3.adjoint(world_T_imu_next) @ J
-    R_phi = world_T_imu_next[:3, :3] @ J[3:6]  # (3,6): world-frame rotation error per unit d
+    pose, R_phi = noise_jacobian_pose(world_T_imu_next, twist)
     points = np.asarray(points, dtype=float)
     lm = (_hat_batch(points).reshape(-1, 3) @ R_phi).reshape(-1, 3, 6)  # one product, not K small ones
     return pose, lm
-
-
-def observation_jacobian(dz_dworld: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(I3): from M = dz/d(world point) (k,4,3) to (H_pose (k,4,6), H_landmark (k,4,3))."""
-    H_pose = np.zeros(dz_dworld.shape[:-1] + (6,))
-    H_pose[..., :3] = -dz_dworld
-    return H_pose, dz_dworld
 
 
 def initialization_pose_jacobian(n: int) -> np.ndarray:

@@ -8,10 +8,10 @@ m ~ 180: potrf 0.15 ms, trsm 0.23 ms, syrk 0.2 ms; a copy of P costs ~0.05 ms.
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from scipy.linalg import get_blas_funcs, get_lapack_funcs
+
+from backend import kernels
 
 _potrf = get_lapack_funcs("potrf", dtype=np.float64)
 _syrk = get_blas_funcs("syrk", dtype=np.float64)
@@ -78,7 +78,7 @@ def symmetric_downdate(P: np.ndarray, A: np.ndarray) -> None:
 
 def mirror_lower(P: np.ndarray) -> None:
     """Copy the lower triangle of the square P onto its upper triangle (exact symmetry), in place."""
-    np.copyto(P, P.T, where=_upper_mask(P.shape[0]))
+    kernels.mirror_lower_inplace(P)
 
 
 def cholesky_lower(S: np.ndarray) -> np.ndarray:
@@ -89,12 +89,3 @@ def cholesky_lower(S: np.ndarray) -> np.ndarray:
     if info != 0:
         raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {info})")
     return L
-
-
-@lru_cache(maxsize=32)
-def _upper_mask(n: int) -> np.ndarray:
-    """Boolean mask of the strict upper triangle of an n x n matrix (the filter's sizes vary
-    within a band, so a small cache serves nearly every step)."""
-    mask = np.triu(np.ones((n, n), dtype=bool), 1)
-    mask.setflags(write=False)
-    return mask

@@ -13,10 +13,14 @@ ones multiply O(t^4) terms, so the matrices stay at machine precision).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _SMALL_ANGLE = 0.1
 _NEAR_PI = 1e-2  # log_so3 reads the axis from the symmetric part when pi - angle < this
+_I3 = np.eye(3)
+_I3.setflags(write=False)
 
 
 def _coefficients(angle: float) -> tuple[float, float, float, float, float, float]:
@@ -41,12 +45,12 @@ def _coefficients(angle: float) -> tuple[float, float, float, float, float, floa
             1.0 / 24.0 - t2 / 720.0 + t4 / 40320.0 - t6 / 3628800.0 + t8 / 479001600.0,
             1.0 / 120.0 - t2 / 2520.0 + t4 / 120960.0 - t6 / 9979200.0 + t8 / 1245404160.0,
         )
-    s, c = np.sin(t), np.cos(t)
+    s, c = math.sin(t), math.cos(t)
     return (
         s / t,
         (1.0 - c) / t2,
         (t - s) / (t2 * t),
-        1.0 / t2 - 1.0 / (2.0 * t * np.tan(0.5 * t)),
+        1.0 / t2 - 1.0 / (2.0 * t * math.tan(0.5 * t)),
         (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2),
         (2.0 * t - 3.0 * s + t * c) / (2.0 * t2 * t2 * t),
     )
@@ -58,6 +62,9 @@ def _coefficients(angle: float) -> tuple[float, float, float, float, float, floa
 def hat3(w: np.ndarray) -> np.ndarray:
     """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3)."""
     w = np.asarray(w, dtype=float)
+    if w.shape == (3,):  # the common single vector, without the batch machinery
+        x, y, z = w.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     W = np.zeros(w.shape[:-1] + (3, 3))
     W[..., 0, 1], W[..., 0, 2] = -w[..., 2], w[..., 1]
     W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
@@ -101,9 +108,9 @@ def curly_hat(xi: np.ndarray) -> np.ndarray:
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rodrigues: R = I + (sin t/t) w^ + ((1-cos t)/t^2) w^ w^ (Barfoot eq. 7.14)."""
     w = np.asarray(w, dtype=float)
-    a, b, *_ = _coefficients(float(np.linalg.norm(w)))
+    a, b, *_ = _coefficients(math.hypot(*w.tolist()))
     W = hat3(w)
-    return np.eye(3) + a * W + b * (W @ W)
+    return _I3 + a * W + b * (W @ W)
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:
@@ -132,9 +139,9 @@ def log_so3(R: np.ndarray) -> np.ndarray:
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """J_l(w) = I + ((1-cos t)/t^2) w^ + ((t - sin t)/t^3) w^ w^ (Barfoot eq. 7.37)."""
     w = np.asarray(w, dtype=float)
-    _, b, c, *_ = _coefficients(float(np.linalg.norm(w)))
+    _, b, c, *_ = _coefficients(math.hypot(*w.tolist()))
     W = hat3(w)
-    return np.eye(3) + b * W + c * (W @ W)
+    return _I3 + b * W + c * (W @ W)
 
 
 def right_jacobian_so3(w: np.ndarray) -> np.ndarray:
@@ -144,9 +151,9 @@ def right_jacobian_so3(w: np.ndarray) -> np.ndarray:
 
 def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """J_l(w)^-1 = I - w^/2 + (1/t^2 - (1+cos t)/(2 t sin t)) w^ w^ (Barfoot eq. 7.45)."""
-    _, _, _, d, *_ = _coefficients(float(np.linalg.norm(w)))
+    _, _, _, d, *_ = _coefficients(math.hypot(*w.tolist()))
     W = hat3(w)
-    return np.eye(3) - 0.5 * W + d * (W @ W)
+    return _I3 - 0.5 * W + d * (W @ W)
 
 
 # ---------------------------------------------------------------- SE(3)
@@ -155,11 +162,10 @@ def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
 def exp_so3_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(exp(w^), J_l(w)) from one set of coefficients (Barfoot eqs. 7.14, 7.37)."""
     w = np.asarray(w, dtype=float)
-    a, b, c, *_ = _coefficients(float(np.linalg.norm(w)))
+    a, b, c, *_ = _coefficients(math.hypot(*w.tolist()))
     W = hat3(w)
     WW = W @ W
-    eye = np.eye(3)
-    return eye + a * W + b * WW, eye + b * W + c * WW
+    return _I3 + a * W + b * WW, _I3 + b * W + c * WW
 
 
 def exp_se3(xi: np.ndarray) -> np.ndarray:
@@ -225,7 +231,7 @@ def exp_curly(xi: np.ndarray) -> np.ndarray:
 def _q_matrix(xi: np.ndarray) -> np.ndarray:
     """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86)."""
     P, W = hat3(xi[:3]), hat3(xi[3:])
-    _, _, c, _, e, f = _coefficients(float(np.linalg.norm(xi[3:])))
+    _, _, c, _, e, f = _coefficients(math.hypot(*xi[3:].tolist()))
     WP, PW, WW = W @ P, P @ W, W @ W
     WPW = WP @ W
     return (

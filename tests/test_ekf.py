@@ -22,7 +22,7 @@ from backend.errors import FilterError
 from backend.imu import dead_reckoning
 from backend.pipeline import run_sequence
 from backend.sequence import Sequence
-from helpers import numeric_jacobian
+from helpers import OFF_ROW, THREE_ROWS, four_rows, numeric_jacobian
 
 K_KITTI = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
 BASELINE = 0.537
@@ -313,31 +313,35 @@ def test_observation_jacobians(kind):
     # move the pose so that the linearization point differs from the initialization pose
     ekf.predict(0.1, np.array([2.0, 0.1, 0.0]), np.array([0.02, -0.01, 0.05]))
     mu = ekf.world_T_imu.copy()
-    slots = np.array([ekf._slot[i] for i in ids])
+    slots = ekf._slots_of(ids)
     z_meas = z0 + 3.0
-    residual, H_xi, H_theta, in_front = ekf._observation_model(slots, z_meas)
+    z_meas[:, 3] += 1.0  # vL != vR: the fourth row (U1) has a residual too
+    residual, off_row, H_xi, H_theta, in_front = ekf._observation_model(slots, z_meas)
     assert in_front.all()
     for k, slot in enumerate(slots):
         theta = ekf._theta[slot].copy()
         anchor = ekf._anchors[slot].copy()
         w0 = _world_point_from_parameters(kind, theta, anchor)
-        np.testing.assert_allclose(residual[k], z_meas[k] - _pixels(mu, w0), rtol=0, atol=1e-8)
+        r4 = z_meas[k] - _pixels(mu, w0)
+        np.testing.assert_allclose(residual[k], THREE_ROWS @ r4, rtol=0, atol=1e-8)
+        assert off_row[k] == pytest.approx(OFF_ROW @ r4, abs=1e-8)
         J_pose = numeric_jacobian(lambda d: _pixels(mu @ se3.exp_se3(d), w0), np.zeros(6), 1e-6)
         J_param = numeric_jacobian(
             lambda th: _pixels(mu, _world_point_from_parameters(kind, th, anchor)), theta, 1e-7 * max(1.0, np.abs(theta).max())
         )
-        assert rel_err(H_xi[k], J_pose) < 1e-5
-        assert rel_err(H_theta[k], J_param) < 1e-5
+        assert rel_err(H_xi[k], THREE_ROWS @ J_pose) < 1e-5
+        assert rel_err(H_theta[k], THREE_ROWS @ J_param) < 1e-5
+        assert np.abs(OFF_ROW @ J_pose).max() < 1e-6 * np.abs(J_pose).max()  # no state in the fourth row
         if kind == "xyz":  # the parameters are the world position itself
             J_pos = numeric_jacobian(lambda m: _pixels(mu, homogeneous(m)), w0[:3], 1e-6)
-            assert rel_err(H_theta[k], J_pos) < 1e-5
+            assert rel_err(H_theta[k], THREE_ROWS @ J_pos) < 1e-5
 
 
 def test_observation_jacobian_mapping_mode_has_no_pose_columns():
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(mode="mapping"), NOISE)
     z = CAMERA.project(np.array([[1.0, 0.5, 12.0]]))
     ekf.update(np.array([0]), z)
-    _, H_xi, H_theta, _ = ekf._observation_model(np.array([0]), z)
+    _, _, H_xi, H_theta, _ = ekf._observation_model(np.array([0]), z)
     assert np.all(H_xi == 0.0) and np.abs(H_theta).max() > 0.0
     assert np.all(ekf.P[:CORE] == 0.0)
 
@@ -375,7 +379,7 @@ def test_landmark_initialization(kind):
         assert rel_err(map_cov[i], expected_cov[3 * i : 3 * i + 3, 3 * i : 3 * i + 3]) < 1e-4
 
     # the state block in world coordinates: dm/dtheta (identity for xyz) maps parameters to positions
-    slots = np.array([ekf._slot[i] for i in ids])
+    slots = ekf._slots_of(ids)
     J_world = np.zeros((9, 9))
     for i, slot in enumerate(slots):
         anchor = ekf._anchors[slot]
@@ -416,11 +420,13 @@ def test_three_row_update_equals_four_row_joseph_update(error_model):
     ekf, _, _ = run_filter(drive, config, steps=20)
     ekf.predict(DT, drive.v_meas[19], drive.w_meas[19])
     ids, pix = drive.observations(20)
-    slots = np.array([ekf._slot.get(i, -1) for i in ids])
+    slots = ekf._slots_of(ids)
     ids, pix, slots = ids[slots >= 0], pix[slots >= 0], slots[slots >= 0]
     assert slots.size >= 10
-    r4, H_x, H_m, in_front = ekf._observation_model(slots, pix)
+    residual, off_row, H_x3, H_m3, in_front = ekf._observation_model(slots, pix)
     assert in_front.all()
+    r4 = four_rows(residual[:, :, None], off_row)[:, :, 0]  # the pixel rows, as a textbook filter has them
+    H_x, H_m = four_rows(H_x3), four_rows(H_m3)
     D = ekf.P.shape[0]
     H = np.zeros((4 * slots.size, D))
     for i, j in enumerate(slots):
@@ -691,7 +697,7 @@ def test_outlier_is_gated(robust):
 
     def corrupt(k, ekf, ids, pix):
         if k == k_bad:
-            tracked = [j for j, i in enumerate(ids.tolist()) if i in ekf._slot]
+            tracked = np.flatnonzero(ekf._slots_of(ids) >= 0).tolist()
             j = tracked[len(tracked) // 2]
             bad_id.append(int(ids[j]))
             pix = pix.copy()
@@ -702,7 +708,7 @@ def test_outlier_is_gated(robust):
     ekf, poses, stats = run_filter(drive, config, steps=k_bad + 1, on_step=corrupt)
     assert stats[k_bad].gated >= 1
     assert stats[k_bad].used == clean_stats[k_bad].used - 1
-    assert ekf._gated_run[ekf._slot[bad_id[0]]] == 1
+    assert ekf._gated_run[ekf._slots_of(np.array(bad_id))[0]] == 1
     assert np.linalg.norm(poses[k_bad, :3, 3] - clean_poses[k_bad, :3, 3]) < 0.05
     assert np.array_equal(poses[:k_bad], clean_poses[:k_bad])
 

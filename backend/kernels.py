@@ -1,0 +1,357 @@
+"""Compiled kernels of the EKF step (numba): the small-matrix work between the BLAS calls.
+
+Why compiled: at the filter's sizes (D ~ 210 states, ~140 measurement rows, ~65 landmarks) the
+dense BLAS work of a step takes ~0.6 ms, but written with numpy the rest of the step was ~100
+array calls of 5-20 us each plus several passes over the D x D covariance (~3 ms a step on the
+real drives). Each kernel below replaces one group of those calls with a single loop nest over
+the same numbers; the equations are the ones of ``backend.ekf`` and ``backend.invariant``, cited
+by their labels (U1-U3, I2, I3). The BLAS/LAPACK calls themselves (potrf, trsm, syrk, trtrs)
+stay in ``backend.linalg``.
+
+Compiled on first use and cached beside this file (``cache=True``): the first run after an
+install compiles for ~20 s; later processes load the cache in ~0.5 s (numba's start-up).
+All kernels are pure functions except the ones named ``*_inplace``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+CORE = 9  # pose (6) + gyro bias (3): the landmark slots start here
+ROWS = 3  # rows per observation (U1)
+_SQRT_HALF = float(np.sqrt(0.5))
+
+_jit = njit(cache=True, nogil=True, error_model="numpy")
+
+
+# ---------------------------------------------------------------- symmetric matrices
+@_jit
+def mirror_lower_inplace(P):
+    """Copy the lower triangle of the square C-ordered P onto its upper triangle (exact symmetry)."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(i):
+            P[j, i] = P[i, j]
+
+
+@_jit
+def gather_symmetric(P, keep):
+    """P[keep][:, keep] as a new C-ordered matrix, in one pass (marginalization: rows and
+    columns of the dropped states removed; exact for a Gaussian)."""
+    n = keep.size
+    out = np.empty((n, n))
+    for i in range(n):
+        row = P[keep[i]]
+        for j in range(n):
+            out[i, j] = row[keep[j]]
+    return out
+
+
+@_jit
+def augment(P, J_xi, J_z, pixel_var):
+    """EKF-SLAM state augmentation with n new landmarks theta = g(z, mu) (``backend.ekf`` docstring):
+
+        P_m,x = J_xi P_xi,x  (3n,D),   P_mm = J_xi P_xixi J_xi^T + blockdiag(sigma^2 J_z J_z^T)  (3n,3n)
+
+    for the pose Jacobian J_xi (3n,6) and the pixel Jacobians J_z (n,3,4). Returns
+    [[P, P_m,x^T], [P_m,x, P_mm]] as a new C-ordered matrix, exactly symmetric.
+    """
+    D = P.shape[0]
+    n3 = J_xi.shape[0]
+    out = np.empty((D + n3, D + n3))
+    out[:D, :D] = P
+    cross = np.zeros((n3, D))
+    for i in range(n3):
+        for j in range(6):
+            h = J_xi[i, j]
+            if h != 0.0:
+                row = P[j]
+                for c in range(D):
+                    cross[i, c] += h * row[c]
+    for i in range(n3):
+        for j in range(D):
+            out[D + i, j] = cross[i, j]
+            out[j, D + i] = cross[i, j]
+    for i in range(n3):
+        for j in range(i + 1):
+            s = 0.0
+            for t in range(6):
+                s += cross[i, t] * J_xi[j, t]
+            if i // 3 == j // 3:  # the pixel part, block diagonal
+                lm = i // 3
+                a, b = i - 3 * lm, j - 3 * lm
+                for t in range(4):
+                    s += pixel_var * J_z[lm, a, t] * J_z[lm, b, t]
+            out[D + i, D + j] = s
+            out[D + j, D + i] = s
+    return out
+
+
+# ---------------------------------------------------------------- prediction
+@_jit
+def predict_invariant_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_var):
+    """(I2) P <- F P F^T + G Q G^T  with  F = I + g e_b^T,  g = -tau G_omega  (backend.invariant).
+
+    G (D,6) maps a body-twist error to the error state: pose rows ``G_pose`` (6,6), landmark rows
+    m_i^ R_phi (3,6) for the world points ``points`` (K,3); q (6,) = the twist noise sigmas times
+    tau. With C = P[:, b] and P_bb = P[b, b], F P F^T = P + g C^T + C g^T + g P_bb g^T, so
+    P += Z X^T with X = [g, C, G diag(q)] and Z = [g P_bb + C, g, G diag(q)] (D x 12): one BLAS
+    product, added on the lower triangle and mirrored. ``bias``: the gyro bias is in the state
+    (else F = I and X = G diag(q)); it takes a random walk of variance ``bias_walk_var`` a step.
+    """
+    D = P.shape[0]
+    K = points.shape[0]
+    w = 12 if bias else 6
+    X = np.zeros((D, w))
+    Z = np.zeros((D, w))
+    G = X[:, w - 6:]
+    G[:6] = G_pose
+    for i in range(K):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        r = CORE + 3 * i
+        for c in range(6):  # rows of hat(m_i) @ R_phi
+            G[r, c] = -z * R_phi[1, c] + y * R_phi[2, c]
+            G[r + 1, c] = z * R_phi[0, c] - x * R_phi[2, c]
+            G[r + 2, c] = -y * R_phi[0, c] + x * R_phi[1, c]
+    if bias:
+        for i in range(D):
+            for c in range(3):
+                X[i, c] = -dt * G[i, 3 + c]  # g
+                X[i, 3 + c] = P[i, 6 + c]  # C
+        for i in range(D):
+            for b in range(3):
+                s = X[i, 3 + b]
+                for a in range(3):
+                    s += X[i, a] * P[6 + a, 6 + b]
+                Z[i, b] = s
+                Z[i, 3 + b] = X[i, b]
+    for i in range(D):
+        for c in range(6):
+            G[i, c] *= q[c]
+            Z[i, w - 6 + c] = G[i, c]
+    T = Z @ X.T
+    for i in range(D):
+        for j in range(i + 1):
+            v = P[i, j] + T[i, j]
+            P[i, j] = v
+            P[j, i] = v
+    if bias:
+        for c in range(3):
+            P[6 + c, 6 + c] += bias_walk_var
+
+
+# ---------------------------------------------------------------- observation (I3, U1)
+@_jit
+def observe_invariant(points, cam_T_world, fx, fy, cx, cy, baseline, pixels):
+    """(I3) in the 3-row form (U1) for world points (k,3) seen at ``pixels`` (k,4) = [uL vL uR vR].
+
+    q = cam_T_world m (depth z), z_hat = Ks pi(q); M = dz/dm = dpi-rows @ cam_R_world;
+    rows [uL, (vL + vR)/sqrt 2, uR]: H_m = M rows, H_x = [-M, 0] (no rotation column).
+    Returns residual (k,3), off_row (k,) = (r_vL - r_vR)/sqrt 2, H_x (3k,6), H_m (k,3,3) and
+    in_front (k,) = z > 0.1 (the others get placeholder rows and are gated out by the caller).
+    """
+    k = points.shape[0]
+    residual = np.empty((k, 3))
+    off_row = np.empty(k)
+    H_x = np.zeros((3 * k, 6))
+    H_m = np.empty((k, 3, 3))
+    in_front = np.empty(k, dtype=np.bool_)
+    R = cam_T_world[:3, :3]
+    fxb = fx * baseline
+    for i in range(k):
+        qx = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + cam_T_world[0, 3]
+        qy = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + cam_T_world[1, 3]
+        qz = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + cam_T_world[2, 3]
+        in_front[i] = qz > 0.1
+        if not in_front[i]:
+            qz = 1.0
+        iz = 1.0 / qz
+        uL = fx * qx * iz + cx
+        v = fy * qy * iz + cy
+        uR = uL - fxb * iz
+        residual[i, 0] = pixels[i, 0] - uL
+        residual[i, 1] = ((pixels[i, 1] - v) + (pixels[i, 3] - v)) * _SQRT_HALF
+        residual[i, 2] = pixels[i, 2] - uR
+        off_row[i] = (pixels[i, 1] - pixels[i, 3]) * _SQRT_HALF
+        # d(pixel row)/d(q_cam) for uL, v (times sqrt 2 for the summed row), uR
+        dq = np.empty((3, 3))
+        dq[0, 0], dq[0, 1], dq[0, 2] = fx * iz, 0.0, -fx * qx * iz * iz
+        s2 = 2.0 * _SQRT_HALF
+        dq[1, 0], dq[1, 1], dq[1, 2] = 0.0, s2 * fy * iz, -s2 * fy * qy * iz * iz
+        dq[2, 0], dq[2, 1], dq[2, 2] = fx * iz, 0.0, -fx * (qx - baseline) * iz * iz
+        for a in range(3):
+            for b in range(3):
+                s = dq[a, 0] * R[0, b] + dq[a, 1] * R[1, b] + dq[a, 2] * R[2, b]
+                H_m[i, a, b] = s
+                H_x[3 * i + a, b] = -s
+    return residual, off_row, H_x, H_m, in_front
+
+
+@_jit
+def _nis3(S, r0, r1, r2):
+    """r^T S^-1 r for a symmetric 3x3 S (Cholesky); inf when S is not positive definite."""
+    l00 = S[0, 0]
+    if not l00 > 0.0:
+        return np.inf
+    l00 = np.sqrt(l00)
+    l10 = S[1, 0] / l00
+    l20 = S[2, 0] / l00
+    d1 = S[1, 1] - l10 * l10
+    if not d1 > 0.0:
+        return np.inf
+    l11 = np.sqrt(d1)
+    l21 = (S[2, 1] - l20 * l10) / l11
+    d2 = S[2, 2] - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return np.inf
+    l22 = np.sqrt(d2)
+    w0 = r0 / l00
+    w1 = (r1 - l10 * w0) / l11
+    w2 = (r2 - l20 * w0 - l21 * w1) / l22
+    return w0 * w0 + w1 * w1 + w2 * w2
+
+
+@_jit
+def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row):
+    """H P (3k,D), S = H P H^T + R (3k,3k) and the NIS (k,) of each observation (4 dof: its
+    3-row block plus off_row^2 / sigma^2, U1), for H given as H_x (3k,6) on the pose and
+    H_m (k,3,3) on landmark ``slots`` (each 3-row block touches 6 + 3 columns of P)."""
+    D = P.shape[0]
+    k = slots.size
+    m = 3 * k
+    HP = np.zeros((m, D))
+    for i in range(k):
+        base = CORE + 3 * slots[i]
+        for a in range(3):
+            r = 3 * i + a
+            out = HP[r]
+            for j in range(6):
+                h = H_x[r, j]
+                if h != 0.0:
+                    row = P[j]
+                    for c in range(D):
+                        out[c] += h * row[c]
+            for t in range(3):
+                h = H_m[i, a, t]
+                row = P[base + t]
+                for c in range(D):
+                    out[c] += h * row[c]
+    S = np.empty((m, m))
+    for r in range(m):  # lower triangle (r2 <= r), mirrored: S exactly symmetric
+        hp = HP[r]
+        for r2 in range(r + 1):
+            i2 = r2 // 3
+            b = r2 - 3 * i2
+            base = CORE + 3 * slots[i2]
+            s = 0.0
+            for j in range(6):
+                s += hp[j] * H_x[r2, j]
+            for t in range(3):
+                s += hp[base + t] * H_m[i2, b, t]
+            S[r, r2] = s
+            S[r2, r] = s
+    for r in range(m):
+        S[r, r] += pixel_var
+    nis = np.empty(k)
+    for i in range(k):
+        o = 3 * i
+        nis[i] = _nis3(S[o:o + 3, o:o + 3], residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
+    return HP, S, nis
+
+
+# ---------------------------------------------------------------- outliers (U3)
+@_jit
+def _solve3(S, r):
+    """S^-1 r for a 3x3 S by Cramer's rule (S is a gated, regular innovation block)."""
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 0], S[1, 1], S[1, 2]
+    g, h, i = S[2, 0], S[2, 1], S[2, 2]
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    inv = np.empty((3, 3))
+    inv[0, 0], inv[1, 0], inv[2, 0] = A / det, B / det, C / det
+    inv[0, 1], inv[1, 1], inv[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
+    inv[0, 2], inv[1, 2], inv[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
+    out = np.empty(3)
+    for t in range(3):
+        out[t] = inv[t, 0] * r[0] + inv[t, 1] * r[1] + inv[t, 2] * r[2]
+    return out
+
+
+@_jit
+def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
+    """1-point RANSAC for the EKF (Civera et al. 2010; ``VisualInertialEKF._one_point_ransac``).
+
+    Hypothesis j (each candidate): the update with observation j alone changes every residual by
+    (S - R)_{:,j} S_jj^-1 r_j. An observation supports j when its updated 4-pixel error is within
+    ``threshold``; the hypothesis with the most support wins (ties: the smaller summed error).
+    Returns the winner's supporters as a mask over all observations.
+    """
+    k = candidates.size
+    idx = np.flatnonzero(candidates)
+    m = idx.size
+    a = np.empty((m, 3))
+    for jj in range(m):
+        o = 3 * idx[jj]
+        a[jj] = _solve3(S[o:o + 3, o:o + 3], residual[idx[jj]])
+    err = np.empty((m, m))
+    for ii in range(m):
+        oi = 3 * idx[ii]
+        off2 = off_row[idx[ii]] ** 2
+        for jj in range(m):
+            oj = 3 * idx[jj]
+            s = off2
+            for t in range(3):
+                ch = S[oi + t, oj] * a[jj, 0] + S[oi + t, oj + 1] * a[jj, 1] + S[oi + t, oj + 2] * a[jj, 2]
+                if ii == jj:
+                    ch -= pixel_var * a[jj, t]
+                d = residual[idx[ii], t] - ch
+                s += d * d
+            err[ii, jj] = np.sqrt(s)
+    best = 0
+    best_score = -np.inf
+    for jj in range(m):
+        support = 0
+        total = 0.0
+        for ii in range(m):
+            e = err[ii, jj]
+            if e <= threshold:
+                support += 1
+            total += min(e, 1e6)
+        score = support - 1e-6 * total / (m * 1e3)
+        if score > best_score:
+            best_score = score
+            best = jj
+    out = np.zeros(k, dtype=np.bool_)
+    for ii in range(m):
+        if err[ii, best] <= threshold:
+            out[idx[ii]] = True
+    return out
+
+
+@_jit
+def rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
+    """(U3) the chi-square test of the ``rest_idx`` observations after the update with the inliers:
+    residual r_r - X^T w and covariance S_rr - X^T X (diagonal 3x3 blocks only), with X = L^-1 S_ir
+    (3 m_i, 3 m_r) and w = L^-1 r_i. Returns a mask over ``rest_idx``."""
+    mr = rest_idx.size
+    ok = np.zeros(mr, dtype=np.bool_)
+    n = X.shape[0]
+    Sb = np.empty((3, 3))
+    for jj in range(mr):
+        o = 3 * rest_idx[jj]
+        c = 3 * jj
+        r = np.empty(3)
+        for a in range(3):
+            s = 0.0
+            for t in range(n):
+                s += X[t, c + a] * w[t]
+            r[a] = residual[rest_idx[jj], a] - s
+            for b in range(3):
+                s = 0.0
+                for t in range(n):
+                    s += X[t, c + a] * X[t, c + b]
+                Sb[a, b] = S[o + a, o + b] - s
+        ok[jj] = _nis3(Sb, r[0], r[1], r[2]) + off_row[rest_idx[jj]] ** 2 / pixel_var <= gate
+    return ok
