@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 def pi(q: np.ndarray) -> np.ndarray:
@@ -34,6 +35,41 @@ def dpi_dq(q: np.ndarray) -> np.ndarray:
 def _homogeneous(p: np.ndarray) -> np.ndarray:
     p = np.asarray(p, dtype=float)
     return np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _triangulate_rows(z, fx, fy, cx, cy, baseline, sigma):
+    """Compiled core of :meth:`StereoCamera.triangulate_with_jacobian` for z (n,4): the point
+    (the unscented mean when sigma > 0) (n,3) and d triangulate / d z at the pixels (n,3,4)."""
+    n = z.shape[0]
+    points = np.empty((n, 3))
+    J = np.zeros((n, 3, 4))
+    c = np.sqrt(3.0) * sigma
+    for i in range(n):
+        uL, uR = z[i, 0], z[i, 2]
+        v = 0.5 * (z[i, 1] + z[i, 3])
+        d = uL - uR
+        depth = fx * baseline / d
+        x = (uL - cx) * depth / fx
+        y = (v - cy) * depth / fy
+        if sigma > 0.0 and d > 2.0 * c:  # centre / 3 + (the four shifts of uL and uR) / 6
+            sx, sy, sz = x / 3.0, y / 3.0, depth / 3.0
+            for du, dd in ((c, c), (-c, -c), (0.0, -c), (0.0, c)):  # uL +- c, uR +- c
+                dep = fx * baseline / (d + dd)
+                sx += (uL + du - cx) * dep / fx / 6.0
+                sy += (v - cy) * dep / fy / 6.0
+                sz += dep / 6.0
+            points[i, 0], points[i, 1], points[i, 2] = sx, sy, sz
+        else:
+            points[i, 0], points[i, 1], points[i, 2] = x, y, depth
+        J[i, 0, 0] = (baseline - x) / d
+        J[i, 1, 0] = -y / d
+        J[i, 2, 0] = -depth / d
+        J[i, 0, 2] = x / d
+        J[i, 1, 2] = y / d
+        J[i, 2, 2] = depth / d
+        J[i, 1, 1] = J[i, 1, 3] = 0.5 * depth / fy
+    return points, J
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,15 +159,15 @@ class StereoCamera:
         The point is linear in vL and vR, so their four sigma points sum to 4 x the centre and
         only the four shifts of uL and uR are evaluated: mean = centre / 3 + (sum of those) / 6.
         """
+        return self.triangulate_with_jacobian(z, pixel_sigma)[0]
+
+    def triangulate_with_jacobian(self, z: np.ndarray, pixel_sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(:meth:`triangulate_mean` with ``pixel_sigma``, or :meth:`triangulate` with 0, and
+        :meth:`triangulation_jacobian`) in one compiled pass; (..., 4) -> ((..., 3), (..., 3, 4))."""
         z = np.asarray(z, dtype=float)
-        c = np.sqrt(3.0) * float(pixel_sigma)
-        shifts = np.zeros((4, 4))
-        shifts[[0, 1, 2, 3], [0, 0, 2, 2]] = [c, -c, c, -c]
-        points = self.triangulate(z[..., None, :] + shifts)  # (..., 4, 3)
-        centre = self.triangulate(z)
-        mean = centre / 3.0 + points.sum(axis=-2) / 6.0
-        valid = (z[..., 0] - z[..., 2]) > 2.0 * c
-        return np.where(valid[..., None], mean, centre)
+        rows = np.ascontiguousarray(z.reshape(-1, 4))
+        points, J = _triangulate_rows(rows, self.fx, self.fy, self.cx, self.cy, self.baseline, float(pixel_sigma))
+        return points.reshape(z.shape[:-1] + (3,)), J.reshape(z.shape[:-1] + (3, 4))
 
     def triangulation_jacobian(self, z: np.ndarray) -> np.ndarray:
         """d triangulate / d z; (..., 4) -> (..., 3, 4).
@@ -139,12 +175,4 @@ class StereoCamera:
         With d = uL - uR and p = (x, y, depth): dp/duL = ([b, 0, 0] - p) / d,
         dp/duR = p / d, dy/dvL = dy/dvR = depth / (2 fy).
         """
-        z = np.asarray(z, dtype=float)
-        p = self.triangulate(z)
-        disparity = (z[..., 0] - z[..., 2])[..., None]
-        J = np.zeros(z.shape[:-1] + (3, 4))
-        J[..., :, 0] = -p / disparity
-        J[..., 0, 0] += self.baseline / disparity[..., 0]
-        J[..., :, 2] = p / disparity
-        J[..., 1, 1] = J[..., 1, 3] = 0.5 * p[..., 2] / self.fy
-        return J
+        return self.triangulate_with_jacobian(z)[1]

@@ -62,12 +62,14 @@ def initialize(
     n = pixels.shape[0]
     if kind == "xyz":
         R_wi = world_T_imu[:3, :3]
-        p_cam = camera.triangulate(pixels) if pixel_sigma is None else camera.triangulate_mean(pixels, pixel_sigma)
+        p_cam, dp_dz = camera.triangulate_with_jacobian(pixels, pixel_sigma or 0.0)
         p_imu = p_cam @ imu_T_cam[:3, :3].T + imu_T_cam[:3, 3]
         theta = p_imu @ R_wi.T + world_T_imu[:3, 3]
-        J_z = (R_wi @ imu_T_cam[:3, :3]) @ camera.triangulation_jacobian(pixels)
+        J_z = (R_wi @ imu_T_cam[:3, :3]) @ dp_dz
         J_xi = np.concatenate([np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2) if pose_jacobian else None
-        return theta, np.broadcast_to(np.eye(4), (n, 4, 4)).copy(), J_z, J_xi
+        anchors = np.zeros((n, 4, 4))
+        anchors[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+        return theta, anchors, J_z, J_xi
     fx, fy, cx, cy, b = camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline
     alpha = (pixels[:, 0] - cx) / fx
     beta = (0.5 * (pixels[:, 1] + pixels[:, 3]) - cy) / fy

@@ -1,0 +1,172 @@
+"""The compiled kernels of the EKF step (backend.kernels) against dense textbook formulas."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend import invariant, kernels, se3
+from backend.ekf import CORE
+
+SIGMA2 = 1.7  # pixel variance
+
+
+def _spd(rng, n: int, scale: float = 1.0) -> np.ndarray:
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T / n + 0.1 * np.eye(n))
+
+
+def _dense_H(H_x: np.ndarray, H_m: np.ndarray, slots: np.ndarray, D: int) -> np.ndarray:
+    H = np.zeros((3 * slots.size, D))
+    for i, s in enumerate(slots):
+        H[3 * i : 3 * i + 3, :6] = H_x[3 * i : 3 * i + 3]
+        H[3 * i : 3 * i + 3, CORE + 3 * s : CORE + 3 * s + 3] = H_m[i]
+    return H
+
+
+def _problem(rng, n_landmarks: int = 12, k: int = 8):
+    D = CORE + 3 * n_landmarks
+    P = _spd(rng, D, 0.1)
+    slots = np.sort(rng.choice(n_landmarks, k, replace=False))
+    H_x = rng.normal(size=(3 * k, 6)) * 30.0
+    H_m = rng.normal(size=(k, 3, 3)) * 30.0
+    return P, slots, H_x, H_m
+
+
+@pytest.mark.parametrize("bias", [True, False])
+def test_predict_invariant_equals_dense_propagation(bias):
+    """(I2): P <- F P F^T + G Q G^T with F = I + g e_b^T, G = [G_pose; m_i^ R_phi] diag(q)."""
+    rng = np.random.default_rng(1)
+    K = 7
+    D = CORE + 3 * K
+    P = _spd(rng, D)
+    mu = se3.exp_se3(rng.normal(size=6))
+    twist = rng.normal(size=6) * 0.1
+    points = rng.normal(size=(K, 3)) * 10.0
+    dt, q, walk = 0.1, rng.uniform(0.01, 0.1, 6), 3e-7
+    G_pose, G_lm = invariant.noise_jacobian(mu, twist, points)
+    G = np.zeros((D, 6))
+    G[:6] = G_pose
+    G[CORE:] = G_lm.reshape(-1, 6)
+    F = np.eye(D)
+    if bias:
+        F[:, 6:9] += -dt * G[:, 3:6]
+    expected = F @ P @ F.T + G @ np.diag(q**2) @ G.T
+    if bias:
+        expected[6:9, 6:9] += walk * np.eye(3)
+    pose, R_phi = invariant.noise_jacobian_pose(mu, twist)
+    out = P.copy()
+    kernels.predict_invariant_inplace(out, pose, R_phi, points, q, dt, bias, walk)
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert np.array_equal(out, out.T)
+
+
+def test_innovation_covariance_equals_dense_products():
+    rng = np.random.default_rng(2)
+    P, slots, H_x, H_m = _problem(rng)
+    residual = rng.normal(size=(slots.size, 3))
+    off_row = rng.normal(size=slots.size)
+    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    H = _dense_H(H_x, H_m, slots, P.shape[0])
+    S_ref = H @ P @ H.T + SIGMA2 * np.eye(H.shape[0])
+    np.testing.assert_allclose(HP, H @ P, rtol=1e-12, atol=1e-10)
+    np.testing.assert_allclose(S, S_ref, rtol=1e-12, atol=1e-9)
+    assert np.array_equal(S, S.T)
+    for i in range(slots.size):
+        block = S_ref[3 * i : 3 * i + 3, 3 * i : 3 * i + 3]
+        expected = residual[i] @ np.linalg.solve(block, residual[i]) + off_row[i] ** 2 / SIGMA2
+        assert nis[i] == pytest.approx(expected, rel=1e-10)
+
+
+def test_gather_and_augment_are_the_block_formulas():
+    rng = np.random.default_rng(3)
+    D = CORE + 3 * 10
+    P = _spd(rng, D)
+    keep = np.sort(rng.choice(D, 20, replace=False))
+    G = kernels.gather_symmetric(P, keep)
+    assert G.flags.c_contiguous
+    np.testing.assert_array_equal(G, P[np.ix_(keep, keep)])
+
+    n = 4
+    J_xi = rng.normal(size=(3 * n, 6))
+    J_z = rng.normal(size=(n, 3, 4))
+    out = kernels.augment(P, J_xi, J_z, SIGMA2)
+    cross = J_xi @ P[:6]
+    block = J_xi @ P[:6, :6] @ J_xi.T
+    for i in range(n):
+        block[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += SIGMA2 * J_z[i] @ J_z[i].T
+    expected = np.block([[P, cross.T], [cross, block]])
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(out, out.T) and out.flags.c_contiguous
+
+
+def test_one_point_ransac_hypotheses_are_single_observation_updates():
+    """Hypothesis j is the EKF update with observation j alone; the winner's supporters come back.
+    Only the translation is uncertain, so each observation (3 rows) can explain it: 6 observations
+    agree with one translation error and 3 with another, and the 6 win."""
+    rng = np.random.default_rng(4)
+    _, slots, H_x, H_m = _problem(rng, n_landmarks=12, k=9)
+    D = CORE + 3 * 12
+    P = np.diag(np.r_[np.ones(3), np.full(D - 3, 1e-8)])
+    H = _dense_H(H_x, H_m, slots, D)
+    residual = (H[:, :3] @ np.array([0.3, -0.2, 0.1])).reshape(-1, 3)
+    residual[6:] = (H[:, :3] @ np.array([-0.2, 0.4, 0.3])).reshape(-1, 3)[6:]
+    off_row = np.zeros(slots.size)
+    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    threshold = 1.0
+    candidates = np.ones(slots.size, dtype=bool)
+    inliers = kernels.one_point_ransac(S, residual, off_row, candidates, SIGMA2, threshold)
+
+    # reference: every hypothesis as an explicit single-observation EKF update
+    support = []
+    for j in range(slots.size):
+        Hj = H[3 * j : 3 * j + 3]
+        dx = P @ Hj.T @ np.linalg.solve(Hj @ P @ Hj.T + SIGMA2 * np.eye(3), residual[j])
+        err = np.linalg.norm(residual - (H @ dx).reshape(-1, 3), axis=1)
+        support.append(err <= threshold)
+    counts = [s.sum() for s in support]
+    best = support[int(np.argmax(counts))]
+    np.testing.assert_array_equal(inliers, best)
+    assert inliers[:6].all() and not inliers[6:].any()
+
+
+def test_rescue_test_is_the_gate_after_the_inlier_update():
+    """(U3): the rest's residual and covariance after the update with the inliers, to first order."""
+    rng = np.random.default_rng(5)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=12, k=8)
+    D = P.shape[0]
+    H = _dense_H(H_x, H_m, slots, D)
+    residual = rng.normal(size=(slots.size, 3)) * 3.0
+    residual[7] *= 20.0  # one of the rest fails the gate
+    off_row = rng.normal(size=slots.size)
+    _, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    inlier = np.array([1, 1, 0, 1, 1, 0, 1, 0], dtype=bool)
+    ri = (3 * np.flatnonzero(inlier)[:, None] + np.arange(3)).ravel()
+    rr = (3 * np.flatnonzero(~inlier)[:, None] + np.arange(3)).ravel()
+    L = np.linalg.cholesky(S[np.ix_(ri, ri)])
+    w = np.linalg.solve(L, residual[inlier].ravel())
+    X = np.linalg.solve(L, S[np.ix_(rr, ri)].T)
+    gate = 9.0
+    ok = kernels.rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
+
+    Hi = H[ri]
+    K = P @ Hi.T @ np.linalg.inv(S[np.ix_(ri, ri)])
+    P_post = P - K @ Hi @ P
+    r_post = residual.ravel() - H @ (K @ residual[inlier].ravel())
+    expected = []
+    for j in np.flatnonzero(~inlier):
+        Hj = H[3 * j : 3 * j + 3]
+        Sj = Hj @ P_post @ Hj.T + SIGMA2 * np.eye(3)
+        rj = r_post[3 * j : 3 * j + 3]
+        expected.append(rj @ np.linalg.solve(Sj, rj) + off_row[j] ** 2 / SIGMA2 <= gate)
+    np.testing.assert_array_equal(ok, expected)
+    assert ok.tolist() == [True, True, False]
+
+
+def test_mirror_lower_copies_the_lower_triangle():
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(7, 7))
+    B = A.copy()
+    kernels.mirror_lower_inplace(B)
+    np.testing.assert_array_equal(np.tril(B), np.tril(A))
+    assert np.array_equal(B, B.T)
