@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chdtri(k, 1 - p) = chi2.ppf(p, k), without importing scipy.stats
 from threadpoolctl import threadpool_limits
 
 from backend import se3
@@ -85,7 +85,7 @@ def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) ->
     if count <= 0:
         return (float("nan"), float("nan"))
     tail = 0.5 * (1.0 - probability)
-    return (float(chi2.ppf(tail, dof * count) / count), float(chi2.ppf(1.0 - tail, dof * count) / count))
+    return (float(chdtri(dof * count, 1.0 - tail) / count), float(chdtri(dof * count, tail) / count))
 
 
 # ---------------------------------------------------------------------------------------- one run

@@ -71,7 +71,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi-square quantile without scipy.stats (40 MB, 0.6 s to import)
 
 from backend import invariant, kernels, landmarks, se3
 from backend.camera import StereoCamera, dpi_dq, pi
@@ -228,7 +228,7 @@ class VisualInertialEKF:
         # tracker drift: the point a track follows is not quite static (world xyz landmarks only)
         drift = config.track_drift != "no"
         self._landmark_walk = config.landmark_random_walk**2 if drift and config.landmark_parametrization == "xyz" else 0.0
-        self._gate = float(chi2.ppf(config.gate_probability, 4))
+        self._gate = float(chdtri(4, 1.0 - config.gate_probability))  # chi2(4) quantile
 
         # active landmarks, in state order
         self._ids = np.zeros(0, dtype=np.int64)
