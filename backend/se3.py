@@ -282,6 +282,52 @@ def odot(s: np.ndarray) -> np.ndarray:
     return out
 
 
+def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion [qx, qy, qz, qw] (scalar last, qw >= 0) of rotation matrices (..., 3, 3) ->
+    (..., 4), by Shepperd's method: the largest of 4 qw^2, 4 qx^2, 4 qy^2, 4 qz^2 (from the trace and
+    the diagonal) is taken directly and the others from the off-diagonal sums and differences, so
+    no division is by a small number (Shepperd, J. Guidance and Control 1978)."""
+    R = np.asarray(R, dtype=float)
+    r = R.reshape(-1, 3, 3)
+    d0, d1, d2 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
+    cand = np.stack([1.0 + d0 + d1 + d2, 1.0 + d0 - d1 - d2, 1.0 - d0 + d1 - d2, 1.0 - d0 - d1 + d2], axis=1)
+    k = np.argmax(cand, axis=1)
+    s = 2.0 * np.sqrt(np.maximum(cand[np.arange(r.shape[0]), k], 1e-300))  # 4 |q_k|
+    a = (r[:, 2, 1] - r[:, 1, 2]) / s  # 4 qw qx / (4 |q_k|), and so on
+    b = (r[:, 0, 2] - r[:, 2, 0]) / s
+    c = (r[:, 1, 0] - r[:, 0, 1]) / s
+    xy, xz, yz = (r[:, 0, 1] + r[:, 1, 0]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s, (r[:, 1, 2] + r[:, 2, 1]) / s
+    big = 0.25 * s
+    table = np.stack([
+        np.stack([a, b, c, big], axis=1),  # k = 0: qw largest
+        np.stack([big, xy, xz, a], axis=1),  # k = 1: qx largest
+        np.stack([xy, big, yz, b], axis=1),  # k = 2: qy largest
+        np.stack([xz, yz, big, c], axis=1),  # k = 3: qz largest
+    ])
+    q = table[k, np.arange(r.shape[0])]  # x, y, z, w
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1.0
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions [qx, qy, qz, qw] (..., 4), normalized first."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    R[..., 0, 1] = 2.0 * (x * y - z * w)
+    R[..., 0, 2] = 2.0 * (x * z + y * w)
+    R[..., 1, 0] = 2.0 * (x * y + z * w)
+    R[..., 1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    R[..., 1, 2] = 2.0 * (y * z - x * w)
+    R[..., 2, 0] = 2.0 * (x * z - y * w)
+    R[..., 2, 1] = 2.0 * (y * z + x * w)
+    R[..., 2, 2] = 1.0 - 2.0 * (x * x + y * y)
+    return R
+
+
 def is_rigid(T: np.ndarray, tol: float = 1e-5) -> bool:
     """True iff T is a finite 4x4 with last row [0,0,0,1], R^T R = I (to tol), det R > 0."""
     T = np.asarray(T)

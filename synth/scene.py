@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from backend import se3
 from backend.config import FilterConfig
 from backend.errors import ConfigError
 from backend.sequence import SYNTHETIC_TRACKER, Sequence, save_sequence, validate_sequence
@@ -197,11 +198,8 @@ def _replace_text(path: Path, text: str) -> None:
 
 def write_tum_text(path, time_stamps: np.ndarray, world_T_imu: np.ndarray, header: str = "") -> None:
     """TUM trajectory ``t tx ty tz qx qy qz qw`` (quaternion scalar last, qw >= 0), written atomically."""
-    from scipy.spatial.transform import Rotation
-
     poses = np.asarray(world_T_imu, dtype=float)
-    quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
-    quat[quat[:, 3] < 0] *= -1.0
+    quat = se3.quaternion_from_rotation(poses[:, :3, :3])  # x, y, z, w with w >= 0
     lines = [f"# {line}" for line in header.splitlines()]
     lines += [
         f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"

@@ -238,3 +238,27 @@ def test_is_rigid(T):
     nan[1, 3] = np.nan
     assert not se3.is_rigid(nan)
     assert not se3.is_rigid(T[:3])
+
+
+@given(_rotvec(np.pi))
+@settings(max_examples=200, deadline=None)
+def test_quaternion_round_trip_and_against_scipy(w):
+    """Shepperd's method (any angle up to pi, where qw -> 0) against scipy's Rotation, and back."""
+    from scipy.spatial.transform import Rotation
+
+    R = se3.exp_so3(w)
+    q = se3.quaternion_from_rotation(R)
+    expected = Rotation.from_matrix(R).as_quat()
+    expected *= 1.0 if expected[3] >= 0 else -1.0
+    assert abs(np.linalg.norm(q) - 1.0) < 1e-12 and q[3] >= 0.0
+    if q[3] > 1e-6:  # at qw = 0 both signs are the same rotation
+        np.testing.assert_allclose(q, expected, atol=1e-12)
+    np.testing.assert_allclose(se3.rotation_from_quaternion(q), R, atol=1e-12)
+
+
+def test_quaternion_of_half_turns_and_batches():
+    Rs = np.stack([np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])])
+    q = se3.quaternion_from_rotation(Rs)
+    np.testing.assert_allclose(np.abs(q), np.eye(4)[[3, 0, 1, 2]], atol=1e-15)
+    np.testing.assert_allclose(se3.rotation_from_quaternion(q), Rs, atol=1e-15)
+    assert se3.quaternion_from_rotation(Rs.reshape(2, 2, 3, 3)).shape == (2, 2, 4)

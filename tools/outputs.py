@@ -19,6 +19,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from backend import se3
 from backend.errors import InputError, VislamError
 from backend.textio import content_lines, finite_numbers, read_lines
 
@@ -116,8 +117,6 @@ def write_tum(
     chosen so that ``qw >= 0``) with ``%.9f``. ``header`` (may span several lines) is
     written first as ``#`` comment lines.
     """
-    from scipy.spatial.transform import Rotation
-
     t = np.asarray(time_stamps, dtype=float)
     poses = _check_poses(world_T_imu)
     if t.ndim != 1 or t.shape[0] != poses.shape[0]:
@@ -133,8 +132,7 @@ def write_tum(
         for line in header.splitlines():
             lines.append(line if line.startswith("#") else f"# {line}")
     if len(poses):
-        quat = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
-        quat[quat[:, 3] < 0] *= -1.0
+        quat = se3.quaternion_from_rotation(poses[:, :3, :3])  # x, y, z, w with w >= 0
         trans = poses[:, :3, 3]
         for ti, p, q in zip(t, trans, quat):
             lines.append(
@@ -154,8 +152,6 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     line without 8 columns, a non-numeric or non-finite value, a zero-norm quaternion or a
     time stamp not greater than the previous one, and for a file without any pose.
     """
-    from scipy.spatial.transform import Rotation
-
     stamps: list[float] = []
     rows: list[list[float]] = []
     for lineno, line in content_lines(read_lines(path)):
@@ -182,7 +178,7 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     data = np.asarray(rows, dtype=float)
     quat = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
     poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
     poses[:, :3, 3] = data[:, 1:4]
     return data[:, 0].copy(), poses
 
