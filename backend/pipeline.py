@@ -49,6 +49,9 @@ class RunStats:
     seconds_predict: float = 0.0
     seconds_update: float = 0.0  # the joint updates (gate, RANSAC, update), without bookkeeping
     seconds_bookkeeping: float = 0.0  # ended tracks marginalized to the map, new landmarks initialized
+    step_ms_median: float = 0.0  # latency of one step (predict + update), what a live user waits
+    step_ms_p99: float = 0.0
+    step_ms_max: float = 0.0
     health_messages: list = field(default_factory=list)
 
     @property
@@ -78,6 +81,7 @@ class RunResult:
     map_covariances: np.ndarray  # (K,3,3)
     gyro_bias: np.ndarray  # (3,) final estimate
     stats: RunStats
+    step_seconds: np.ndarray  # (N,) wall seconds of each step (predict + update)
     conventions: ConventionDecision
     imu_noise: NoiseDecision
     config: FilterConfig
@@ -176,6 +180,7 @@ class OnlineRun:
         self._active_sum = 0
         self._nis_sum = 0.0
         self._wall = 0.0
+        self._step_seconds: list[float] = []
 
     @property
     def num_steps(self) -> int:
@@ -206,6 +211,7 @@ class OnlineRun:
         self.stats.seconds_predict += t1 - t0
         self.stats.seconds_update += t2 - t1
         self._wall += t2 - t0
+        self._step_seconds.append(t2 - t0)
         return step_stats
 
     def _observe(self, ids: np.ndarray, pixels: np.ndarray) -> Optional[StepStats]:
@@ -249,6 +255,9 @@ class OnlineRun:
         stats.health_messages = list(self.ekf.health.messages)
         stats.seconds_bookkeeping = self.ekf.seconds_bookkeeping
         stats.seconds_update -= self.ekf.seconds_bookkeeping
+        step_ms = 1e3 * np.array(self._step_seconds)
+        stats.step_ms_median, stats.step_ms_p99 = (float(x) for x in np.percentile(step_ms, [50, 99]))
+        stats.step_ms_max = float(step_ms.max())
         map_ids, map_pos, map_cov = self.ekf.landmark_map()
         stats.landmarks_mapped = int(map_ids.size)
         return RunResult(
@@ -260,6 +269,7 @@ class OnlineRun:
             map_covariances=map_cov,
             gyro_bias=self.ekf.gyro_bias.copy(),
             stats=stats,
+            step_seconds=step_ms / 1e3,
             conventions=self.conventions,
             imu_noise=self.noise,
             config=self.config,

@@ -51,6 +51,12 @@ def test_online_run_equals_run_sequence(scene):
     result = run.result()
     np.testing.assert_allclose(result.world_T_imu, batch.world_T_imu, atol=1e-12)
     assert result.stats.observations_used == batch.stats.observations_used > 0
+    # one latency per step, and the summary's percentiles are of them
+    s = result.stats
+    assert result.step_seconds.shape == (seq.num_steps,) and np.all(result.step_seconds > 0)
+    assert s.step_ms_median == pytest.approx(1e3 * np.median(result.step_seconds))
+    assert s.step_ms_median <= s.step_ms_p99 <= s.step_ms_max == pytest.approx(1e3 * result.step_seconds.max())
+    assert result.step_seconds.sum() <= s.wall_seconds
 
 
 def test_online_run_refuses_time_going_back(scene):
