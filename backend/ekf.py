@@ -206,6 +206,7 @@ class VisualInertialEKF:
         world_T_imu: np.ndarray | None = None,
         expected_landmarks: int | None = None,
     ) -> None:
+        self.kernel_seconds = kernels.warm_up()  # compile or load the kernels now, not in the first step
         self.camera = camera
         self.config = config.validate()
         self.imu_T_cam = np.array(imu_T_cam, dtype=float)
@@ -504,13 +505,15 @@ class VisualInertialEKF:
         so across re-anchoring; any step the track is not rejected resets it."""
         limit = self.config.persistent_outlier_steps
         runs = self._outlier_run
+        ids = self._ids[slots]
+        if runs:  # a step not rejected resets the count
+            for i in runs.keys() & set(ids[~rejected].tolist()):
+                del runs[i]
         out = np.zeros(slots.size, dtype=bool)
-        for j, (i, r) in enumerate(zip(self._ids[slots].tolist(), rejected.tolist())):
-            if r:
-                runs[i] = n = runs.get(i, 0) + 1
-                out[j] = n >= limit
-            else:
-                runs.pop(i, None)
+        for j in np.flatnonzero(rejected).tolist():
+            i = int(ids[j])
+            runs[i] = n = runs.get(i, 0) + 1
+            out[j] = n >= limit
         return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:
@@ -570,12 +573,7 @@ class VisualInertialEKF:
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
         """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
-        diag = CORE + 3 * slots[:, None] + np.arange(3)
-        P_zeta = self.P[diag[:, :, None], diag[:, None, :]]
-        if not self._invariant:
-            return P_zeta
-        P_phi_zeta = self.P[3:6][:, diag].transpose(1, 0, 2)  # (k,3,3)
-        return invariant.world_covariances(self._theta[slots], self.P[3:6, 3:6], P_phi_zeta, P_zeta)
+        return kernels.landmark_covariances(self.P, slots, self._theta[slots], self._invariant)
 
     def _to_map(self, slots: np.ndarray) -> None:
         """Append the world-frame estimates of ``slots`` to the map (points at infinity are left out)."""

@@ -28,7 +28,7 @@ does not depend on the estimate:
   why this filter needs no first-estimate Jacobians.
 - Landmark initialization  m = T g(z):  zeta = rho + R_hat imu_R_cam dg/dz dz  (no phi column).   (I4)
 - Correction  X_hat <- exp(dx) X_hat, i.e. (I1) with (rho, phi, zeta) = dx.                       (I5)
-- World covariance of a landmark:  dm = zeta - m_hat^ phi.                                       (I6)
+- World covariance of a landmark:  dm = zeta - m_hat^ phi (``backend.kernels.landmark_covariances``). (I6)
 - Body-frame (right) pose error  xi_body = Ad(T_hat^-1) (rho, phi).                              (I7)
 """
 
@@ -83,15 +83,6 @@ def retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_p
     pose = E @ world_T_imu
     pts = np.asarray(points) @ R_d.T + np.asarray(d_points).reshape(-1, 3) @ J_l.T
     return pose, pts
-
-
-def world_covariances(points: np.ndarray, P_phi: np.ndarray, P_phi_zeta: np.ndarray, P_zeta: np.ndarray) -> np.ndarray:
-    """(I6): covariances (K,3,3) of the world positions from Cov(phi) (3,3), Cov(phi, zeta_i) (K,3,3)
-    and Cov(zeta_i) (K,3,3)."""
-    A = -_hat_batch(np.asarray(points, dtype=float))  # d m / d phi
-    cross = A @ P_phi_zeta  # (K,3,3)
-    cov = A @ P_phi @ A.transpose(0, 2, 1) + cross + cross.transpose(0, 2, 1) + P_zeta
-    return 0.5 * (cov + cov.transpose(0, 2, 1))
 
 
 def body_pose_covariance(world_T_imu: np.ndarray, P_pose: np.ndarray) -> np.ndarray:

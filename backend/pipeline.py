@@ -14,12 +14,12 @@ from typing import Callable, Optional
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from backend import se3
 from backend.camera import StereoCamera
 from backend.config import FilterConfig
 from backend.conventions import ConventionDecision, decide_conventions
 from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
 from backend.errors import InputError
-from backend import se3
 from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, compose_steps, decide_imu_noise
 from backend.sequence import SYNTHETIC_TRACKER, VISLAM_TRACKER, Sequence
 from backend.timing import repeats_previous
@@ -45,6 +45,7 @@ class RunStats:
     mean_nis: float = float("nan")  # per used observation; expectation 4 (a little less after gating)
     wall_seconds: float = 0.0  # the filter loop
     setup_seconds: float = 0.0  # convention checks and noise estimation (and loading, from `vislam run`)
+    kernel_seconds: float = 0.0  # compiling (first run after an install) or loading the compiled kernels; apart, as imports
     sequence_seconds: float = 0.0
     seconds_predict: float = 0.0
     seconds_update: float = 0.0  # the joint updates (gate, RANSAC, update), without bookkeeping
@@ -170,7 +171,7 @@ class OnlineRun:
                                      ImuNoise(noise.linear_sigma, noise.angular_sigma),
                                      expected_landmarks=expected_landmarks)
         self.observer = observer
-        self.stats = RunStats(track_drift=track_drift)
+        self.stats = RunStats(track_drift=track_drift, kernel_seconds=self.ekf.kernel_seconds)
         self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
         self._t: list[float] = []
         self._poses: list[np.ndarray] = []

@@ -46,10 +46,10 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     assert json.loads((tmp_path / "ev" / "eval.json").read_text()) == evaluated
     assert main(["eval", str(out / "trajectory.txt"), str(gt), "--out", str(tmp_path / "ev")]) == 2
     timing = summary["timing"]
-    assert timing["real_time_factor"] > 1
     assert timing["setup_seconds"] > 0  # loading and the convention test count, though run decides them first
     assert timing["real_time_factor"] == pytest.approx(
         timing["sequence_seconds"] / (timing["filter_seconds"] + timing["setup_seconds"]), rel=1e-9)
+    assert "kernel_seconds" in timing  # compiling or loading the kernels, once per process, reported apart
     # evo reads the trajectory
     from evo.tools import file_interface
 

@@ -62,6 +62,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) 
             "wall_seconds": stats.wall_seconds + stats.setup_seconds,
             "filter_seconds": stats.wall_seconds,
             "setup_seconds": stats.setup_seconds,
+            "kernel_seconds": stats.kernel_seconds,
             "predict_seconds": stats.seconds_predict,
             "update_seconds": stats.seconds_update,
             "bookkeeping_seconds": stats.seconds_bookkeeping,
@@ -127,6 +128,9 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
         f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
         f"({t['real_time_factor']:.0f}x real time); mean NIS per observation {summary['mean_nis_per_observation']:.2f}",
     ]
+    if t.get("kernel_seconds", 0.0) >= 2.0:
+        lines.append(f"compiled the filter's kernels in {t['kernel_seconds']:.1f} s first (once after an install; "
+                     "cached for later runs; not in the wall time above)")
     if "errors" in summary:
         e, d = summary["errors"]["estimate"], summary["errors"]["dead_reckoning"]
         lines.append(
