@@ -141,12 +141,7 @@ class StereoCamera:
 
         Needs positive disparity; zero gives inf and negative gives a point behind the camera.
         """
-        z = np.asarray(z, dtype=float)
-        u_left, v = z[..., 0], 0.5 * (z[..., 1] + z[..., 3])
-        depth = self.fx * self.baseline / (u_left - z[..., 2])
-        return np.stack(
-            [(u_left - self.cx) * depth / self.fx, (v - self.cy) * depth / self.fy, depth], axis=-1
-        )
+        return self.triangulate_with_jacobian(z)[0]
 
     def triangulate_mean(self, z: np.ndarray, pixel_sigma: float) -> np.ndarray:
         """E[triangulate(z + n)], n ~ N(0, pixel_sigma^2 I4), by the unscented transform (Julier &

@@ -114,7 +114,6 @@ class _Innovation:
 POSE = slice(0, 6)
 BIAS = slice(6, 9)
 CORE = 9  # pose + gyro bias
-_BIAS_DIAG = (np.arange(6, 9), np.arange(6, 9))
 
 
 @dataclass

@@ -322,12 +322,15 @@ def _solve3(S, r):
 
 @_jit
 def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
-    """1-point RANSAC for the EKF (Civera et al. 2010; ``VisualInertialEKF._one_point_ransac``).
+    """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every candidate a hypothesis.
 
-    Hypothesis j (each candidate): the update with observation j alone changes every residual by
-    (S - R)_{:,j} S_jj^-1 r_j. An observation supports j when its updated 4-pixel error is within
-    ``threshold``; the hypothesis with the most support wins (ties: the smaller summed error).
-    Returns the winner's supporters as a mask over all observations.
+    Hypothesis j: the EKF update with observation j alone, dx_j = P H_j^T S_jj^-1 r_j. It changes
+    every residual by H dx_j = (S - R)_{:,j} S_jj^-1 r_j, so all hypotheses cost products with the
+    S already formed. An observation supports j when its updated 4-pixel error (the 3 rows and the
+    row difference, which no hypothesis changes) is within ``threshold``; the hypothesis with the
+    most support wins (ties: the smaller summed error), and its supporters are returned as a mask
+    over all observations. A moving car ahead, tracked by several features that agree with each
+    other but not with the scene, loses.
     """
     k = candidates.size
     idx = np.flatnonzero(candidates)
