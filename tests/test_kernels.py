@@ -170,3 +170,41 @@ def test_mirror_lower_copies_the_lower_triangle():
     kernels.mirror_lower_inplace(B)
     np.testing.assert_array_equal(np.tril(B), np.tril(A))
     assert np.array_equal(B, B.T)
+
+
+_NO_LAZY_COMPILE = r"""
+import json, sys, warnings
+sys.path.insert(0, "tests")
+warnings.simplefilter("ignore")
+from backend import camera, kernels
+from backend.config import FilterConfig
+from backend.pipeline import run_sequence
+from test_ekf import make_drive, to_sequence
+
+def counts():
+    out = {n: len(f.signatures) for n, f in vars(kernels).items() if hasattr(f, "signatures") and n[0] != "_"}
+    out["camera._triangulate_rows"] = len(camera._triangulate_rows.signatures)
+    return out
+
+kernels.warm_up()
+before = counts()
+for config in (FilterConfig(), FilterConfig(mode="mapping"), FilterConfig(error_model="body")):
+    run_sequence(to_sequence(make_drive(40, seed=1)), config)
+print(json.dumps([before, counts()]))
+"""
+
+
+def test_warm_up_compiles_what_the_filter_calls():
+    """Every kernel signature a run needs is compiled (or loaded) by ``warm_up`` when the filter is
+    built, so no step pays for compilation; in a fresh process, as other tests call kernels too."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _NO_LAZY_COMPILE], cwd=root, capture_output=True, text=True,
+                         check=True)
+    before, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(before) >= 9 and all(n >= 1 for n in before.values())
+    assert after == before
