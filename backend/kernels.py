@@ -402,24 +402,43 @@ def rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
 
 
 _warm = False
+slow_notice = None  # optional callable, called once when warm_up is still busy after NOTICE_AFTER s
+NOTICE_AFTER = 2.0
 
 
 def warm_up() -> float:
     """Compile (first run after an install: ~15-20 s) or load from the cache (~0.5 s) every kernel,
     with the argument types the filter passes, so that no step pays for it. Once per process;
-    returns the seconds spent (0 when already done), which a run reports apart from its timing."""
+    returns the seconds spent (0 when already done), which a run reports apart from its timing.
+    When it takes longer than ``NOTICE_AFTER`` seconds, ``slow_notice()`` (if set, e.g. by the
+    command line to say that it is compiling) is called from a timer thread."""
     global _warm
     if _warm:
         return 0.0
+    import threading
     import time
 
+    timer = threading.Timer(NOTICE_AFTER, slow_notice) if slow_notice is not None else None
+    if timer is not None:
+        timer.daemon = True
+        timer.start()
+    t0 = time.perf_counter()
+    try:
+        _call_every_kernel()
+    finally:
+        if timer is not None:
+            timer.cancel()
+    _warm = True
+    return time.perf_counter() - t0
+
+
+def _call_every_kernel() -> None:
+    """Each kernel once, on tiny arguments of the types and layouts the filter passes."""
     from backend.camera import _triangulate_rows
 
-    t0 = time.perf_counter()
     D, k = CORE + 6, 2
     P = np.eye(D)
     slots = np.arange(k, dtype=np.int64)
-    f64 = np.float64
     mirror_lower_inplace(P)
     gather_symmetric(P, np.arange(D - 3, dtype=np.int64))
     augment(P, np.zeros((3, 6)), np.ones((1, 3, 4)), 1.0)
@@ -433,6 +452,4 @@ def warm_up() -> float:
     one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
     X = np.asfortranarray(np.ones((3, 3)))  # trtrs returns Fortran-ordered solutions
     rescue_test(X, np.ones(3), S, np.array([1], dtype=np.int64), residual, off_row, 1.0, 9.0)
-    _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, f64(1.0))
-    _warm = True
-    return time.perf_counter() - t0
+    _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)

@@ -208,3 +208,16 @@ def test_warm_up_compiles_what_the_filter_calls():
     before, after = json.loads(out.stdout.strip().splitlines()[-1])
     assert len(before) >= 9 and all(n >= 1 for n in before.values())
     assert after == before
+
+
+def test_warm_up_says_so_when_it_takes_a_while(monkeypatch):
+    """The command line's notice (``slow_notice``) fires when warming up outlasts ``NOTICE_AFTER``."""
+    import threading
+
+    called = threading.Event()
+    monkeypatch.setattr(kernels, "_warm", False)
+    monkeypatch.setattr(kernels, "NOTICE_AFTER", 0.0)
+    monkeypatch.setattr(kernels, "slow_notice", called.set)
+    monkeypatch.setattr(kernels, "_call_every_kernel", lambda: called.wait(5.0))  # busy until the notice came
+    assert kernels.warm_up() > 0.0 and called.is_set()
+    assert kernels.warm_up() == 0.0  # once per process

@@ -197,6 +197,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if not getattr(args, "quiet", False):
+        from backend import kernels
+
+        kernels.slow_notice = lambda: print("vislam: compiling the filter's kernels (once after an install or an "
+                                            "update, ~20 s) ...", file=sys.stderr, flush=True)
     try:
         return args.func(args)
     except VislamError as exc:
