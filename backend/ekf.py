@@ -77,17 +77,16 @@ from backend import invariant, kernels, landmarks, se3
 from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
+from backend.kernels import CORE, ROWS, SQRT_HALF
 from backend.linalg import cholesky_lower, solve_lower, submatrix, symmetric_downdate, take_rows, whiten_rows
 
-ROWS = 3  # rows per observation in the update: [uL, (vL + vR)/sqrt 2, uR] (U1)
-_SQRT_HALF = float(np.sqrt(0.5))
 _NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
 
 
 def _three_rows(a: np.ndarray) -> np.ndarray:
     """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
     out = a[:, :3].copy()
-    out[:, 1] = (a[:, 1] + a[:, 3]) * _SQRT_HALF
+    out[:, 1] = (a[:, 1] + a[:, 3]) * SQRT_HALF
     return out
 
 
@@ -111,9 +110,8 @@ class _Innovation:
     in_front: np.ndarray  # (k,) bool
 
 
-POSE = slice(0, 6)
+POSE = slice(0, 6)  # the state layout: pose, gyro bias, then 3 per landmark from CORE (backend.kernels)
 BIAS = slice(6, 9)
-CORE = 9  # pose + gyro bias
 
 
 @dataclass
@@ -395,7 +393,7 @@ class VisualInertialEKF:
             H_xi = -dz_dimu @ se3.odot(s_imu)
         else:
             H_xi = np.zeros((slots.size, 4, 6))
-        return _three_rows(residual), (residual[:, 1] - residual[:, 3]) * _SQRT_HALF, _three_rows(H_xi), _three_rows(H_theta), in_front
+        return _three_rows(residual), (residual[:, 1] - residual[:, 3]) * SQRT_HALF, _three_rows(H_xi), _three_rows(H_theta), in_front
 
     def _observation_model_invariant(self, mu_inv: np.ndarray, slots: np.ndarray, pixels: np.ndarray):
         """(I3) of backend.invariant: dz/drho = -M, dz/dphi = 0, dz/dzeta = M at the current estimate

@@ -18,9 +18,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+# the filter's state layout and 3-row observation form (backend.ekf imports them from here)
 CORE = 9  # pose (6) + gyro bias (3): the landmark slots start here
-ROWS = 3  # rows per observation (U1)
-_SQRT_HALF = float(np.sqrt(0.5))
+ROWS = 3  # rows per observation (U1): [uL, (vL + vR)/sqrt 2, uR]
+SQRT_HALF = float(np.sqrt(0.5))
 
 _jit = njit(cache=True, nogil=True, error_model="numpy")
 
@@ -212,13 +213,13 @@ def observe_invariant(points, cam_T_world, fx, fy, cx, cy, baseline, pixels):
         v = fy * qy * iz + cy
         uR = uL - fxb * iz
         residual[i, 0] = pixels[i, 0] - uL
-        residual[i, 1] = ((pixels[i, 1] - v) + (pixels[i, 3] - v)) * _SQRT_HALF
+        residual[i, 1] = ((pixels[i, 1] - v) + (pixels[i, 3] - v)) * SQRT_HALF
         residual[i, 2] = pixels[i, 2] - uR
-        off_row[i] = (pixels[i, 1] - pixels[i, 3]) * _SQRT_HALF
+        off_row[i] = (pixels[i, 1] - pixels[i, 3]) * SQRT_HALF
         # d(pixel row)/d(q_cam) for uL, v (times sqrt 2 for the summed row), uR
         dq = np.empty((3, 3))
         dq[0, 0], dq[0, 1], dq[0, 2] = fx * iz, 0.0, -fx * qx * iz * iz
-        s2 = 2.0 * _SQRT_HALF
+        s2 = 2.0 * SQRT_HALF
         dq[1, 0], dq[1, 1], dq[1, 2] = 0.0, s2 * fy * iz, -s2 * fy * qy * iz * iz
         dq[2, 0], dq[2, 1], dq[2, 2] = fx * iz, 0.0, -fx * (qx - baseline) * iz * iz
         for a in range(3):

@@ -73,12 +73,7 @@ def symmetric_downdate(P: np.ndarray, A: np.ndarray) -> None:
         out = _syrk(-1.0, A.T, beta=1.0, c=P.T, trans=0, lower=0, overwrite_c=1)
     if not np.shares_memory(out, P):  # not updated in place (P not C-contiguous): copy back
         P[...] = out.T
-    mirror_lower(P)  # syrk wrote the upper triangle of P.T, i.e. the lower triangle of P
-
-
-def mirror_lower(P: np.ndarray) -> None:
-    """Copy the lower triangle of the square P onto its upper triangle (exact symmetry), in place."""
-    kernels.mirror_lower_inplace(P)
+    kernels.mirror_lower_inplace(P)  # syrk wrote the upper triangle of P.T, i.e. the lower triangle of P
 
 
 def cholesky_lower(S: np.ndarray) -> np.ndarray:

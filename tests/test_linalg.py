@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.linalg import (block_nis, cholesky_lower, mirror_lower, solve_lower, submatrix, symmetric_downdate,
-                            take_rows, whiten_rows)
+from backend.kernels import mirror_lower_inplace
+from backend.linalg import block_nis, cholesky_lower, solve_lower, submatrix, symmetric_downdate, take_rows, whiten_rows
 
 RNG = np.random.default_rng(7)
 
@@ -14,7 +14,7 @@ RNG = np.random.default_rng(7)
 def _spd(n: int) -> np.ndarray:
     B = RNG.normal(size=(n, n))
     P = B @ B.T + n * np.eye(n)
-    mirror_lower(P)
+    mirror_lower_inplace(P)
     return P
 
 
