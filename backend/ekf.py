@@ -34,7 +34,7 @@ adds d^2 / sigma^2 to the NIS. The update from 3 rows is identical to the one fr
 NIS, gate and RANSAC errors are computed over all 4), at (3/4)^2 of the dense work.
 Each 3-row block of H touches 6 pose and 3 landmark columns. Per step: chi-square gate (4 dof)
 on the prior innovation blocks; 1-point RANSAC (Civera et al. 2010), every observation a
-hypothesis; a rescue test of the rest against the inliers' update (U3, ``_rescue``); then, with
+hypothesis; a rescue test of the rest against the inliers' update (U3, ``kernels.joint_update_inplace``); then, with
 S = L L^T over the kept rows,
 
     A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A                               (U2)
@@ -78,7 +78,6 @@ from backend.camera import StereoCamera, dpi_dq, pi
 from backend.config import FilterConfig
 from backend.errors import FilterError
 from backend.kernels import CORE, ROWS, SQRT_HALF
-from backend.linalg import cholesky_lower, solve_lower, submatrix, symmetric_downdate, take_rows, whiten_rows
 
 _NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
 
@@ -88,11 +87,6 @@ def _three_rows(a: np.ndarray) -> np.ndarray:
     out = a[:, :3].copy()
     out[:, 1] = (a[:, 1] + a[:, 3]) * SQRT_HALF
     return out
-
-
-def _rows(select: np.ndarray) -> np.ndarray:
-    """Rows of the stacked 3-row blocks of the selected observations."""
-    return (ROWS * np.flatnonzero(select)[:, None] + np.arange(ROWS)).ravel()
 
 
 @dataclass
@@ -441,19 +435,11 @@ class VisualInertialEKF:
                     rest &= ~self._persistent_outliers(slots, rest)
                 use = inlier
             if use.any():
-                rows = _rows(use)
-                L = cholesky_lower(submatrix(inn.S, rows))
-                w = solve_lower(L, inn.residual[use].reshape(-1, 1))[:, 0]
-                if rest.any():  # (no consensus at all: nothing is rescued either)
-                    rescued, joint = self._rescue(inn, L, w, use, rest)
-                    if rescued.size:  # rows ordered [inliers; rescued], as the joint factor
-                        use[rescued] = True
-                        rows = np.concatenate([rows, (ROWS * rescued[:, None] + np.arange(ROWS)).ravel()])
-                        L = joint
-                        w = solve_lower(L, inn.residual.ravel()[rows].reshape(-1, 1))[:, 0]
-                A = whiten_rows(L, take_rows(inn.HP, rows))
-                symmetric_downdate(self.P, A)
-                self._apply_correction(A.T @ w)
+                status, dx, use = kernels.joint_update_inplace(self.P, inn.HP, inn.S, inn.residual, inn.off_row,
+                                                               use, rest, self._R_pix, self._gate)
+                if status:
+                    raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {status})")
+                self._apply_correction(dx)
         except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
             self.health.report(f"step {self.step_index}: update skipped ({exc})")
             use[:] = False
@@ -466,34 +452,6 @@ class VisualInertialEKF:
         if bad.any():
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
-
-    def _rescue(self, inn: "_Innovation", L: np.ndarray, w: np.ndarray, inlier: np.ndarray, rest: np.ndarray):
-        """The ``rest`` that pass the chi-square gate after the update with the ``inlier`` (Civera
-        et al.'s rescue), and the Cholesky factor of S over [inliers; rescued] (U3).
-
-        L is the Cholesky factor of the inliers' S_ii and w = L^-1 r_i. To first order, the update
-        with the inliers leaves the others the residual and covariance
-        r_r - S_ri S_ii^-1 r_i = r_r - X^T w  and  S_rr - X^T X  with X = L^-1 S_ir
-        (S_ri = H_r P H_i^T): no second linearization; the gate needs only the 3x3 diagonal blocks
-        of X^T X, and the row differences d pass unchanged. The joint factor of [inliers; rescued]
-        is the block Cholesky [[L, 0], [X_ok^T, chol(S_post,ok)]], so the joint update with both
-        (equal to the two in sequence) needs no second factorization of the whole S.
-        Returns (indices rescued, that factor or None when nothing is rescued).
-        """
-        ri, rr = _rows(inlier), _rows(rest)
-        X = solve_lower(L, inn.S[rr][:, ri].T)  # (3 m_i, 3 m_r)
-        ok = kernels.rescue_test(X, w, inn.S, np.flatnonzero(rest), inn.residual, inn.off_row, self._R_pix, self._gate)
-        if not ok.any():
-            return np.flatnonzero(ok), None
-        ok_rows = _rows(ok)
-        X_ok = X[:, ok_rows]
-        L_post = cholesky_lower(submatrix(inn.S, rr[ok_rows]) - X_ok.T @ X_ok)
-        n_i = ri.size
-        joint = np.zeros((n_i + ok_rows.size,) * 2, order="F")
-        joint[:n_i, :n_i] = L
-        joint[n_i:, :n_i] = X_ok.T
-        joint[n_i:, n_i:] = L_post
-        return np.flatnonzero(rest)[ok], joint
 
     def _persistent_outliers(self, slots: np.ndarray, rejected: np.ndarray) -> np.ndarray:
         """Count per track the steps in a row the RANSAC rejected it; True where that reaches
@@ -647,6 +605,11 @@ class VisualInertialEKF:
         sub = self.P[np.ix_(estimated, estimated)]
         if sub.size == 0:
             return
+        try:  # positive definite: the common case, a Cholesky factor proves it (~10x cheaper than eigh)
+            np.linalg.cholesky(sub)
+            return
+        except np.linalg.LinAlgError:
+            pass
         eigval, eigvec = np.linalg.eigh(sub)
         if eigval.min() > -1e-9 * max(eigval.max(), 1e-30):
             return

@@ -5,8 +5,8 @@ dense BLAS work of a step takes ~0.6 ms, but written with numpy the rest of the 
 array calls of 5-20 us each plus several passes over the D x D covariance (~3 ms a step on the
 real drives). Each kernel below replaces one group of those calls with a single loop nest over
 the same numbers; the equations are the ones of ``backend.ekf`` and ``backend.invariant``, cited
-by their labels (U1-U3, I2, I3). The BLAS/LAPACK calls themselves (potrf, trsm, syrk, trtrs)
-stay in ``backend.linalg``.
+by their labels (U1-U3, I2, I3). The BLAS/LAPACK routines they call (potrf, trsm, syrk) are
+declared in ``backend.linalg``, so the whole joint update is one compiled call.
 
 Compiled on first use and cached beside this file (``cache=True``): the first run after an
 install compiles for ~20 s; later processes load the cache in ~0.5 s (numba's start-up).
@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+from backend.linalg import cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 
 # the filter's state layout and 3-row observation form (backend.ekf imports them from here)
 CORE = 9  # pose (6) + gyro bias (3): the landmark slots start here
@@ -376,7 +378,7 @@ def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
 
 
 @_jit
-def rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
+def _rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
     """(U3) the chi-square test of the ``rest_idx`` observations after the update with the inliers:
     residual r_r - X^T w and covariance S_rr - X^T X (diagonal 3x3 blocks only), with X = L^-1 S_ir
     (3 m_i, 3 m_r) and w = L^-1 r_i. Returns a mask over ``rest_idx``."""
@@ -400,6 +402,120 @@ def rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
                 Sb[a, b] = S[o + a, o + b] - s
         ok[jj] = _nis3(Sb, r[0], r[1], r[2]) + off_row[rest_idx[jj]] ** 2 / pixel_var <= gate
     return ok
+
+
+@_jit
+def _gather_rows(M, rows):
+    out = np.empty((rows.size, M.shape[1]))
+    for a in range(rows.size):
+        out[a] = M[rows[a]]
+    return out
+
+
+@_jit
+def _block_rows(obs):
+    """Rows of the 3-row blocks (U1) of observations ``obs``."""
+    rows = np.empty(3 * obs.size, dtype=np.int64)
+    for i in range(obs.size):
+        for a in range(3):
+            rows[3 * i + a] = 3 * obs[i] + a
+    return rows
+
+
+@_jit
+def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, gate):
+    """The joint update (U2) with the ``inlier`` observations and those of ``rest`` that pass the
+    rescue test after it (U3), given the prior H P (3k,D), S = H P H^T + R (3k,3k) and residuals
+    (k,3) of all k observations. P is changed in place, exactly symmetric.
+
+    With L L^T = S_ii over the inliers' rows and w = L^-1 r_i, the rest are tested (``_rescue_test``)
+    on r_r - X^T w and S_rr - X^T X, X = L^-1 S_ir; the factor of S over [inliers; rescued] is the
+    block [[L, 0], [X_ok^T, L_o]] with L_o L_o^T = S_oo - X_ok^T X_ok, so S is factored once. Then
+
+        A = L^-1 H P,   w = L^-1 r,   P <- P - A^T A  (syrk, lower triangle, mirrored),   dx = A^T w.
+
+    Returns (status, dx (D,), used mask (k,)): status is 0, or LAPACK potrf's info > 0 when an
+    innovation covariance is not positive definite, in which case P is left unchanged.
+    """
+    k = inlier.size
+    D = P.shape[0]
+    dx = np.zeros(D)
+    used = np.zeros(k, dtype=np.bool_)
+    obs_i = np.flatnonzero(inlier)
+    rows_i = _block_rows(obs_i)
+    mi = rows_i.size
+    U = np.empty((mi, mi))  # upper triangle: L^T
+    for a in range(mi):
+        for b in range(a, mi):
+            U[a, b] = S[rows_i[a], rows_i[b]]
+    info = cholesky_upper_inplace(U)
+    if info != 0:
+        return info, dx, used
+    w = np.empty((mi, 1))
+    for a in range(mi):
+        w[a, 0] = residual[rows_i[a] // 3, rows_i[a] % 3]
+    solve_lower_inplace(U, w)
+    obs_r = np.flatnonzero(rest)
+    obs_ok = obs_r[:0]
+    X = np.empty((mi, 0))
+    ok = np.zeros(0, dtype=np.bool_)
+    if obs_r.size:
+        rows_r = _block_rows(obs_r)
+        X = np.empty((mi, rows_r.size))
+        for a in range(mi):
+            for b in range(rows_r.size):
+                X[a, b] = S[rows_i[a], rows_r[b]]
+        solve_lower_inplace(U, X)
+        ok = _rescue_test(X, w[:, 0], S, obs_r, residual, off_row, pixel_var, gate)
+        obs_ok = obs_r[ok]
+    if obs_ok.size:
+        rows_o = _block_rows(obs_ok)
+        cols = _block_rows(np.flatnonzero(ok))
+        mo = rows_o.size
+        m = mi + mo
+        J = np.zeros((m, m))  # upper triangle: [[L, 0], [X_ok^T, L_o]]^T
+        for a in range(mi):
+            for b in range(a, mi):
+                J[a, b] = U[a, b]
+            for b in range(mo):
+                J[a, mi + b] = X[a, cols[b]]
+        Uo = np.empty((mo, mo))
+        for a in range(mo):
+            for b in range(a, mo):
+                s = S[rows_o[a], rows_o[b]]
+                for t in range(mi):
+                    s -= X[t, cols[a]] * X[t, cols[b]]
+                Uo[a, b] = s
+        info = cholesky_upper_inplace(Uo)
+        if info != 0:
+            return info, dx, used
+        wo = np.empty((mo, 1))
+        for a in range(mo):
+            s = residual[rows_o[a] // 3, rows_o[a] % 3]
+            for t in range(mi):
+                s -= X[t, cols[a]] * w[t, 0]
+            wo[a, 0] = s
+        solve_lower_inplace(Uo, wo)
+        for a in range(mo):
+            for b in range(a, mo):
+                J[mi + a, mi + b] = Uo[a, b]
+        rows = np.concatenate((rows_i, rows_o))
+        w = np.concatenate((w, wo))
+        U = J
+    else:
+        rows = rows_i
+    A = _gather_rows(HP, rows)
+    solve_lower_inplace(U, A)
+    downdate_lower(P, A)
+    mirror_lower_inplace(P)
+    for a in range(rows.size):
+        wa = w[a, 0]
+        row = A[a]
+        for c in range(D):
+            dx[c] += row[c] * wa
+    used[obs_i] = True
+    used[obs_ok] = True
+    return 0, dx, used
 
 
 _warm = False
@@ -451,6 +567,6 @@ def _call_every_kernel() -> None:
                                                               pixels)
     HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row)
     one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
-    X = np.asfortranarray(np.ones((3, 3)))  # trtrs returns Fortran-ordered solutions
-    rescue_test(X, np.ones(3), S, np.array([1], dtype=np.int64), residual, off_row, 1.0, 9.0)
+    inlier = np.array([True, False])
+    joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
     _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)

@@ -147,7 +147,7 @@ def test_rescue_test_is_the_gate_after_the_inlier_update():
     w = np.linalg.solve(L, residual[inlier].ravel())
     X = np.linalg.solve(L, S[np.ix_(rr, ri)].T)
     gate = 9.0
-    ok = kernels.rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
+    ok = kernels._rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
 
     Hi = H[ri]
     K = P @ Hi.T @ np.linalg.inv(S[np.ix_(ri, ri)])
@@ -161,6 +161,47 @@ def test_rescue_test_is_the_gate_after_the_inlier_update():
         expected.append(rj @ np.linalg.solve(Sj, rj) + off_row[j] ** 2 / SIGMA2 <= gate)
     np.testing.assert_array_equal(ok, expected)
     assert ok.tolist() == [True, True, False]
+
+
+def test_joint_update_with_rescue_equals_dense_update_over_kept_rows():
+    """(U2, U3): the compiled update with the inliers and the rescued rest equals the textbook
+    update K = P H^T S^-1, P+ = P - K S K^T, dx = K r over exactly those observations."""
+    rng = np.random.default_rng(8)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=12, k=8)
+    D = P.shape[0]
+    H = _dense_H(H_x, H_m, slots, D)
+    residual = rng.normal(size=(slots.size, 3)) * 3.0
+    residual[7] *= 20.0  # fails the rescue gate
+    off_row = rng.normal(size=slots.size)
+    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    inlier = np.array([1, 1, 0, 1, 1, 0, 1, 0], dtype=bool)
+    rest = ~inlier
+    rest[2] = False  # not a candidate (gated before): neither used nor tested
+    out = P.copy()
+    status, dx, used = kernels.joint_update_inplace(out, HP, S, residual, off_row, inlier, rest, SIGMA2, 9.0)
+    assert status == 0
+    assert used.tolist() == [True, True, False, True, True, True, True, False]
+    rows = (3 * np.flatnonzero(used)[:, None] + np.arange(3)).ravel()
+    Hu = H[rows]
+    Su = Hu @ P @ Hu.T + SIGMA2 * np.eye(rows.size)
+    K = np.linalg.solve(Su, Hu @ P).T
+    expected = P - K @ Su @ K.T
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-10 * np.abs(P).max())
+    assert np.array_equal(out, out.T)
+    np.testing.assert_allclose(dx, K @ residual[used].ravel(), rtol=1e-9, atol=1e-12)
+
+
+def test_joint_update_refuses_an_indefinite_innovation_covariance():
+    rng = np.random.default_rng(9)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=6, k=4)
+    residual, off_row = rng.normal(size=(4, 3)), rng.normal(size=4)
+    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    S[3, 3] = -1.0
+    out = P.copy()
+    status, dx, used = kernels.joint_update_inplace(out, HP, S, residual, off_row, np.ones(4, dtype=bool),
+                                                    np.zeros(4, dtype=bool), SIGMA2, 9.0)
+    assert status > 0 and not used.any() and not dx.any()
+    assert np.array_equal(out, P)  # the prior is kept
 
 
 def test_mirror_lower_copies_the_lower_triangle():
@@ -182,7 +223,8 @@ from backend.pipeline import run_sequence
 from test_ekf import make_drive, to_sequence
 
 def counts():
-    out = {n: len(f.signatures) for n, f in vars(kernels).items() if hasattr(f, "signatures") and n[0] != "_"}
+    out = {n: len(f.signatures) for n, f in vars(kernels).items()
+           if hasattr(f, "signatures") and n[0] != "_" and f.py_func.__module__ == kernels.__name__}
     out["camera._triangulate_rows"] = len(camera._triangulate_rows.signatures)
     return out
 
