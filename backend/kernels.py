@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from backend.linalg import cholesky_upper_inplace, downdate_lower, solve_lower_inplace
+from backend.linalg import add_product_lower, cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 
 # the filter's state layout and 3-row observation form (backend.ekf imports them from here)
 CORE = 9  # pose (6) + gyro bias (3): the landmark slots start here
@@ -174,12 +174,8 @@ def predict_invariant_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_v
         for c in range(6):
             G[i, c] *= q[c]
             Z[i, w - 6 + c] = G[i, c]
-    T = Z @ X.T
-    for i in range(D):
-        for j in range(i + 1):
-            v = P[i, j] + T[i, j]
-            P[i, j] = v
-            P[j, i] = v
+    add_product_lower(P, Z, X)
+    mirror_lower_inplace(P)
     if bias:
         for c in range(3):
             P[6 + c, 6 + c] += bias_walk_var

@@ -1,4 +1,4 @@
-"""BLAS/LAPACK for the compiled kernels: potrf, trsm, syrk called from numba code, no Python between.
+"""BLAS/LAPACK for the compiled kernels: potrf, trsm, syrk, gemm called from numba code, no Python between.
 
 At the filter's sizes (D ~ 200 states, ~140 measurement rows) the dense algebra of a step takes
 ~0.4 ms, and each call through scipy's Python wrappers added 5-20 us of argument checking plus the
@@ -21,7 +21,7 @@ from llvmlite import binding as _llvm
 from numba import njit, types
 from numba.extending import get_cython_function_address
 
-_BLAS = ("dsyrk", "dtrsm")
+_BLAS = ("dsyrk", "dtrsm", "dgemm")
 _LAPACK = ("dpotrf",)
 
 
@@ -37,6 +37,7 @@ _p = types.voidptr
 # Fortran signatures, every argument by pointer (scipy's cython wrappers take no hidden string lengths)
 _dsyrk = types.ExternalFunction("vislam_dsyrk", types.void(_p, _p, _p, _p, _p, _p, _p, _p, _p, _p))
 _dtrsm = types.ExternalFunction("vislam_dtrsm", types.void(_p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p))
+_dgemm = types.ExternalFunction("vislam_dgemm", types.void(_p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p))
 _dpotrf = types.ExternalFunction("vislam_dpotrf", types.void(_p, _p, _p, _p, _p))
 
 _jit = njit(cache=True, nogil=True, error_model="numpy")
@@ -87,6 +88,23 @@ def downdate_lower(P, A):
     alpha_beta = np.array([-1.0, 1.0])
     _dsyrk(ch[0:].ctypes, ch[1:].ctypes, ints[0:].ctypes, ints[1:].ctypes, alpha_beta[0:].ctypes, A.ctypes,
            ints[2:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
+
+
+@_jit
+def add_product_lower(P, Z, X):
+    """P <- P + Z X^T for C-ordered (D, D) P and (D, w) Z, X whose product is symmetric (the
+    prediction's F P F^T + G Q G^T - P): BLAS gemm straight into P, no temporary; only the lower
+    triangle is to be trusted for exact symmetry (mirror it). In Fortran terms P^T += X Z^T."""
+    D, w = Z.shape
+    if D == 0 or w == 0:
+        return
+    # Fortran sees X and Z as X^T, Z^T (w, D; leading dimension w): op(A) = X is transa 'T', op(B) = Z^T 'N'
+    ch = np.array([_T, _N], dtype=np.uint8)
+    ints = np.array([D, D, w, D], dtype=np.int32)  # m, n, k of the product; ldc
+    ld = np.array([w, w], dtype=np.int32)
+    alpha_beta = np.array([1.0, 1.0])
+    _dgemm(ch[0:].ctypes, ch[1:].ctypes, ints[0:].ctypes, ints[1:].ctypes, ints[2:].ctypes, alpha_beta[0:].ctypes,
+           X.ctypes, ld[0:].ctypes, Z.ctypes, ld[1:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
 
 
 def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:

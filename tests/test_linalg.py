@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from backend.linalg import block_nis, cholesky_upper_inplace, downdate_lower, solve_lower_inplace
+from backend.linalg import add_product_lower, block_nis, cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 
 RNG = np.random.default_rng(7)
 
@@ -47,3 +47,11 @@ def test_block_nis():
     np.testing.assert_allclose(block_nis(blocks, r), expected, rtol=1e-12)
     blocks[2] = 0.0
     assert np.isinf(block_nis(blocks, r)[2]) and np.isfinite(block_nis(blocks, r)[[0, 1, 3]]).all()
+
+
+def test_add_product_lower():
+    P = _spd(20)
+    Z, X = RNG.normal(size=(20, 6)), RNG.normal(size=(20, 6))
+    expected = P + Z @ X.T
+    add_product_lower(P, Z, X)
+    np.testing.assert_allclose(P, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
