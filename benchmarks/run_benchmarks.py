@@ -10,7 +10,9 @@ bookkeeping (ended tracks to the map, new landmarks into the state), and the lat
 (median / 99th percentile / max). The filter runs REPEATS (3) times per file and the fastest run
 is reported: other work on the machine only slows a run down. On this shared virtual machine whole
 runs still vary by 20-40 %, so the table also gives the sum over steps of each step's fastest run
-("per-step min"), which varies far less between invocations. "import + kernels" is the start-up a
+("per-step min"), which varies far less between invocations. Peak RSS is split at the end of the run into
+anonymous memory (the process's own data) and mapped files (shared libraries).
+"import + kernels" is the start-up a
 process pays once, apart from the real-time factor: imports (numba's included) and loading the
 compiled kernels (~0.5 s; compiling them, ~15-20 s, happens once after an install).
 """
@@ -33,6 +35,12 @@ CHILD = r"""
 import json, resource, sys, tempfile, time, warnings
 from pathlib import Path
 import numpy as np
+def status_mb():  # resident memory at the end: anonymous (own data) and mapped files (shared libraries)
+    try:
+        fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines() if ":" in line)
+        return {key: int(fields[name].split()[0]) / 1024.0 for key, name in (("anon_mb", "RssAnon"), ("file_mb", "RssFile"))}
+    except (OSError, KeyError, ValueError):
+        return {"anon_mb": float("nan"), "file_mb": float("nan")}
 t0 = time.perf_counter()
 from backend.config import FilterConfig
 from backend.pipeline import run_sequence
@@ -61,6 +69,7 @@ print(json.dumps({
     "step_min_s": step_min_s, "rtf_step_min": s.sequence_seconds / (t_load + s.setup_seconds + step_min_s),
     "step_ms": [s.step_ms_median, s.step_ms_p99, s.step_ms_max],
     "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    **status_mb(),
 }))
 """
 
@@ -101,8 +110,8 @@ def main() -> int:
     lines = [
         "| file | steps | obs used / valid | active mean / max | import + kernels s | load s | conventions s | filter s | "
         "predict ms/step | update ms/step | bookkeeping ms/step | step ms median / p99 / max | outputs s "
-        "| real-time factor | filter s, per-step min | real-time factor, per-step min | peak RSS MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| real-time factor | filter s, per-step min | real-time factor, per-step min | peak RSS MB | at the end: anonymous / mapped files MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in rows:
         lines.append(
@@ -111,7 +120,7 @@ def main() -> int:
             f"| {1000 * r['predict_s'] / r['steps']:.2f} | {1000 * r['update_s'] / r['steps']:.2f} "
             f"| {1000 * r['bookkeeping_s'] / r['steps']:.2f} | {' / '.join(f'{x:.1f}' for x in r['step_ms'])} "
             f"| {r['write_s']:.2f} | {r['rtf']:.0f}x | {r['step_min_s']:.2f} | {r['rtf_step_min']:.0f}x "
-            f"| {r['peak_rss_mb']:.0f} |"
+            f"| {r['peak_rss_mb']:.0f} | {r['anon_mb']:.0f} / {r['file_mb']:.0f} |"
         )
     table = "\n".join(lines)
     print(table)

@@ -293,3 +293,33 @@ def test_plots(tmp_path):
     plot_error_over_time(errors_path, np.arange(100) * 0.1, np.abs(np.sin(np.arange(100))), "ATE")
     assert errors_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert listing(tmp_path) == ["ate.png", "topdown.png"]
+
+
+_IMPORT_OPEN3D = r"""
+import json, sys
+from pathlib import Path
+import numpy as np
+from tools.outputs import import_open3d, write_map_ply
+o3d = import_open3d()
+light = [name for name in ("dash", "plotly", "plotly.graph_objects") if name in sys.modules]
+write_map_ply(Path(sys.argv[1]), np.eye(3), np.stack([np.eye(3)] * 3))
+points = np.asarray(o3d.io.read_point_cloud(sys.argv[1]).points).tolist()
+import dash  # the real package is still importable afterwards
+print(json.dumps({"light": light, "points": points, "real_dash": isinstance(dash.Dash, type)}))
+"""
+
+
+def test_open3d_is_imported_without_its_web_viewer(tmp_path):
+    """In a fresh process (other tests import open3d the usual way): no dash/plotly while writing
+    PLY files, and the real dash importable afterwards."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _IMPORT_OPEN3D, str(tmp_path / "m.ply")], cwd=root, check=True,
+                         capture_output=True, text=True)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["light"] == []
+    assert result["points"] == np.eye(3).tolist()
+    assert result["real_dash"]

@@ -4,7 +4,8 @@ Every writer goes through :func:`atomic_write`: the data is written to a tempora
 the target's directory and moved over the target only once it is complete, so an
 interrupted or failed run never leaves a half-written file behind.
 
-open3d is imported lazily (inside the PLY writers) because importing it takes over a second.
+open3d is imported lazily (inside the PLY writers, :func:`import_open3d`) because importing it
+takes over a second, and without its web viewer's dependencies, which vislam never uses.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
+import types
 from contextlib import contextmanager
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
@@ -34,6 +37,54 @@ __all__ = [
     "write_trajectory_ply",
     "write_json",
 ]
+
+# open3d's plotly/dash viewer (open3d.visualization.draw_plotly) imports these when open3d is imported
+_WEB_VIEWER_MODULES = ("dash", "plotly", "plotly.graph_objects")
+
+
+class _Unavailable:
+    """Stands in for an object of a module vislam did not import; using it says so."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+
+    def __getattr__(self, attr: str) -> "_Unavailable":
+        if attr.startswith("__"):
+            raise AttributeError(attr)
+        return _Unavailable(f"{self._name}.{attr}")
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        raise ImportError(f"{self._name}: not imported (vislam imports open3d without its plotly/dash web viewer)")
+
+
+class _Placeholder(types.ModuleType):
+    def __getattr__(self, attr: str) -> _Unavailable:
+        if attr.startswith("__"):
+            raise AttributeError(attr)
+        return _Unavailable(f"{self.__name__}.{attr}")
+
+
+def import_open3d() -> types.ModuleType:
+    """``import open3d``, without importing dash and plotly.
+
+    open3d (0.19, 0.20) imports its plotly/dash web viewer whenever it is imported; with dash 4
+    that alone measured 0.37 s and ~45 MB resident here, for a viewer vislam never opens. While
+    open3d is first imported, placeholders stand in for those modules (unless they are imported
+    already), and they are removed from ``sys.modules`` right after, so a later ``import dash``
+    gets the real package; only ``open3d.visualization.draw_plotly`` cannot be used in this process.
+    """
+    if "open3d" in sys.modules:
+        return sys.modules["open3d"]
+    placeholders = {name: _Placeholder(name) for name in _WEB_VIEWER_MODULES if name not in sys.modules}
+    sys.modules.update(placeholders)
+    try:
+        import open3d
+    finally:
+        for name, module in placeholders.items():
+            if sys.modules.get(name) is module:
+                del sys.modules[name]
+    return open3d
+
 
 MAP_COLORMAP = "viridis"
 TRAJECTORY_COLORMAP = "plasma"
@@ -291,7 +342,7 @@ def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> 
         if len(pos) == 0:
             _write_ply_by_hand(tmp, pos, rgb, None)
             return
-        import open3d as o3d
+        o3d = import_open3d()
 
         cloud = o3d.geometry.PointCloud()
         cloud.points = o3d.utility.Vector3dVector(pos)
@@ -337,7 +388,7 @@ def write_trajectory_ply(
         if n < 2:  # open3d writes no line set without lines: a plain 0/1-vertex PLY
             _write_ply_by_hand(tmp, pts, point_rgb, None)
             return
-        import open3d as o3d
+        o3d = import_open3d()
 
         lines = o3d.geometry.LineSet()
         lines.points = o3d.utility.Vector3dVector(pts)
