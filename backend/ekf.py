@@ -197,7 +197,8 @@ class VisualInertialEKF:
         world_T_imu: np.ndarray | None = None,
         expected_landmarks: int | None = None,
     ) -> None:
-        self.kernel_seconds = kernels.warm_up()  # compile or load the kernels now, not in the first step
+        kernels.warm_up()  # compile or load the kernels now (once per process), not in the first step
+        self.kernel_seconds = kernels.warm_up_seconds()
         self.camera = camera
         self.config = config.validate()
         self.imu_T_cam = np.array(imu_T_cam, dtype=float)

@@ -515,6 +515,7 @@ def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, g
 
 
 _warm = False
+_warm_seconds = 0.0  # what warm_up took in this process
 slow_notice = None  # optional callable, called once when warm_up is still busy after NOTICE_AFTER s
 NOTICE_AFTER = 2.0
 
@@ -525,7 +526,7 @@ def warm_up() -> float:
     returns the seconds spent (0 when already done), which a run reports apart from its timing.
     When it takes longer than ``NOTICE_AFTER`` seconds, ``slow_notice()`` (if set, e.g. by the
     command line to say that it is compiling) is called from a timer thread."""
-    global _warm
+    global _warm, _warm_seconds
     if _warm:
         return 0.0
     import threading
@@ -542,7 +543,14 @@ def warm_up() -> float:
         if timer is not None:
             timer.cancel()
     _warm = True
-    return time.perf_counter() - t0
+    _warm_seconds = time.perf_counter() - t0
+    return _warm_seconds
+
+
+def warm_up_seconds() -> float:
+    """Seconds this process spent in :func:`warm_up` (0 before it ran): the start-up cost a run
+    reports apart from its timing, whoever called ``warm_up`` first."""
+    return _warm_seconds
 
 
 def _call_every_kernel() -> None:

@@ -71,6 +71,7 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
     """
     import time
 
+    from backend import kernels
     from backend.camera import StereoCamera
     from backend.conventions import decide_conventions
     from backend.pipeline import OnlineRun, imu_noise
@@ -86,6 +87,7 @@ def run_images(args: argparse.Namespace, tracker_set: list[str], config, quiet: 
     tracker_config_ = tracker_config(args, tracker_set)
     stereo = open_stereo_directory(images)  # refuse a bad layout before any work
     imu = check_imu(args.imu, stereo, getattr(args, "imu_T_cam", None))
+    kernels.warm_up()  # before the convention test calls one; reported apart, as imports
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr))
     say("tracker configuration:\n" + tracker_config_.describe())
     n = len(stereo)
