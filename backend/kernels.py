@@ -5,8 +5,8 @@ dense BLAS work of a step takes ~0.6 ms, but written with numpy the rest of the 
 array calls of 5-20 us each plus several passes over the D x D covariance (~3 ms a step on the
 real drives). Each kernel below replaces one group of those calls with a single loop nest over
 the same numbers; the equations are the ones of ``backend.ekf`` and ``backend.invariant``, cited
-by their labels (U1-U3, I2, I3). The BLAS/LAPACK routines they call (potrf, trsm, syrk) are
-declared in ``backend.linalg``, so the whole joint update is one compiled call.
+by their labels (U1-U3, I2, I3). The BLAS/LAPACK routines they call (potrf, trsm, syrk, gemm)
+are declared in ``backend.linalg``, so the whole joint update is one compiled call.
 
 Compiled on first use and cached beside this file (``cache=True``): the first run after an
 install compiles for ~20 s; later processes load the cache in ~0.5 s (numba's start-up).
@@ -402,6 +402,7 @@ def _rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
 
 @_jit
 def _gather_rows(M, rows):
+    """M[rows] as a new C-ordered array."""
     out = np.empty((rows.size, M.shape[1]))
     for a in range(rows.size):
         out[a] = M[rows[a]]
