@@ -227,8 +227,8 @@ class VisualInertialEKF:
         self._ids = np.zeros(0, dtype=np.int64)
         self._kind = config.landmark_parametrization
         self._theta = np.zeros((0, 3))  # landmark parameters (backend.landmarks)
-        self._theta_first = np.zeros((0, 3))  # their values at initialization (first-estimate Jacobians)
-        self._anchors = np.zeros((0, 4, 4))
+        self._theta_first = np.zeros((0, 3))  # their values at initialization (FEJ, body error model only)
+        self._anchors = np.zeros((0, 4, 4))  # (inverse depth only: xyz anchors are the identity)
         self._gated_run = np.zeros(0, dtype=np.int64)
         self._obs_count = np.zeros(0, dtype=np.int64)  # observations since the landmark was anchored
         self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
@@ -238,6 +238,12 @@ class VisualInertialEKF:
         self._far_limit = config.reanchor_far_observations or _NEVER
         self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
         self._outlier_run: dict[int, int] = {}  # track id -> steps in a row RANSAC rejected it (nonzero only)
+        # the per-landmark arrays this configuration reads, kept in state order
+        self._per_landmark = ("_ids", "_theta", "_gated_run", "_obs_count", "_obs_limit")
+        if not self._invariant and config.first_estimate_jacobians:
+            self._per_landmark += ("_theta_first",)
+        if self._kind != "xyz":
+            self._per_landmark += ("_anchors",)
         self._ids_sorted = np.zeros(0, dtype=np.int64)  # for the id -> slot look-up (_slots_of)
         self._ids_order = np.zeros(0, dtype=np.int64)
         # marginalized landmarks (the map), appended in batches
@@ -283,15 +289,19 @@ class VisualInertialEKF:
         self.step_index += 1
         u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.gyro_bias])
         twist = dt * u
+        if self._invariant and self._estimate_pose:  # the whole prediction in one compiled call
+            noise = self.imu_noise
+            q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
+            self.mu = kernels.predict_invariant_step(
+                self.mu, self.P, self._theta, twist, q, dt, self.config.estimate_gyro_bias,
+                self.config.gyro_bias_random_walk**2 * dt, self._landmark_walk * dt)
+            return
         step = se3.exp_se3(twist)
         self.mu = self.mu @ step
         if self._landmark_walk and self._ids.size:
             diag = np.arange(CORE, self.P.shape[0])
             self.P[diag, diag] += self._landmark_walk * dt
         if not self._estimate_pose:
-            return
-        if self._invariant:
-            self._predict_invariant(dt, twist)
             return
         Phi = np.eye(CORE)
         Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
@@ -307,15 +317,6 @@ class VisualInertialEKF:
         P[np.arange(6), np.arange(6)] += diag
         if self.config.estimate_gyro_bias:
             P[np.arange(6, 9), np.arange(6, 9)] += self.config.gyro_bias_random_walk**2 * dt
-
-    def _predict_invariant(self, dt: float, twist: np.ndarray) -> None:
-        """P <- F P F^T + G Q G^T with F = I + g e_b^T, g = -tau G_omega (backend.invariant, I2):
-        both terms are low rank, P += X M X^T with X (D x 12) (``kernels.predict_invariant_inplace``)."""
-        G_pose, R_phi = invariant.noise_jacobian_pose(self.mu, twist)
-        noise = self.imu_noise
-        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
-        kernels.predict_invariant_inplace(self.P, G_pose, R_phi, self._theta, q, dt, self.config.estimate_gyro_bias,
-                                          self.config.gyro_bias_random_walk**2 * dt)
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -473,8 +474,8 @@ class VisualInertialEKF:
         return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:
-        if self._invariant:
-            self.mu, self._theta = invariant.retract(self.mu, self._theta, dx[POSE], dx[CORE:])
+        if self._invariant:  # (I5)
+            self.mu = kernels.retract_invariant_inplace(self.mu, self._theta, dx)
             self.gyro_bias = self.gyro_bias + dx[BIAS]
             return
         if self._estimate_pose:
@@ -496,22 +497,23 @@ class VisualInertialEKF:
             return
         ids, pixels = ids[ok], pixels[ok]
         n = ids.size
-        theta, anchors, J_z, J_xi = landmarks.initialize(
-            self._kind, self.camera, pixels, self.mu, self.imu_T_cam,
-            cfg.pixel_sigma if cfg.unbiased_triangulation else None, pose_jacobian=not self._invariant,
-        )
-        if self._invariant:
-            J_xi = invariant.initialization_pose_jacobian(n)  # (I4)
-        J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
-        self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
-        self._ids = np.concatenate([self._ids, ids])
-        self._theta = np.concatenate([self._theta, theta])
-        self._theta_first = np.concatenate([self._theta_first, theta])
-        self._anchors = np.concatenate([self._anchors, anchors])
-        self._gated_run = np.concatenate([self._gated_run, np.zeros(n, dtype=np.int64)])
+        sigma = cfg.pixel_sigma if cfg.unbiased_triangulation else 0.0
+        anchors = None
+        if self._invariant:  # xyz: triangulation, (I4) and the augmentation in one compiled call
+            cam = self.camera
+            self.P, theta = kernels.initialize_invariant(self.P, pixels, self.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx,
+                                                         cam.cy, cam.baseline, sigma, self._R_pix, self._estimate_pose)
+        else:
+            theta, anchors, J_z, J_xi = landmarks.initialize(self._kind, self.camera, pixels, self.mu, self.imu_T_cam,
+                                                             sigma or None)
+            J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
+            self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
         limits = self._limits(pixels[:, 0] - pixels[:, 2])
-        self._obs_count = np.concatenate([self._obs_count, self._first_counts(ids, limits)])
-        self._obs_limit = np.concatenate([self._obs_limit, limits])
+        new = {"_ids": ids, "_theta": theta, "_gated_run": np.zeros(n, dtype=np.int64),
+               "_obs_count": self._first_counts(ids, limits), "_obs_limit": limits,
+               "_theta_first": theta, "_anchors": anchors}
+        for name in self._per_landmark:
+            setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
         self._reindex()
         stats.initialized = n
 
@@ -533,6 +535,11 @@ class VisualInertialEKF:
 
     def _to_map(self, slots: np.ndarray) -> None:
         """Append the world-frame estimates of ``slots`` to the map (points at infinity are left out)."""
+        if self._kind == "xyz":  # the parameters are the world positions
+            self._map_ids.append(self._ids[slots])
+            self._map_pos.append(self._theta[slots])
+            self._map_cov.append(self._landmark_covariances(slots))
+            return
         pos, cov, finite = landmarks.to_world(
             self._kind, self._theta[slots], self._anchors[slots], self._landmark_covariances(slots)
         )
@@ -545,15 +552,9 @@ class VisualInertialEKF:
         if to_map:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
-        keep = np.concatenate([np.arange(CORE), (CORE + 3 * keep_lm[:, None] + np.arange(3)).ravel()])
-        self.P = kernels.gather_symmetric(self.P, keep)  # C-ordered, one pass
-        self._ids = self._ids[keep_lm]
-        self._theta = self._theta[keep_lm]
-        self._theta_first = self._theta_first[keep_lm]
-        self._anchors = self._anchors[keep_lm]
-        self._gated_run = self._gated_run[keep_lm]
-        self._obs_count = self._obs_count[keep_lm]
-        self._obs_limit = self._obs_limit[keep_lm]
+        self.P = kernels.gather_landmarks(self.P, keep_lm)  # C-ordered, one pass
+        for name in self._per_landmark:
+            setattr(self, name, getattr(self, name)[keep_lm])
         self._reindex()
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:
@@ -581,7 +582,8 @@ class VisualInertialEKF:
         ids, pos, cov = list(self._map_ids), list(self._map_pos), list(self._map_cov)
         if self._ids.size:
             slots = np.arange(self._ids.size)
-            p, c, finite = landmarks.to_world(self._kind, self._theta, self._anchors, self._landmark_covariances(slots))
+            anchors = self._anchors if self._kind != "xyz" else None
+            p, c, finite = landmarks.to_world(self._kind, self._theta, anchors, self._landmark_covariances(slots))
             ids.append(self._ids[finite])
             pos.append(p[finite])
             cov.append(c[finite])

@@ -27,6 +27,7 @@ does not depend on the estimate:
   No rotation column: a rotation of the whole world is unobservable for every estimate, which is
   why this filter needs no first-estimate Jacobians.
 - Landmark initialization  m = T g(z):  zeta = rho + R_hat imu_R_cam dg/dz dz  (no phi column).   (I4)
+  (``backend.kernels.initialize_invariant``)
 - Correction  X_hat <- exp(dx) X_hat, i.e. (I1) with (rho, phi, zeta) = dx.                       (I5)
 - World covariance of a landmark:  dm = zeta - m_hat^ phi (``backend.kernels.landmark_covariances``). (I6)
 - Body-frame (right) pose error  xi_body = Ad(T_hat^-1) (rho, phi).                              (I7)
@@ -65,13 +66,6 @@ def noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.n
     points = np.asarray(points, dtype=float)
     lm = (_hat_batch(points).reshape(-1, 3) @ R_phi).reshape(-1, 3, 6)  # one product, not K small ones
     return pose, lm
-
-
-def initialization_pose_jacobian(n: int) -> np.ndarray:
-    """(I4): d zeta / d (rho, phi) of n new landmarks, (n,3,6) = [I 0]."""
-    J = np.zeros((n, 3, 6))
-    J[:, :, :3] = np.eye(3)
-    return J
 
 
 def retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_points: np.ndarray):

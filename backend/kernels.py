@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from backend import se3
+from backend.camera import _triangulate_rows
 from backend.linalg import add_product_lower, cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 
 # the filter's state layout and 3-row observation form (backend.ekf imports them from here)
@@ -92,6 +94,42 @@ def augment(P, J_xi, J_z, pixel_var):
 
 
 @_jit
+def gather_landmarks(P, keep):
+    """P over the pose, the bias and the landmark slots ``keep`` (marginalization of the others)."""
+    idx = np.empty(CORE + 3 * keep.size, dtype=np.int64)
+    for i in range(CORE):
+        idx[i] = i
+    for i in range(keep.size):
+        for a in range(3):
+            idx[CORE + 3 * i + a] = CORE + 3 * keep[i] + a
+    return gather_symmetric(P, idx)
+
+
+@_jit
+def initialize_invariant(P, pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigma, pixel_var, pose):
+    """New world-xyz landmarks of the invariant filter from stereo pixels (n,4), in one call:
+    m = world_T_imu imu_T_cam triangulate(z) (the unscented mean for sigma > 0, backend.camera),
+    J_z = world_R_cam d triangulate/dz and (I4) J_xi = [I 0] (zero when ``pose`` is False: poses
+    held fixed), then :func:`augment`. Returns (the augmented P, m (n,3))."""
+    n = pixels.shape[0]
+    p_cam, dp_dz = _triangulate_rows(pixels, fx, fy, cx, cy, baseline, sigma)
+    world_T_cam = world_T_imu @ imu_T_cam
+    points = np.empty((n, 3))
+    J_z = np.empty((n, 3, 4))
+    J_xi = np.zeros((3 * n, 6))
+    for i in range(n):
+        for a in range(3):
+            points[i, a] = (world_T_cam[a, 0] * p_cam[i, 0] + world_T_cam[a, 1] * p_cam[i, 1]
+                            + world_T_cam[a, 2] * p_cam[i, 2] + world_T_cam[a, 3])
+            for t in range(4):
+                J_z[i, a, t] = (world_T_cam[a, 0] * dp_dz[i, 0, t] + world_T_cam[a, 1] * dp_dz[i, 1, t]
+                                + world_T_cam[a, 2] * dp_dz[i, 2, t])
+            if pose:
+                J_xi[3 * i + a, a] = 1.0
+    return augment(P, J_xi, J_z, pixel_var), points
+
+
+@_jit
 def landmark_covariances(P, slots, points, invariant):
     """Covariances (k,3,3) of the landmarks in ``slots``: their 3x3 diagonal blocks of P, or with the
     right-invariant error (``invariant``) those of the world positions ``points`` (k,3), (I6):
@@ -130,6 +168,87 @@ def landmark_covariances(P, slots, points, invariant):
                 out[i, a, b] = v
                 out[i, b, a] = v
     return out
+
+
+# ---------------------------------------------------------------- single-pose SE(3) (backend.se3, compiled)
+_coefficients = _jit(se3._coefficients)  # the same closed forms / Taylor series, compiled
+
+
+@_jit
+def _mm3(A, B):
+    """A @ B of 3x3 matrices (no BLAS call for 27 products)."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return out
+
+
+@_jit
+def _hat(x, y, z):
+    W = np.zeros((3, 3))
+    W[0, 1], W[0, 2], W[1, 0], W[1, 2], W[2, 0], W[2, 1] = -z, y, z, -x, -y, x
+    return W
+
+
+@_jit
+def _exp_se3_parts(xi):
+    """exp(xi^) (4,4) and J_l(theta) (3,3) of the twist xi = [rho, theta] (Barfoot eqs. 7.14, 7.37, 7.39)."""
+    W = _hat(xi[3], xi[4], xi[5])
+    WW = _mm3(W, W)
+    a, b, c, _, _, _ = _coefficients(np.sqrt(xi[3] ** 2 + xi[4] ** 2 + xi[5] ** 2))
+    T = np.zeros((4, 4))
+    J = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            e = 1.0 if i == j else 0.0
+            T[i, j] = e + a * W[i, j] + b * WW[i, j]
+            J[i, j] = e + b * W[i, j] + c * WW[i, j]
+    for i in range(3):
+        T[i, 3] = J[i, 0] * xi[0] + J[i, 1] * xi[1] + J[i, 2] * xi[2]
+    T[3, 3] = 1.0
+    return T, J
+
+
+@_jit
+def _right_jacobian_se3(xi):
+    """J_r(xi) = J_l(-xi) = [[J_l(-theta), Q(-rho, -theta)], [0, J_l(-theta)]] (Barfoot eqs. 7.85-7.87)."""
+    W = _hat(-xi[3], -xi[4], -xi[5])
+    Pm = _hat(-xi[0], -xi[1], -xi[2])
+    _, b, c, _, e, f = _coefficients(np.sqrt(xi[3] ** 2 + xi[4] ** 2 + xi[5] ** 2))
+    WW = _mm3(W, W)
+    WP, PW = _mm3(W, Pm), _mm3(Pm, W)
+    WPW = _mm3(WP, W)
+    WWP, PWW = _mm3(WW, Pm), _mm3(PW, W)
+    WPWW, WWPW = _mm3(WPW, W), _mm3(WW, PW)
+    J = np.zeros((6, 6))
+    for i in range(3):
+        for j in range(3):
+            jl = (1.0 if i == j else 0.0) + b * W[i, j] + c * WW[i, j]
+            J[i, j] = jl
+            J[3 + i, 3 + j] = jl
+            J[i, 3 + j] = (0.5 * Pm[i, j] + c * (WP[i, j] + PW[i, j] + WPW[i, j])
+                           + e * (WWP[i, j] + PWW[i, j] - 3.0 * WPW[i, j]) + f * (WPWW[i, j] + WWPW[i, j]))
+    return J
+
+
+@_jit
+def retract_invariant_inplace(world_T_imu, points, dx):
+    """(I5) exp(dx) X_hat: returns the new pose exp(dx_pose^) world_T_imu and moves the world points
+    (K,3) in place, m <- R_d m + J_l zeta (the state dx = [rho, phi, bias (3), zeta_1 .. zeta_K])."""
+    E, J = _exp_se3_parts(dx[:6])
+    pose = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            pose[i, j] = E[i, 0] * world_T_imu[0, j] + E[i, 1] * world_T_imu[1, j] + E[i, 2] * world_T_imu[2, j] \
+                + E[i, 3] * world_T_imu[3, j]
+    for k in range(points.shape[0]):
+        z = dx[CORE + 3 * k:CORE + 3 * k + 3]
+        x0, x1, x2 = points[k, 0], points[k, 1], points[k, 2]
+        for i in range(3):
+            points[k, i] = (E[i, 0] * x0 + E[i, 1] * x1 + E[i, 2] * x2
+                            + J[i, 0] * z[0] + J[i, 1] * z[1] + J[i, 2] * z[2])
+    return pose
 
 
 # ---------------------------------------------------------------- prediction
@@ -179,6 +298,40 @@ def predict_invariant_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_v
     if bias:
         for c in range(3):
             P[6 + c, 6 + c] += bias_walk_var
+
+
+@_jit
+def predict_invariant_step(world_T_imu, P, points, twist, q, dt, bias, bias_walk_var, landmark_walk_var):
+    """One prediction of the invariant filter: mu <- mu exp(tau u^) (course eq. for the mean), the
+    landmark random walk (P_mm += ``landmark_walk_var`` I) and (I2) by :func:`predict_invariant_inplace`
+    with G_pose = Ad(mu_next) J_r(twist), R_phi = R_next J_r[3:6] (backend.invariant.noise_jacobian_pose).
+    Returns mu_next; P is changed in place."""
+    step, _ = _exp_se3_parts(twist)
+    mu = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            mu[i, j] = world_T_imu[i, 0] * step[0, j] + world_T_imu[i, 1] * step[1, j] \
+                + world_T_imu[i, 2] * step[2, j] + world_T_imu[i, 3] * step[3, j]
+    if landmark_walk_var != 0.0:
+        for i in range(CORE, P.shape[0]):
+            P[i, i] += landmark_walk_var
+    J = _right_jacobian_se3(twist)
+    R = mu[:3, :3]
+    pR = _mm3(_hat(mu[0, 3], mu[1, 3], mu[2, 3]), R)
+    G_pose = np.zeros((6, 6))  # Ad(mu) J, Ad = [[R, p^ R], [0, R]] (Barfoot eq. 7.48)
+    R_phi = np.zeros((3, 6))
+    for i in range(3):
+        for j in range(6):
+            top = 0.0
+            bot = 0.0
+            for t in range(3):
+                top += R[i, t] * J[t, j] + pR[i, t] * J[3 + t, j]
+                bot += R[i, t] * J[3 + t, j]
+            G_pose[i, j] = top
+            G_pose[3 + i, j] = bot
+            R_phi[i, j] = bot
+    predict_invariant_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_var)
+    return mu
 
 
 # ---------------------------------------------------------------- observation (I3, U1)
@@ -556,17 +709,19 @@ def warm_up_seconds() -> float:
 
 def _call_every_kernel() -> None:
     """Each kernel once, on tiny arguments of the types and layouts the filter passes."""
-    from backend.camera import _triangulate_rows
-
     D, k = CORE + 6, 2
     P = np.eye(D)
     slots = np.arange(k, dtype=np.int64)
     mirror_lower_inplace(P)
     gather_symmetric(P, np.arange(D - 3, dtype=np.int64))
     augment(P, np.zeros((3, 6)), np.ones((1, 3, 4)), 1.0)
+    gather_landmarks(P, np.arange(k, dtype=np.int64))
     points = np.ones((k, 3))
     landmark_covariances(P, slots, points, True)
     predict_invariant_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)
+    twist = np.full(6, 0.01)
+    pose = predict_invariant_step(np.eye(4), P.copy(), points, twist, np.ones(6), 0.1, True, 1e-8, 1e-6)
+    retract_invariant_inplace(pose, points.copy(), np.full(D, 1e-3))
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
     residual, off_row, H_x, H_m, in_front = observe_invariant(points + 5.0, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5,
                                                               pixels)
@@ -575,3 +730,4 @@ def _call_every_kernel() -> None:
     inlier = np.array([True, False])
     joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
     _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)
+    initialize_invariant(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)

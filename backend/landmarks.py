@@ -49,14 +49,14 @@ def basis(kind: str) -> np.ndarray:
 
 def initialize(
     kind: str, camera: StereoCamera, pixels: np.ndarray, world_T_imu: np.ndarray, imu_T_cam: np.ndarray,
-    pixel_sigma: float | None = None, pose_jacobian: bool = True,
+    pixel_sigma: float | None = None,
 ):
     """Parameters and Jacobians of new landmarks from stereo pixels (n,4).
 
     Returns theta (n,3), anchors (n,4,4), J_z (n,3,4) = dtheta/dz and J_xi (n,3,6) = dtheta/dxi
-    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from (None unless
-    ``pose_jacobian``: the invariant error has its own, backend.invariant). For ``xyz`` with
-    ``pixel_sigma``, the point is the expected triangulation under that pixel noise
+    for a right perturbation world_T_imu exp(xi^) of the pose they were seen from (the body error
+    model; the invariant filter's own, (I4), is in ``backend.kernels.initialize_invariant``).
+    For ``xyz`` with ``pixel_sigma``, the point is the expected triangulation under that pixel noise
     (:meth:`StereoCamera.triangulate_mean`), not the triangulation of the measured pixels.
     """
     n = pixels.shape[0]
@@ -66,7 +66,7 @@ def initialize(
         p_imu = p_cam @ imu_T_cam[:3, :3].T + imu_T_cam[:3, 3]
         theta = p_imu @ R_wi.T + world_T_imu[:3, 3]
         J_z = (R_wi @ imu_T_cam[:3, :3]) @ dp_dz
-        J_xi = np.concatenate([np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2) if pose_jacobian else None
+        J_xi = np.concatenate([np.broadcast_to(R_wi, (n, 3, 3)), -R_wi @ se3.hat3(p_imu)], axis=2)
         anchors = np.zeros((n, 4, 4))
         anchors[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
         return theta, anchors, J_z, J_xi
@@ -94,8 +94,8 @@ def initialize(
     return theta, anchors, J_z, J_xi
 
 
-def to_world(kind: str, theta: np.ndarray, anchors: np.ndarray, covariances: np.ndarray):
-    """World positions (n,3) and covariances (n,3,3); ``finite`` (n,) is False for points at or
+def to_world(kind: str, theta: np.ndarray, anchors: np.ndarray | None, covariances: np.ndarray):
+    """World positions (n,3) and covariances (n,3,3) (``anchors`` may be None for xyz); ``finite`` (n,) is False for points at or
     beyond infinity (inverse depth <= 0), whose position is undefined."""
     if kind == "xyz":
         return theta.copy(), covariances.copy(), np.ones(theta.shape[0], dtype=bool)

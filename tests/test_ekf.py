@@ -298,6 +298,11 @@ def _pixels(mu: np.ndarray, w_world: np.ndarray) -> np.ndarray:
     return CAMERA.Ks @ (q / q[2])
 
 
+def _anchor_of(ekf: VisualInertialEKF, slot: int) -> np.ndarray:
+    """The anchor frame of a landmark (the filter stores none for xyz: there it is the identity)."""
+    return np.eye(4) if ekf._kind == "xyz" else ekf._anchors[slot].copy()
+
+
 @pytest.mark.parametrize("kind", PARAMETRIZATIONS)
 def test_observation_jacobians(kind):
     rng = np.random.default_rng(7)
@@ -320,7 +325,7 @@ def test_observation_jacobians(kind):
     assert in_front.all()
     for k, slot in enumerate(slots):
         theta = ekf._theta[slot].copy()
-        anchor = ekf._anchors[slot].copy()
+        anchor = _anchor_of(ekf, slot)
         w0 = _world_point_from_parameters(kind, theta, anchor)
         r4 = z_meas[k] - _pixels(mu, w0)
         np.testing.assert_allclose(residual[k], THREE_ROWS @ r4, rtol=0, atol=1e-8)
@@ -382,7 +387,7 @@ def test_landmark_initialization(kind):
     slots = ekf._slots_of(ids)
     J_world = np.zeros((9, 9))
     for i, slot in enumerate(slots):
-        anchor = ekf._anchors[slot]
+        anchor = _anchor_of(ekf, slot)
 
         def position(th):
             w = _world_point_from_parameters(kind, th, anchor)

@@ -61,6 +61,53 @@ def test_predict_invariant_equals_dense_propagation(bias):
     assert np.array_equal(out, out.T)
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-7, 0.05, 0.3, 2.5])
+def test_compiled_se3_matches_backend_se3(angle):
+    """The compiled single-pose exp and J_r (both sides of the Taylor switch) equal backend.se3's."""
+    rng = np.random.default_rng(2)
+    axis = rng.normal(size=3)
+    xi = np.concatenate([rng.normal(size=3), angle * axis / np.linalg.norm(axis)])
+    T, J_l = kernels._exp_se3_parts(xi)
+    np.testing.assert_allclose(T, se3.exp_se3(xi), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(J_l, se3.left_jacobian_so3(xi[3:]), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(kernels._right_jacobian_se3(xi), se3.right_jacobian_se3(xi), rtol=0, atol=1e-13)
+
+
+def test_predict_step_is_mean_propagation_then_invariant_covariance():
+    """One compiled prediction = mu exp(tau u^), the landmark walk on the landmark diagonal, then (I2)
+    with backend.invariant's noise Jacobian at the propagated pose."""
+    rng = np.random.default_rng(3)
+    K = 5
+    D = CORE + 3 * K
+    P = _spd(rng, D)
+    mu = se3.exp_se3(rng.normal(size=6))
+    twist = rng.normal(size=6) * 0.1
+    points = rng.normal(size=(K, 3)) * 10.0
+    dt, q, walk, lm_walk = 0.1, rng.uniform(0.01, 0.1, 6), 3e-7, 2e-4
+    mu_next = mu @ se3.exp_se3(twist)
+    expected = P.copy()
+    expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
+    kernels.predict_invariant_inplace(expected, *invariant.noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk)
+    out = P.copy()
+    pose = kernels.predict_invariant_step(mu, out, points, twist, q, dt, True, walk, lm_walk)
+    np.testing.assert_allclose(pose, mu_next, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_retract_invariant_equals_backend_invariant():
+    """(I5) compiled: the pose and the world points after exp(dx) X_hat, as backend.invariant.retract."""
+    rng = np.random.default_rng(4)
+    K = 6
+    mu = se3.exp_se3(rng.normal(size=6))
+    points = rng.normal(size=(K, 3)) * 10.0
+    dx = rng.normal(size=CORE + 3 * K) * 0.05
+    pose_expected, points_expected = invariant.retract(mu, points, dx[:6], dx[CORE:])
+    moved = points.copy()
+    pose = kernels.retract_invariant_inplace(mu, moved, dx)
+    np.testing.assert_allclose(pose, pose_expected, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(moved, points_expected, rtol=0, atol=1e-12)
+
+
 def test_innovation_covariance_equals_dense_products():
     rng = np.random.default_rng(2)
     P, slots, H_x, H_m = _problem(rng)
@@ -98,6 +145,39 @@ def test_gather_and_augment_are_the_block_formulas():
     expected = np.block([[P, cross.T], [cross, block]])
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12)
     assert np.array_equal(out, out.T) and out.flags.c_contiguous
+
+
+def test_gather_landmarks_keeps_pose_bias_and_the_kept_slots():
+    rng = np.random.default_rng(5)
+    P = _spd(rng, CORE + 3 * 6)
+    keep = np.array([1, 4, 5])
+    cols = np.concatenate([np.arange(CORE), (CORE + 3 * keep[:, None] + np.arange(3)).ravel()])
+    np.testing.assert_array_equal(kernels.gather_landmarks(P, keep), P[np.ix_(cols, cols)])
+
+
+@pytest.mark.parametrize("pose", [True, False])
+def test_initialize_invariant_is_triangulation_then_augmentation(pose):
+    """One compiled call = backend.landmarks.initialize (xyz, unscented mean), (I4) J_xi = [I 0]
+    (zero with poses held fixed) and the augmentation."""
+    from backend.camera import StereoCamera
+    from backend.landmarks import initialize
+
+    rng = np.random.default_rng(6)
+    camera = StereoCamera(np.array([[718.0, 0, 607.0], [0, 718.0, 185.0], [0, 0, 1]]), 0.54)
+    p_cam = np.column_stack([rng.uniform(-8, 8, 5), rng.uniform(-2, 2, 5), rng.uniform(4, 40, 5)])
+    pixels = camera.project(p_cam) + rng.normal(size=(5, 4)) * 0.3
+    mu, imu_T_cam = se3.exp_se3(rng.normal(size=6)), se3.exp_se3(rng.normal(size=6) * 0.3)
+    P = _spd(rng, CORE + 3 * 2)
+    theta, _, J_z, _ = initialize("xyz", camera, pixels, mu, imu_T_cam, 1.3)
+    J_xi = np.zeros((15, 6))
+    if pose:
+        J_xi[:, :3] = np.tile(np.eye(3), (5, 1))
+    expected = kernels.augment(P, J_xi, np.ascontiguousarray(J_z), SIGMA2)
+    out, points = kernels.initialize_invariant(P, pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx, camera.cy,
+                                               camera.baseline, 1.3, SIGMA2, pose)
+    np.testing.assert_allclose(points, theta, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert np.array_equal(out, out.T)
 
 
 def test_one_point_ransac_hypotheses_are_single_observation_updates():
