@@ -18,6 +18,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from backend import se3
 from backend.camera import StereoCamera
@@ -43,22 +44,23 @@ class MatchedPairs:
 
 
 def matched_pairs(seq: Sequence, horizon: int = 3, min_disparity: float = 1.0) -> MatchedPairs:
-    """Stereo points triangulated at k with their left pixels at k+horizon (same id)."""
+    """Stereo points triangulated at k with their left pixels at k+horizon (same id), in the
+    sequence's own order (by step, then id): every observation (id, k) is looked up as
+    (id, k + horizon) among all observations sorted by (id, step), one search for the whole file."""
     camera = StereoCamera(seq.K, seq.baseline)
-    steps, z_a, z_b = [], [], []
-    for k in range(seq.num_steps - horizon):
-        ids_a, px_a = seq.observations(k)
-        ids_b, px_b = seq.observations(k + horizon)
-        _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
-        keep = (px_a[ia, 0] - px_a[ia, 2]) >= min_disparity
-        if keep.any():
-            steps.append(np.full(int(keep.sum()), k))
-            z_a.append(px_a[ia][keep])
-            z_b.append(px_b[ib][keep, :2])
-    if not steps:
-        return MatchedPairs(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 2)), horizon)
-    z_a = np.concatenate(z_a)
-    return MatchedPairs(np.concatenate(steps), camera.triangulate(z_a), np.concatenate(z_b), horizon)
+    n = seq.num_steps
+    step = np.repeat(np.arange(n, dtype=np.int64), np.diff(seq.obs_ptr))
+    key = seq.obs_ids * n + step  # unique per observation: ids are unique within a step
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    a = np.flatnonzero(step < n - horizon)
+    pos = np.minimum(np.searchsorted(sorted_key, key[a] + horizon), max(key.size - 1, 0))
+    found = sorted_key[pos] == key[a] + horizon if key.size else np.zeros(0, dtype=bool)
+    a, b = a[found], order[pos[found]]
+    z_a = seq.obs_pixels[a]
+    keep = (z_a[:, 0] - z_a[:, 2]) >= min_disparity
+    a, b, z_a = a[keep], b[keep], z_a[keep]
+    return MatchedPairs(step[a], camera.triangulate(z_a).reshape(-1, 3), seq.obs_pixels[b, :2].copy(), horizon)
 
 
 def reprojection_error(
@@ -74,13 +76,26 @@ def reprojection_error(
     if poses is None:
         poses = dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, velocity_index)
     b_T_a = se3.inverse(imu_T_cam) @ se3.inverse(poses[pairs.horizon :]) @ poses[: -pairs.horizon] @ imu_T_cam
-    T = b_T_a[pairs.step]
-    p_b = np.einsum("pij,pj->pi", T[:, :3, :3], pairs.p_cam) + T[:, :3, 3]
-    front = p_b[:, 2] > 0.1
-    if not front.any():
-        return float("nan")
-    z_pred = camera.project(p_b[front])
-    return float(np.median(np.linalg.norm(z_pred[:, :2] - pairs.z_later[front], axis=1)))
+    err = _left_errors(b_T_a, pairs.step, pairs.p_cam, pairs.z_later, camera.fx, camera.fy, camera.cx, camera.cy)
+    err = err[np.isfinite(err)]
+    return float(np.median(err)) if err.size else float("nan")
+
+
+@njit(cache=True, nogil=True)
+def _left_errors(b_T_a, step, p_cam, z_later, fx, fy, cx, cy):
+    """|pi(b_T_a[step] p) - z| per pair (left image), NaN for points not in front (depth <= 0.1)."""
+    out = np.empty(step.size)
+    for i in range(step.size):
+        T = b_T_a[step[i]]
+        x, y, z = p_cam[i, 0], p_cam[i, 1], p_cam[i, 2]
+        qx = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        qy = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        qz = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        if qz > 0.1:
+            out[i] = np.hypot(fx * qx / qz + cx - z_later[i, 0], fy * qy / qz + cy - z_later[i, 1])
+        else:
+            out[i] = np.nan
+    return out
 
 
 @dataclass

@@ -731,3 +731,7 @@ def _call_every_kernel() -> None:
     joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
     _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)
     initialize_invariant(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)
+    from backend.conventions import _left_errors  # the convention test's (backend.conventions imports no kernel)
+
+    _left_errors(np.eye(4)[None], np.zeros(k, dtype=np.int64), points + 5.0, pixels[:, :2].copy(),
+                 700.0, 700.0, 600.0, 180.0)

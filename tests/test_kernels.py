@@ -297,7 +297,7 @@ _NO_LAZY_COMPILE = r"""
 import json, sys, warnings
 sys.path.insert(0, "tests")
 warnings.simplefilter("ignore")
-from backend import camera, kernels
+from backend import camera, conventions, kernels
 from backend.config import FilterConfig
 from backend.pipeline import run_sequence
 from test_ekf import make_drive, to_sequence
@@ -306,6 +306,7 @@ def counts():
     out = {n: len(f.signatures) for n, f in vars(kernels).items()
            if hasattr(f, "signatures") and n[0] != "_" and f.py_func.__module__ == kernels.__name__}
     out["camera._triangulate_rows"] = len(camera._triangulate_rows.signatures)
+    out["conventions._left_errors"] = len(conventions._left_errors.signatures)
     return out
 
 import backend.pipeline as pipeline
