@@ -417,6 +417,11 @@ class VisualInertialEKF:
         """The prior innovation of the observed landmarks, in the 3-row form (U1) of the module docstring:
         H P and S = H P H^T + R from the sparsity of H (each 3-row block touches 6 pose and 3 landmark
         columns of P; ``kernels.innovation_covariance``)."""
+        if self._invariant:  # (I3) and the products in one compiled call
+            cam = self.camera
+            out = kernels.innovation_invariant(self.P, self._theta, slots, self.mu, self._cam_T_imu, cam.fx, cam.fy,
+                                               cam.cx, cam.cy, cam.baseline, pixels, self._R_pix, self._estimate_pose)
+            return _Innovation(slots, *out)
         residual, off_row, H_x, H_m, in_front = self._observation_model(slots, pixels)
         H_x = np.ascontiguousarray(H_x.reshape(-1, 6))
         HP, S, nis = kernels.innovation_covariance(self.P, H_x, np.ascontiguousarray(H_m), slots, self._R_pix,

@@ -453,6 +453,30 @@ def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row):
     return HP, S, nis
 
 
+@_jit
+def innovation_invariant(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline, pixels, pixel_var, pose):
+    """The invariant filter's prior innovation in one call: :func:`observe_invariant` of the landmarks
+    ``slots`` (world points theta[slots]) from cam_T_world = cam_T_imu world_T_imu^-1, then
+    :func:`innovation_covariance`; H_x = 0 when ``pose`` is False (poses held fixed). Returns
+    (residual, off_row, H_x (3k,6), H_m, H P, S, NIS, in_front)."""
+    imu_T_world = np.zeros((4, 4))
+    for i in range(3):
+        for j in range(3):
+            imu_T_world[i, j] = world_T_imu[j, i]
+        imu_T_world[i, 3] = -(world_T_imu[0, i] * world_T_imu[0, 3] + world_T_imu[1, i] * world_T_imu[1, 3]
+                              + world_T_imu[2, i] * world_T_imu[2, 3])
+    imu_T_world[3, 3] = 1.0
+    cam_T_world = cam_T_imu @ imu_T_world
+    points = np.empty((slots.size, 3))
+    for i in range(slots.size):
+        points[i] = theta[slots[i]]
+    residual, off_row, H_x, H_m, in_front = observe_invariant(points, cam_T_world, fx, fy, cx, cy, baseline, pixels)
+    if not pose:
+        H_x[:] = 0.0
+    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row)
+    return residual, off_row, H_x, H_m, HP, S, nis, in_front
+
+
 # ---------------------------------------------------------------- outliers (U3)
 @_jit
 def _solve3(S, r):
@@ -726,12 +750,16 @@ def _call_every_kernel() -> None:
     residual, off_row, H_x, H_m, in_front = observe_invariant(points + 5.0, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5,
                                                               pixels)
     HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row)
+    innovation_invariant(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True)
     one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
     inlier = np.array([True, False])
     joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
     _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)
     initialize_invariant(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)
     from backend.conventions import _left_errors  # the convention test's (backend.conventions imports no kernel)
+    from backend.timing import _repeats_sorted  # the repeated-frame test of every step
+
+    _repeats_sorted(slots, pixels, slots, pixels)
 
     _left_errors(np.eye(4)[None], np.zeros(k, dtype=np.int64), points + 5.0, pixels[:, :2].copy(),
                  700.0, 700.0, 600.0, 180.0)

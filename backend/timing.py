@@ -17,14 +17,44 @@ so the filter offers policies (``FilterConfig.repeated_frames``):
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from backend.sequence import Sequence
 
 
 def repeats_previous(ids: np.ndarray, pixels: np.ndarray, prev_ids: np.ndarray, prev_pixels: np.ndarray) -> bool:
     """True when every feature seen in both frames has identical pixels (and one at least is shared)."""
-    _, i_now, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)
+    found = _repeats_sorted(np.ascontiguousarray(ids, dtype=np.int64), np.ascontiguousarray(pixels, dtype=np.float64),
+                            np.ascontiguousarray(prev_ids, dtype=np.int64),
+                            np.ascontiguousarray(prev_pixels, dtype=np.float64))
+    if found >= 0:
+        return bool(found)
+    _, i_now, i_prev = np.intersect1d(ids, prev_ids, assume_unique=True, return_indices=True)  # ids not sorted
     return bool(i_now.size) and np.array_equal(pixels[i_now], prev_pixels[i_prev])
+
+
+@njit(cache=True, nogil=True)
+def _repeats_sorted(ids, pixels, prev_ids, prev_pixels):
+    """:func:`repeats_previous` by one merge of two increasing id lists (the sequence's order): 1 or 0,
+    or -1 when either list is not increasing (the caller falls back to a set intersection)."""
+    for a in (ids, prev_ids):
+        for i in range(1, a.size):
+            if a[i] <= a[i - 1]:
+                return -1
+    i = j = shared = 0
+    while i < ids.size and j < prev_ids.size:
+        if ids[i] < prev_ids[j]:
+            i += 1
+        elif ids[i] > prev_ids[j]:
+            j += 1
+        else:
+            for c in range(4):
+                if pixels[i, c] != prev_pixels[j, c]:
+                    return 0
+            shared += 1
+            i += 1
+            j += 1
+    return 1 if shared else 0
 
 
 def repeated_steps(seq: Sequence) -> np.ndarray:

@@ -125,6 +125,31 @@ def test_innovation_covariance_equals_dense_products():
         assert nis[i] == pytest.approx(expected, rel=1e-10)
 
 
+@pytest.mark.parametrize("pose", [True, False])
+def test_innovation_invariant_is_observation_then_products(pose):
+    """The fused call = observe_invariant from cam_T_imu world_T_imu^-1, then innovation_covariance."""
+    rng = np.random.default_rng(8)
+    n = 9
+    P = _spd(rng, CORE + 3 * n, 0.1)
+    mu, cam_T_imu = se3.exp_se3(rng.normal(size=6) * 0.3), se3.exp_se3(rng.normal(size=6) * 0.3)
+    world_T_cam = mu @ se3.inverse(cam_T_imu)
+    p_cam = np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-2, 2, n), rng.uniform(5, 30, n)])
+    theta = p_cam @ world_T_cam[:3, :3].T + world_T_cam[:3, 3]
+    theta[-1] = world_T_cam[:3, 3] - 5.0 * world_T_cam[:3, 2]  # behind the camera
+    slots = np.array([8, 1, 4, 6], dtype=np.int64)
+    pixels = rng.uniform(100, 600, (slots.size, 4))
+    cam = (700.0, 690.0, 610.0, 180.0, 0.54)
+    expected = list(kernels.observe_invariant(theta[slots], cam_T_imu @ se3.inverse(mu), *cam, pixels))
+    if not pose:
+        expected[2][:] = 0.0
+    residual, off_row, H_x, H_m, in_front = expected
+    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    out = kernels.innovation_invariant(P, theta, slots, mu, cam_T_imu, *cam, pixels, SIGMA2, pose)
+    assert not out[-1][0] and out[-1][1:].all()  # slot 8 is behind the camera
+    for got, want in zip(out, (residual, off_row, H_x, H_m, HP, S, nis, in_front)):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
 def test_gather_and_augment_are_the_block_formulas():
     rng = np.random.default_rng(3)
     D = CORE + 3 * 10
@@ -297,7 +322,7 @@ _NO_LAZY_COMPILE = r"""
 import json, sys, warnings
 sys.path.insert(0, "tests")
 warnings.simplefilter("ignore")
-from backend import camera, conventions, kernels
+from backend import camera, conventions, kernels, timing
 from backend.config import FilterConfig
 from backend.pipeline import run_sequence
 from test_ekf import make_drive, to_sequence
@@ -307,6 +332,7 @@ def counts():
            if hasattr(f, "signatures") and n[0] != "_" and f.py_func.__module__ == kernels.__name__}
     out["camera._triangulate_rows"] = len(camera._triangulate_rows.signatures)
     out["conventions._left_errors"] = len(conventions._left_errors.signatures)
+    out["timing._repeats_sorted"] = len(timing._repeats_sorted.signatures)
     return out
 
 import backend.pipeline as pipeline

@@ -65,3 +65,25 @@ def test_online_run_refuses_time_going_back(scene):
     run.step(1.0, seq.linear_velocity[0], seq.angular_velocity[0], *seq.observations(0))
     with pytest.raises(InputError, match="does not increase"):
         run.step(1.0, seq.linear_velocity[1], seq.angular_velocity[1], *seq.observations(1))
+
+
+def test_repeats_previous_compares_the_shared_features_in_any_id_order():
+    """A frame repeats the previous one when every shared feature has identical pixels; sorted ids
+    take the compiled merge, unsorted ones the set intersection, with the same answers."""
+    from backend.timing import repeats_previous
+
+    rng = np.random.default_rng(0)
+    prev_ids = np.array([2, 5, 9, 14])
+    prev_px = rng.uniform(0, 500, (4, 4))
+    ids = np.array([1, 5, 9, 20])
+    px = rng.uniform(0, 500, (4, 4))
+    px[1:3] = prev_px[1:3]  # ids 5 and 9 repeat their pixels
+    cases = [(ids, px, True)]
+    moved = px.copy()
+    moved[2, 3] += 1e-9
+    cases.append((ids, moved, False))
+    cases.append((np.array([0, 3]), px[:2], False))  # nothing shared
+    for now_ids, now_px, expected in cases:
+        assert repeats_previous(now_ids, now_px, prev_ids, prev_px) is expected
+        order = np.arange(now_ids.size)[::-1]  # decreasing ids: the fallback
+        assert repeats_previous(now_ids[order], now_px[order], prev_ids, prev_px) is expected
