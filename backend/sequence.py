@@ -409,18 +409,121 @@ def _stream_f_order(f, src: str, dtype: np.dtype, m: int, n: int):
             np.concatenate(px))
 
 
-def _open_member(zf: zipfile.ZipFile, src: str, key: str):
+def _open_member(zf: zipfile.ZipFile, src: str, key: str, path: Path | None = None):
+    """The member ``key`` (.npy) as a file object: with ``path``, a deflated member is inflated
+    ahead by a second thread (:class:`_InflateAhead`); otherwise zipfile's own stream."""
     names = set(zf.namelist())
     for name in (key + ".npy", key):
         if name in names:
+            info = zf.getinfo(name)
+            if path is not None and info.compress_type == zipfile.ZIP_DEFLATED and not info.flag_bits & 0x1:
+                return _InflateAhead(path, info)
             return zf.open(name)
     raise _err(src, key, "missing")
+
+
+class _InflateAhead:
+    """A deflated zip member read as a file (``read(n)``), inflated by a background thread while the
+    caller parses the previous chunk: zlib releases the GIL, so on two cores loading a course file
+    takes the inflate time instead of inflate + CRC + parsing. The reader checks the member's CRC-32
+    at its end (as zipfile does); at most ``_AHEAD`` chunks of ``_CHUNK_BYTES`` wait in memory."""
+
+    _AHEAD = 4
+
+    def __init__(self, path: Path, info: zipfile.ZipInfo) -> None:
+        import queue
+        import threading
+
+        self._info = info
+        self._queue: queue.Queue = queue.Queue(self._AHEAD)
+        self._stop = threading.Event()
+        self._pieces: list[bytes] = []
+        self._have = 0
+        self._crc = 0
+        self._done = False
+        self._thread = threading.Thread(target=self._inflate, args=(path,), daemon=True)
+        self._thread.start()
+
+    def _put(self, item) -> bool:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _inflate(self, path: Path) -> None:
+        info = self._info
+        try:
+            with open(path, "rb") as fh:
+                fh.seek(info.header_offset)
+                header = fh.read(30)
+                if len(header) != 30 or header[:4] != b"PK\x03\x04":
+                    raise zipfile.BadZipFile(f"bad local header of member {info.filename!r}")
+                fh.seek(int.from_bytes(header[26:28], "little") + int.from_bytes(header[28:30], "little"), os.SEEK_CUR)
+                inflater = zlib.decompressobj(-15)
+                left = info.compress_size
+                while left or inflater.unconsumed_tail:
+                    data = inflater.unconsumed_tail
+                    if not data:
+                        data = fh.read(min(left, 1 << 16))
+                        if not data:
+                            raise EOFError(f"member {info.filename!r} truncated")
+                        left -= len(data)
+                    out = inflater.decompress(data, _CHUNK_BYTES)
+                    if out and not self._put(out):
+                        return
+                tail = inflater.flush()
+                if tail and not self._put(tail):
+                    return
+        except Exception as exc:  # handed to the reader, which raises it
+            self._put(exc)
+            return
+        self._put(None)
+
+    def _next(self) -> bool:
+        item = self._queue.get()
+        if isinstance(item, Exception):
+            self._done = True
+            raise item
+        if item is None:
+            self._done = True
+            if self._crc != self._info.CRC:
+                raise zipfile.BadZipFile(f"Bad CRC-32 for file {self._info.filename!r}")
+            return False
+        self._crc = zlib.crc32(item, self._crc)
+        self._pieces.append(item)
+        self._have += len(item)
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        while (n < 0 or self._have < n) and not self._done and self._next():
+            pass
+        data = b"".join(self._pieces)
+        n = len(data) if n < 0 else min(n, len(data))
+        rest = data[n:]
+        self._pieces = [rest] if rest else []
+        self._have = len(rest)
+        return data[:n]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _read_features(path: Path, src: str, n: int, image_wh: tuple[float, float]):
     """Stream 'features' into (steps, ids, pixels) kept, and the drop counts."""
     try:
-        with zipfile.ZipFile(path) as zf, _open_member(zf, src, "features") as f:
+        with zipfile.ZipFile(path) as zf, _open_member(zf, src, "features", path) as f:
             try:
                 version = npformat.read_magic(f)
                 if version == (1, 0):

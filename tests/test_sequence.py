@@ -478,6 +478,43 @@ def test_corrupt_compressed_stream_is_refused(tmp_path):
     assert_one_line_error(e, "c.npz", "features")
 
 
+def test_features_crc_mismatch_is_refused(tmp_path):
+    """A valid deflate stream whose CRC-32 does not match the zip directory: refused (the inflating
+    thread's reader checks it, as zipfile does)."""
+    path = write_npz(tmp_path / "crc.npz", course_arrays())
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("features.npy")
+    wrong = ((info.CRC ^ 0x5A5A5A5A) & 0xFFFFFFFF).to_bytes(4, "little")
+    data[info.header_offset + 14:info.header_offset + 18] = wrong  # local header
+    central = data.find(b"PK\x01\x02")
+    while central >= 0:  # the central directory entry of features.npy
+        name_len = int.from_bytes(data[central + 28:central + 30], "little")
+        if bytes(data[central + 46:central + 46 + name_len]) == b"features.npy":
+            data[central + 16:central + 20] = wrong
+            break
+        central = data.find(b"PK\x01\x02", central + 4)
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError) as e:
+        load_sequence(path)
+    assert "CRC" in assert_one_line_error(e, "crc.npz", "features")
+
+
+def test_an_early_error_stops_the_inflating_thread(tmp_path, monkeypatch):
+    """A NaN found in the first chunk ends the load at once, and no reading thread is left behind."""
+    import threading
+
+    monkeypatch.setattr(sequence_mod, "_CHUNK_BYTES", 64)
+    arrays = course_arrays(n=40, m=30, features=np.full((4, 30, 40), -1.0))
+    arrays["features"][0, 0, 0] = np.nan
+    path = write_npz(tmp_path / "nan.npz", arrays)
+    before = threading.active_count()
+    with pytest.raises(InputError) as e:
+        load_sequence(path)
+    assert "non-finite" in assert_one_line_error(e, "nan.npz", "features")
+    assert threading.active_count() == before
+
+
 # ----------------------------------------------------------------------------------------------
 # the Sequence object
 
