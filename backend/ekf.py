@@ -146,6 +146,8 @@ class HealthMonitor:
     _nis: deque = field(default_factory=deque)
     _count: deque = field(default_factory=deque)
     _gated: deque = field(default_factory=deque)
+    _total_count: int = 0  # sums of _count and _gated (integers: exact)
+    _total_gated: int = 0
     _inconsistent: bool = False
 
     def add_nis(self, step: int, nis_sum: float, count: int, gated: int = 0) -> None:
@@ -157,15 +159,17 @@ class HealthMonitor:
         self._nis.append(nis_sum)
         self._count.append(count)
         self._gated.append(gated)
+        self._total_count += count
+        self._total_gated += gated
         if len(self._nis) > self.window:
             self._nis.popleft()
-            self._count.popleft()
-            self._gated.popleft()
-        total = sum(self._count)
+            self._total_count -= self._count.popleft()
+            self._total_gated -= self._gated.popleft()
+        total = self._total_count
         if len(self._nis) < self.window or total < 20:
             return
-        mean = sum(self._nis) / total
-        gated_share = sum(self._gated) / (total + sum(self._gated))
+        mean = sum(self._nis) / total  # summed afresh: no rounding drift over a long run
+        gated_share = self._total_gated / (total + self._total_gated)
         bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor or gated_share > 0.5
         if bad and not self._inconsistent:
             self.report(
@@ -236,7 +240,6 @@ class VisualInertialEKF:
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
         self._near_limit = config.reanchor_observations or _NEVER
         self._far_limit = config.reanchor_far_observations or _NEVER
-        self._restarting: set[int] = set()  # ids re-anchored in this update (not a track's first landmark)
         self._outlier_run: dict[int, int] = {}  # track id -> steps in a row RANSAC rejected it (nonzero only)
         # the per-landmark arrays this configuration reads, kept in state order
         self._per_landmark = ("_ids", "_theta", "_gated_run", "_obs_count", "_obs_limit")
@@ -327,8 +330,8 @@ class VisualInertialEKF:
         if not self._use_vision:
             return stats
         t0 = time.perf_counter()
-        self._restarting = set()
         slots = self._slots_of(ids)
+        restart = None  # observations of re-anchored tracks (not a track's first landmark)
         seen = slots[slots >= 0]
         leaving = np.zeros(self._ids.size, dtype=bool)  # to the map, in one marginalization
         if not self.config.full_state:
@@ -342,18 +345,19 @@ class VisualInertialEKF:
             expired = seen[self._obs_count[seen] > self._obs_limit[seen]]
             if expired.size:  # their observations start new landmarks below
                 stats.reanchored = expired.size
-                self._restarting = set(self._ids[expired].tolist())
                 leaving[expired] = True
+                restart = (slots >= 0) & leaving[slots]
         if leaving.any():
-            self._remove(leaving, to_map=True)
-            slots = self._slots_of(ids)
+            remap = self._remove(leaving, to_map=True)
+            slots = np.where(slots >= 0, remap[slots], -1)
         known = slots >= 0
         t1 = time.perf_counter()
         if known.any():
             self._joint_update(slots[known], pixels[known], stats)
         t2 = time.perf_counter()
-        if (~known).any():
-            self._initialize(ids[~known], pixels[~known], stats)
+        new = ~known
+        if new.any():
+            self._initialize(ids[new], pixels[new], stats, None if restart is None else restart[new])
         self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
         stats.active = self._ids.size
         if stats.used or stats.gated:
@@ -489,18 +493,23 @@ class VisualInertialEKF:
         self._theta += dx[CORE:].reshape(-1, 3)
 
     # ------------------------------------------------------------------ landmarks
-    def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+    def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats,
+                    restart: np.ndarray | None = None) -> None:
         """Stereo triangulation and state augmentation with the pose cross covariance:
-        P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x  (backend.landmarks.initialize)."""
+        P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x  (backend.landmarks.initialize).
+        ``restart`` (n,) marks observations of re-anchored tracks (None: none)."""
         cfg = self.config
         disparity = pixels[:, 0] - pixels[:, 2]
         ok = disparity > cfg.min_disparity
         if cfg.max_depth is not None:
             ok &= self.camera.fx * self.camera.baseline / np.where(ok, disparity, 1.0) <= cfg.max_depth
-        stats.deferred = int(ids.size - ok.sum())
-        if not ok.any():
+        n_ok = int(ok.sum())
+        stats.deferred = ids.size - n_ok
+        if not n_ok:
             return
-        ids, pixels = ids[ok], pixels[ok]
+        if n_ok < ids.size:
+            ids, pixels, disparity = ids[ok], pixels[ok], disparity[ok]
+            restart = None if restart is None else restart[ok]
         n = ids.size
         sigma = cfg.pixel_sigma if cfg.unbiased_triangulation else 0.0
         anchors = None
@@ -513,9 +522,9 @@ class VisualInertialEKF:
                                                              sigma or None)
             J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
             self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
-        limits = self._limits(pixels[:, 0] - pixels[:, 2])
+        limits = self._limits(disparity)
         new = {"_ids": ids, "_theta": theta, "_gated_run": np.zeros(n, dtype=np.int64),
-               "_obs_count": self._first_counts(ids, limits), "_obs_limit": limits,
+               "_obs_count": self._first_counts(ids, limits, restart), "_obs_limit": limits,
                "_theta_first": theta, "_anchors": anchors}
         for name in self._per_landmark:
             setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
@@ -526,13 +535,15 @@ class VisualInertialEKF:
         """Observations a landmark anchored at ``disparity`` lives for before re-anchoring (module docstring)."""
         return np.where(disparity < self.config.reanchor_far_disparity, self._far_limit, self._near_limit)
 
-    def _first_counts(self, ids: np.ndarray, limits: np.ndarray) -> np.ndarray:
+    def _first_counts(self, ids: np.ndarray, limits: np.ndarray, restart: np.ndarray | None) -> np.ndarray:
         """Count of the anchoring observation: 1, or 1 + id mod limit on a track's first landmark
-        (staggers the re-anchoring of landmarks born together)."""
+        (not ``restart``: staggers the re-anchoring of landmarks born together)."""
         if not self._reanchor:
             return np.ones(ids.size, dtype=np.int64)
-        first = np.fromiter((i not in self._restarting for i in ids.tolist()), dtype=bool, count=ids.size)
-        return 1 + np.where(first & (limits < _NEVER), ids % limits, 0)
+        stagger = limits < _NEVER
+        if restart is not None:
+            stagger &= ~restart
+        return 1 + np.where(stagger, ids % limits, 0)
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
         """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
@@ -552,8 +563,9 @@ class VisualInertialEKF:
         self._map_pos.append(pos[finite])
         self._map_cov.append(cov[finite])
 
-    def _remove(self, mask: np.ndarray, to_map: bool) -> None:
-        """Marginalize the landmarks in ``mask`` (drop their rows and columns)."""
+    def _remove(self, mask: np.ndarray, to_map: bool) -> np.ndarray:
+        """Marginalize the landmarks in ``mask`` (drop their rows and columns); returns the new slot
+        of each old one (-1: removed)."""
         if to_map:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)
@@ -561,6 +573,9 @@ class VisualInertialEKF:
         for name in self._per_landmark:
             setattr(self, name, getattr(self, name)[keep_lm])
         self._reindex()
+        remap = np.full(mask.size, -1, dtype=np.int64)
+        remap[keep_lm] = np.arange(keep_lm.size)
+        return remap
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:
         """State slots of ``ids`` (-1 where not in the state)."""
