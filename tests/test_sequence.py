@@ -478,6 +478,29 @@ def test_corrupt_compressed_stream_is_refused(tmp_path):
     assert_one_line_error(e, "c.npz", "features")
 
 
+def test_zlib_fallback_reads_and_refuses_the_same(tmp_path, monkeypatch):
+    """Without ISA-L (``isal``) the loader inflates with zlib: the same observations, and a corrupt
+    stream is refused in the same way."""
+    import zlib
+
+    monkeypatch.setattr(sequence_mod, "_CHUNK_BYTES", 256)
+    path = write_npz(tmp_path / "z.npz", course_arrays(n=30, m=20))
+    with_isal = load_sequence(path)
+    monkeypatch.setattr(sequence_mod, "_inflate_lib", zlib)
+    with_zlib = load_sequence(path)
+    for key in ("obs_ptr", "obs_ids", "obs_pixels"):
+        np.testing.assert_array_equal(getattr(with_zlib, key), getattr(with_isal, key))
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("features.npy")
+    mid = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.compress_size // 2
+    data[mid:mid + 4] = bytes(b ^ 0xFF for b in data[mid:mid + 4])
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError) as e:
+        load_sequence(path)
+    assert_one_line_error(e, "z.npz", "features")
+
+
 def test_features_crc_mismatch_is_refused(tmp_path):
     """A valid deflate stream whose CRC-32 does not match the zip directory: refused (the inflating
     thread's reader checks it, as zipfile does)."""
