@@ -240,9 +240,12 @@ class VisualInertialEKF:
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
         self._near_limit = config.reanchor_observations or _NEVER
         self._far_limit = config.reanchor_far_observations or _NEVER
-        self._outlier_run: dict[int, int] = {}  # track id -> steps in a row RANSAC rejected it (nonzero only)
+        # steps in a row the RANSAC rejected a track (``_persistent_outliers``): per landmark while the
+        # track is in the state, and by track id (nonzero only) for tracks that left it but may go on
+        self._outlier_run = np.zeros(0, dtype=np.int64)
+        self._outlier_stash: dict[int, int] = {}
         # the per-landmark arrays this configuration reads, kept in state order
-        self._per_landmark = ("_ids", "_theta", "_gated_run", "_obs_count", "_obs_limit")
+        self._per_landmark = ("_ids", "_theta", "_gated_run", "_obs_count", "_obs_limit", "_outlier_run")
         if not self._invariant and config.first_estimate_jacobians:
             self._per_landmark += ("_theta_first",)
         if self._kind != "xyz":
@@ -338,8 +341,7 @@ class VisualInertialEKF:
             leaving[:] = True  # ended tracks
             leaving[seen] = False
             stats.marginalized = int(leaving.sum())
-            for i in self._ids[leaving].tolist():
-                self._outlier_run.pop(i, None)
+        ended = leaving.copy()  # these tracks do not go on (their outlier counts end with them)
         if self._reanchor and seen.size:
             self._obs_count[seen] += 1
             expired = seen[self._obs_count[seen] > self._obs_limit[seen]]
@@ -348,7 +350,7 @@ class VisualInertialEKF:
                 leaving[expired] = True
                 restart = (slots >= 0) & leaving[slots]
         if leaving.any():
-            remap = self._remove(leaving, to_map=True)
+            remap = self._remove(leaving, to_map=True, ended=ended)
             slots = np.where(slots >= 0, remap[slots], -1)
         known = slots >= 0
         t1 = time.perf_counter()
@@ -435,52 +437,22 @@ class VisualInertialEKF:
     def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
         """Gate, select a consistent set (1-point RANSAC), update, rescue the rest (module docstring)."""
         inn = self._innovation(slots, pixels)
-        use = inn.in_front & (inn.nis <= self._gate)  # chi-square gate, 4 dof, prior covariance
-        rest = np.zeros_like(use)
-        try:
-            if self.config.ransac_threshold_px > 0 and use.sum() >= 3:
-                inlier = kernels.one_point_ransac(inn.S, inn.residual, inn.off_row, use, self._R_pix,
-                                                  self.config.ransac_threshold_px)
-                rest = use & ~inlier
-                if self.config.persistent_outlier_steps:
-                    rest &= ~self._persistent_outliers(slots, rest)
-                use = inlier
-            if use.any():
-                status, dx, use = kernels.joint_update_inplace(self.P, inn.HP, inn.S, inn.residual, inn.off_row,
-                                                               use, rest, self._R_pix, self._gate)
-                if status:
-                    raise np.linalg.LinAlgError(f"innovation covariance not positive definite (potrf info {status})")
-                self._apply_correction(dx)
-        except np.linalg.LinAlgError as exc:  # numerically degenerate step: keep the prior
-            self.health.report(f"step {self.step_index}: update skipped ({exc})")
-            use[:] = False
+        cfg = self.config
+        status, dx, use = kernels.select_and_update_inplace(
+            self.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, self._gate,
+            cfg.ransac_threshold_px, self._R_pix, self._outlier_run, cfg.persistent_outlier_steps, self._gated_run)
+        if status:  # numerically degenerate step: the prior is kept
+            self.health.report(f"step {self.step_index}: update skipped (innovation covariance not positive "
+                               f"definite, potrf info {status})")
+        elif use.any():
+            self._apply_correction(dx)
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(inn.nis[use].sum())
-        self._gated_run[slots[use]] = 0
-        self._gated_run[slots[~use]] += 1
         bad = self._gated_run >= self.config.max_consecutive_gated
         if bad.any():
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
-
-    def _persistent_outliers(self, slots: np.ndarray, rejected: np.ndarray) -> np.ndarray:
-        """Count per track the steps in a row the RANSAC rejected it; True where that reaches
-        ``persistent_outlier_steps``: such a track (a car ahead, followed by several features
-        that agree with each other and not with the scene) is not rescued. Counted by track id,
-        so across re-anchoring; any step the track is not rejected resets it."""
-        limit = self.config.persistent_outlier_steps
-        runs = self._outlier_run
-        ids = self._ids[slots]
-        if runs:  # a step not rejected resets the count
-            for i in runs.keys() & set(ids[~rejected].tolist()):
-                del runs[i]
-        out = np.zeros(slots.size, dtype=bool)
-        for j in np.flatnonzero(rejected).tolist():
-            i = int(ids[j])
-            runs[i] = n = runs.get(i, 0) + 1
-            out[j] = n >= limit
-        return out
 
     def _apply_correction(self, dx: np.ndarray) -> None:
         if self._invariant:  # (I5)
@@ -523,7 +495,10 @@ class VisualInertialEKF:
             J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
             self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
         limits = self._limits(disparity)
-        new = {"_ids": ids, "_theta": theta, "_gated_run": np.zeros(n, dtype=np.int64),
+        stash = self._outlier_stash
+        runs = (np.array([stash.pop(i, 0) for i in ids.tolist()], dtype=np.int64) if stash
+                else np.zeros(n, dtype=np.int64))
+        new = {"_ids": ids, "_theta": theta, "_gated_run": np.zeros(n, dtype=np.int64), "_outlier_run": runs,
                "_obs_count": self._first_counts(ids, limits, restart), "_obs_limit": limits,
                "_theta_first": theta, "_anchors": anchors}
         for name in self._per_landmark:
@@ -563,9 +538,14 @@ class VisualInertialEKF:
         self._map_pos.append(pos[finite])
         self._map_cov.append(cov[finite])
 
-    def _remove(self, mask: np.ndarray, to_map: bool) -> np.ndarray:
+    def _remove(self, mask: np.ndarray, to_map: bool, ended: np.ndarray | None = None) -> np.ndarray:
         """Marginalize the landmarks in ``mask`` (drop their rows and columns); returns the new slot
-        of each old one (-1: removed)."""
+        of each old one (-1: removed). The outlier counts of tracks that may go on (not ``ended``)
+        are kept by track id."""
+        going_on = mask if ended is None else mask & ~ended
+        counted = going_on & (self._outlier_run > 0)
+        if counted.any():
+            self._outlier_stash.update(zip(self._ids[counted].tolist(), self._outlier_run[counted].tolist()))
         if to_map:
             self._to_map(np.flatnonzero(mask))
         keep_lm = np.flatnonzero(~mask)

@@ -692,6 +692,54 @@ def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, g
     return 0, dx, used
 
 
+@_jit
+def count_rejections_inplace(outlier_run, slots, rejected, limit):
+    """Steps in a row the RANSAC rejected each track: ``outlier_run`` (per landmark slot) counts one
+    more where ``rejected`` and restarts at 0 for the other observations of ``slots``; True where the
+    count reaches ``limit``: such a track (a car ahead, followed by several features that agree with
+    each other and not with the scene) is not rescued. The filter keeps the counts of a track that
+    leaves the state and goes on (re-anchoring) by its id (backend.ekf ``_remove``)."""
+    out = np.zeros(slots.size, dtype=np.bool_)
+    for j in range(slots.size):
+        s = slots[j]
+        outlier_run[s] = outlier_run[s] + 1 if rejected[j] else 0
+        out[j] = rejected[j] and outlier_run[s] >= limit
+    return out
+
+
+@_jit
+def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots, gate, ransac_threshold, pixel_var,
+                              outlier_run, persistent_steps, gated_run):
+    """One step's selection and joint update (backend.ekf, ``_joint_update``) in one call: the
+    chi-square gate on ``nis``; with ``ransac_threshold`` > 0 and 3 candidates or more the 1-point
+    RANSAC (:func:`one_point_ransac`), whose rejected observations are not offered to the rescue once
+    ``outlier_run`` reaches ``persistent_steps`` (0: not counted); then :func:`joint_update_inplace`. Finally
+    ``gated_run`` (per slot) is reset for the used observations and counts one more for the others.
+    (:func:`count_rejections_inplace` counts the RANSAC's rejections.)
+    Returns (status, dx, used) as :func:`joint_update_inplace`; on status != 0 nothing is used."""
+    k = slots.size
+    use = np.empty(k, dtype=np.bool_)
+    for j in range(k):
+        use[j] = in_front[j] and nis[j] <= gate
+    rest = np.zeros(k, dtype=np.bool_)
+    if ransac_threshold > 0 and use.sum() >= 3:
+        inlier = one_point_ransac(S, residual, off_row, use, pixel_var, ransac_threshold)
+        for j in range(k):
+            rest[j] = use[j] and not inlier[j]
+        if persistent_steps:
+            rest &= ~count_rejections_inplace(outlier_run, slots, rest, persistent_steps)
+        use = inlier
+    status = 0
+    dx = np.zeros(P.shape[0])
+    if use.any():
+        status, dx, use = joint_update_inplace(P, HP, S, residual, off_row, use, rest, pixel_var, gate)
+        if status:
+            use[:] = False
+    for j in range(k):
+        gated_run[slots[j]] = 0 if use[j] else gated_run[slots[j]] + 1
+    return status, dx, use
+
+
 _warm = False
 _warm_seconds = 0.0  # what warm_up took in this process
 slow_notice = None  # optional callable, called once when warm_up is still busy after NOTICE_AFTER s
@@ -754,6 +802,10 @@ def _call_every_kernel() -> None:
     one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
     inlier = np.array([True, False])
     joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
+    counts = np.zeros(k, dtype=np.int64)
+    count_rejections_inplace(counts, slots, inlier, 3)
+    select_and_update_inplace(P.copy(), HP, S, residual, off_row, nis, in_front, slots, 9.0, 2.0, 1.0, counts, 10,
+                              counts.copy())
     _triangulate_rows(pixels, 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)
     initialize_invariant(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)
     from backend.conventions import _left_errors  # the convention test's (backend.conventions imports no kernel)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from backend import se3
+from backend import kernels, se3
 from backend.camera import StereoCamera
 from backend.config import FilterConfig
 from backend.ekf import BIAS, CORE, POSE, ImuNoise, StepStats, VisualInertialEKF
@@ -589,22 +589,44 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
 def test_persistent_ransac_outliers_are_not_rescued():
     """A track rejected by the RANSAC persistent_outlier_steps times in a row is not rescued;
     the count follows the track id (across re-anchoring) and any other outcome resets it."""
+
+    def count(ekf, slots, rejected):  # what the filter's step does with the RANSAC's rejections
+        return kernels.count_rejections_inplace(ekf._outlier_run, slots, np.array(rejected, dtype=bool),
+                                                ekf.config.persistent_outlier_steps)
+
     drive = make_drive(10, seed=6)
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=3), NOISE)
     ekf.update(*drive.observations(0))
     slots = np.arange(4)
     a, b, c, d = ekf._ids[:4].tolist()
     steps = [[1, 1, 0, 1], [1, 1, 1, 1], [1, 0, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]]
-    flagged = [ekf._persistent_outliers(slots, np.array(r, dtype=bool)).tolist() for r in steps]
+    flagged = [count(ekf, slots, r).tolist() for r in steps]
     assert flagged == [[False] * 4, [False] * 4, [True, False, False, True], [True, False, True, True],
                        [False, False, True, True]]
-    assert ekf._outlier_run == {b: 2, c: 4, d: 5}  # a was reset by its inlier step
+    assert _outlier_counts(ekf) == {b: 2, c: 4, d: 5}  # a was reset by its inlier step
+    # d leaves the state as at re-anchoring (its track goes on) and comes back: the count goes on;
+    # c's track ends: its count ends with it
+    ids, pixels = drive.observations(0)
+    ekf._remove(np.isin(ekf._ids, [c, d]), to_map=True, ended=ekf._ids == c)
+    assert _outlier_counts(ekf) == {b: 2, d: 5}
+    back = ids == d
+    ekf.update(ids[back], pixels[back])
+    slot = ekf._slots_of(np.array([d]))
+    assert count(ekf, slot, [True]).tolist() == [True]
+    assert _outlier_counts(ekf) == {d: 6}  # b was not seen in that step: its track ended
     off = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=0), NOISE)
     off.update(*drive.observations(0))
     for k in range(1, 6):  # never counted when the rule is off
         off.predict(DT, drive.v_true[k - 1], drive.w_true[k - 1])
         off.update(*drive.observations(k))
-    assert off._outlier_run == {}
+    assert _outlier_counts(off) == {}
+
+
+def _outlier_counts(ekf: VisualInertialEKF) -> dict:
+    """Track id -> steps in a row the RANSAC rejected it (nonzero only), in the state or not."""
+    counts = {int(i): int(r) for i, r in zip(ekf._ids, ekf._outlier_run) if r}
+    counts.update(ekf._outlier_stash)
+    return counts
 
 
 def test_no_reanchoring_in_full_state(seq60):

@@ -296,6 +296,48 @@ def test_joint_update_with_rescue_equals_dense_update_over_kept_rows():
     np.testing.assert_allclose(dx, K @ residual[used].ravel(), rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("persistent", [0, 2])
+def test_select_and_update_is_gate_ransac_count_then_joint_update(persistent):
+    """The fused step = chi-square gate, 1-point RANSAC, the rejection count (tracks at the limit are
+    not rescued), the joint update, and the gated-run counts, each as the separate kernels do them."""
+    rng = np.random.default_rng(10)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=12, k=8)
+    residual = rng.normal(size=(slots.size, 3)) * 2.0
+    residual[[1, 5]] += 15.0  # two that agree with each other, not with the rest
+    residual[3] *= 40.0  # gated
+    off_row = rng.normal(size=slots.size)
+    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    in_front = np.ones(slots.size, dtype=bool)
+    in_front[6] = False
+    gate = 13.28
+    runs0 = rng.integers(0, 3, 12)
+    gated0 = rng.integers(0, 3, 12)
+    # the separate kernels
+    use = in_front & (nis <= gate)
+    inlier = kernels.one_point_ransac(S, residual, off_row, use, SIGMA2, 2.0)
+    rest = use & ~inlier
+    runs = runs0.copy()
+    if persistent:
+        rest &= ~kernels.count_rejections_inplace(runs, slots, rest, persistent)
+    expected_P = P.copy()
+    _, expected_dx, expected_used = kernels.joint_update_inplace(expected_P, HP, S, residual, off_row, inlier, rest,
+                                                                 SIGMA2, gate)
+    expected_gated = gated0.copy()
+    expected_gated[slots] = np.where(expected_used, 0, gated0[slots] + 1)
+    # fused
+    out_P, out_runs, out_gated = P.copy(), runs0.copy(), gated0.copy()
+    status, dx, used = kernels.select_and_update_inplace(out_P, HP, S, residual, off_row, nis, in_front, slots, gate,
+                                                         2.0, SIGMA2, out_runs, persistent, out_gated)
+    assert status == 0 and not used[3] and not used[6]
+    assert used.tolist() == expected_used.tolist()
+    np.testing.assert_array_equal(out_P, expected_P)
+    np.testing.assert_array_equal(dx, expected_dx)
+    np.testing.assert_array_equal(out_runs, runs)
+    np.testing.assert_array_equal(out_gated, expected_gated)
+    if persistent:
+        assert (out_runs != runs0).any()
+
+
 def test_joint_update_refuses_an_indefinite_innovation_covariance():
     rng = np.random.default_rng(9)
     P, slots, H_x, H_m = _problem(rng, n_landmarks=6, k=4)
