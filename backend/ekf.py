@@ -333,22 +333,12 @@ class VisualInertialEKF:
         if not self._use_vision:
             return stats
         t0 = time.perf_counter()
-        slots = self._slots_of(ids)
-        restart = None  # observations of re-anchored tracks (not a track's first landmark)
-        seen = slots[slots >= 0]
-        leaving = np.zeros(self._ids.size, dtype=bool)  # to the map, in one marginalization
-        if not self.config.full_state:
-            leaving[:] = True  # ended tracks
-            leaving[seen] = False
-            stats.marginalized = int(leaving.sum())
-        ended = leaving.copy()  # these tracks do not go on (their outlier counts end with them)
-        if self._reanchor and seen.size:
-            self._obs_count[seen] += 1
-            expired = seen[self._obs_count[seen] > self._obs_limit[seen]]
-            if expired.size:  # their observations start new landmarks below
-                stats.reanchored = expired.size
-                leaving[expired] = True
-                restart = (slots >= 0) & leaving[slots]
+        # where each observation goes; ended tracks and expired landmarks (re-anchoring) leave
+        slots, leaving, restart, stats.reanchored = kernels.plan_update(
+            ids, self._ids_sorted, self._ids_order, self._obs_count, self._obs_limit, self._reanchor,
+            self.config.full_state)
+        ended = leaving & ~kernels.observed_slots(slots, leaving.size)  # these tracks do not go on
+        stats.marginalized = int(ended.sum())
         if leaving.any():
             remap = self._remove(leaving, to_map=True, ended=ended)
             slots = np.where(slots >= 0, remap[slots], -1)
@@ -359,7 +349,7 @@ class VisualInertialEKF:
         t2 = time.perf_counter()
         new = ~known
         if new.any():
-            self._initialize(ids[new], pixels[new], stats, None if restart is None else restart[new])
+            self._initialize(ids[new], pixels[new], stats, restart[new] if stats.reanchored else None)
         self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
         stats.active = self._ids.size
         if stats.used or stats.gated:
@@ -559,10 +549,7 @@ class VisualInertialEKF:
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:
         """State slots of ``ids`` (-1 where not in the state)."""
-        if not self._ids.size:
-            return np.full(ids.size, -1, dtype=np.int64)
-        pos = np.minimum(np.searchsorted(self._ids_sorted, ids), self._ids.size - 1)
-        return np.where(self._ids_sorted[pos] == ids, self._ids_order[pos], -1)
+        return kernels.slots_of(np.asarray(ids, dtype=np.int64), self._ids_sorted, self._ids_order)
 
     def _reindex(self) -> None:
         self._ids_order = np.argsort(self._ids, kind="stable")

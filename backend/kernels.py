@@ -170,6 +170,56 @@ def landmark_covariances(P, slots, points, invariant):
     return out
 
 
+# ---------------------------------------------------------------- bookkeeping
+@_jit
+def slots_of(ids, ids_sorted, ids_order):
+    """State slots of ``ids`` (-1 where not in the state), for the state's ids sorted (``ids_sorted``)
+    and their slots (``ids_order``)."""
+    n = ids_sorted.size
+    slots = np.full(ids.size, -1, dtype=np.int64)
+    for j in range(ids.size):
+        pos = np.searchsorted(ids_sorted, ids[j])
+        if pos < n and ids_sorted[pos] == ids[j]:
+            slots[j] = ids_order[pos]
+    return slots
+
+
+@_jit
+def plan_update(ids, ids_sorted, ids_order, obs_count, obs_limit, reanchor, full_state):
+    """Where a step's observations go (backend.ekf ``update``), for the state's landmark ids sorted
+    (``ids_sorted``, at slots ``ids_order``): the slot of each observation's landmark (-1: new),
+    the landmarks that leave before the joint update (tracks not seen, unless ``full_state``; with
+    ``reanchor`` those seen beyond their ``obs_limit`` observations, counted in ``obs_count`` in
+    place), the observations that restart a re-anchored track, and how many were re-anchored."""
+    slots = slots_of(ids, ids_sorted, ids_order)
+    leaving = np.zeros(ids_sorted.size, dtype=np.bool_)
+    if not full_state:
+        leaving[:] = True
+    restart = np.zeros(ids.size, dtype=np.bool_)
+    expired = 0
+    for j in range(ids.size):
+        s = slots[j]
+        if s >= 0:
+            leaving[s] = False
+            if reanchor:
+                obs_count[s] += 1
+                if obs_count[s] > obs_limit[s]:
+                    leaving[s] = True
+                    restart[j] = True
+                    expired += 1
+    return slots, leaving, restart, expired
+
+
+@_jit
+def observed_slots(slots, n):
+    """(n,) True at the slots that ``slots`` (-1: none) names."""
+    out = np.zeros(n, dtype=np.bool_)
+    for s in slots:
+        if s >= 0:
+            out[s] = True
+    return out
+
+
 # ---------------------------------------------------------------- single-pose SE(3) (backend.se3, compiled)
 _coefficients = _jit(se3._coefficients)  # the same closed forms / Taylor series, compiled
 
@@ -788,6 +838,11 @@ def _call_every_kernel() -> None:
     gather_symmetric(P, np.arange(D - 3, dtype=np.int64))
     augment(P, np.zeros((3, 6)), np.ones((1, 3, 4)), 1.0)
     gather_landmarks(P, np.arange(k, dtype=np.int64))
+    ids = np.arange(k, dtype=np.int64)
+    counts = np.ones(k, dtype=np.int64)
+    planned = plan_update(ids, ids, ids, counts, counts.copy(), True, False)
+    slots_of(ids, ids, ids)
+    observed_slots(planned[0], k)
     points = np.ones((k, 3))
     landmark_covariances(P, slots, points, True)
     predict_invariant_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)

@@ -417,3 +417,22 @@ def test_warm_up_says_so_when_it_takes_a_while(monkeypatch):
     monkeypatch.setattr(kernels, "_call_every_kernel", lambda: called.wait(5.0))  # busy until the notice came
     assert kernels.warm_up() > 0.0 and called.is_set()
     assert kernels.warm_up() == 0.0  # once per process
+
+
+def test_plan_update_routes_observations_and_expires_landmarks():
+    """Slots of the observed ids, unseen tracks leaving, and with re-anchoring the landmarks seen
+    beyond their limit leaving too (their observations restart the track)."""
+    state_ids = np.array([10, 3, 7])
+    order = np.argsort(state_ids)
+    ids = np.array([7, 10, 42])
+    np.testing.assert_array_equal(kernels.slots_of(ids, state_ids[order], order), [2, 0, -1])
+    counts, limits = np.array([1, 3, 2]), np.array([5, 3, 2])
+    slots, leaving, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, True, False)
+    np.testing.assert_array_equal(slots, [2, 0, -1])
+    assert leaving.tolist() == [False, True, True]  # id 3 not seen; id 7 seen a third time, limit 2
+    assert restart.tolist() == [True, False, False] and expired == 1
+    np.testing.assert_array_equal(counts, [2, 3, 3])
+    counts = np.array([1, 3, 2])
+    _, leaving, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, False, True)
+    assert not leaving.any() and not restart.any() and expired == 0  # full state: nothing leaves
+    np.testing.assert_array_equal(counts, [1, 3, 2])
