@@ -80,6 +80,8 @@ from backend.errors import FilterError
 from backend.kernels import CORE, ROWS, SQRT_HALF
 
 _NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
+_TRACK_ROWS = _ID, _GATED, _COUNT, _LIMIT, _OUTLIER = range(5)  # rows of VisualInertialEKF._track
+_NONE = np.zeros(0, dtype=bool)  # an empty mask: none
 
 
 def _three_rows(a: np.ndarray) -> np.ndarray:
@@ -227,25 +229,21 @@ class VisualInertialEKF:
         self._landmark_walk = config.landmark_random_walk**2 if drift and config.landmark_parametrization == "xyz" else 0.0
         self._gate = float(chdtri(4, 1.0 - config.gate_probability))  # chi2(4) quantile
 
-        # active landmarks, in state order
-        self._ids = np.zeros(0, dtype=np.int64)
+        # active landmarks, in state order: parameters, and the counts of _TRACK_ROWS in one array
+        # (columns = landmarks: one gather or concatenation a step for all of them)
         self._kind = config.landmark_parametrization
         self._theta = np.zeros((0, 3))  # landmark parameters (backend.landmarks)
         self._theta_first = np.zeros((0, 3))  # their values at initialization (FEJ, body error model only)
         self._anchors = np.zeros((0, 4, 4))  # (inverse depth only: xyz anchors are the identity)
-        self._gated_run = np.zeros(0, dtype=np.int64)
-        self._obs_count = np.zeros(0, dtype=np.int64)  # observations since the landmark was anchored
-        self._obs_limit = np.zeros(0, dtype=np.int64)  # ... after which it is re-anchored
+        self._track = np.zeros((len(_TRACK_ROWS), 0), dtype=np.int64)
         self._reanchor = (drift and not config.full_state
                           and (config.reanchor_observations > 0 or config.reanchor_far_observations > 0))
         self._near_limit = config.reanchor_observations or _NEVER
         self._far_limit = config.reanchor_far_observations or _NEVER
-        # steps in a row the RANSAC rejected a track (``_persistent_outliers``): per landmark while the
-        # track is in the state, and by track id (nonzero only) for tracks that left it but may go on
-        self._outlier_run = np.zeros(0, dtype=np.int64)
+        # RANSAC rejection runs of tracks that left the state but may go on (track id -> count, nonzero)
         self._outlier_stash: dict[int, int] = {}
-        # the per-landmark arrays this configuration reads, kept in state order
-        self._per_landmark = ("_ids", "_theta", "_gated_run", "_obs_count", "_obs_limit", "_outlier_run")
+        # the per-landmark float arrays this configuration reads, kept in state order with _track
+        self._per_landmark = ("_theta",)
         if not self._invariant and config.first_estimate_jacobians:
             self._per_landmark += ("_theta_first",)
         if self._kind != "xyz":
@@ -260,6 +258,31 @@ class VisualInertialEKF:
         self.health = HealthMonitor(config.nis_window, config.nis_warn_factor)
         self.step_index = 0
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
+
+    # the rows of _track (views: kernels change the counts in place)
+    @property
+    def _ids(self) -> np.ndarray:
+        return self._track[_ID]
+
+    @property
+    def _gated_run(self) -> np.ndarray:
+        """Steps in a row the landmark was not used (gated or rejected)."""
+        return self._track[_GATED]
+
+    @property
+    def _obs_count(self) -> np.ndarray:
+        """Observations since the landmark was anchored."""
+        return self._track[_COUNT]
+
+    @property
+    def _obs_limit(self) -> np.ndarray:
+        """... after which it is re-anchored."""
+        return self._track[_LIMIT]
+
+    @property
+    def _outlier_run(self) -> np.ndarray:
+        """Steps in a row the RANSAC rejected the landmark's track (``kernels.count_rejections_inplace``)."""
+        return self._track[_OUTLIER]
 
     # ------------------------------------------------------------------ public state
     @property
@@ -461,22 +484,20 @@ class VisualInertialEKF:
         P_mm = J_xi P_xixi J_xi^T + J_z R J_z^T,  P_m,x = J_xi P_xi,x  (backend.landmarks.initialize).
         ``restart`` (n,) marks observations of re-anchored tracks (None: none)."""
         cfg = self.config
-        disparity = pixels[:, 0] - pixels[:, 2]
-        ok = disparity > cfg.min_disparity
-        if cfg.max_depth is not None:
-            ok &= self.camera.fx * self.camera.baseline / np.where(ok, disparity, 1.0) <= cfg.max_depth
-        n_ok = int(ok.sum())
-        stats.deferred = ids.size - n_ok
-        if not n_ok:
+        cam = self.camera
+        ok, counts, limits = kernels.admit_landmarks(
+            ids, pixels, np.zeros(ids.size, dtype=bool) if restart is None else restart, cfg.min_disparity,
+            np.inf if cfg.max_depth is None else cfg.max_depth, cam.fx * cam.baseline, self._reanchor,
+            cfg.reanchor_far_disparity, self._near_limit, self._far_limit)
+        stats.deferred = ids.size - ok.size
+        if not ok.size:
             return
-        if n_ok < ids.size:
-            ids, pixels, disparity = ids[ok], pixels[ok], disparity[ok]
-            restart = None if restart is None else restart[ok]
+        if ok.size < ids.size:
+            ids, pixels = ids[ok], pixels[ok]
         n = ids.size
         sigma = cfg.pixel_sigma if cfg.unbiased_triangulation else 0.0
         anchors = None
         if self._invariant:  # xyz: triangulation, (I4) and the augmentation in one compiled call
-            cam = self.camera
             self.P, theta = kernels.initialize_invariant(self.P, pixels, self.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx,
                                                          cam.cy, cam.baseline, sigma, self._R_pix, self._estimate_pose)
         else:
@@ -484,31 +505,17 @@ class VisualInertialEKF:
                                                              sigma or None)
             J_xi = J_xi.reshape(3 * n, 6) if self._estimate_pose else np.zeros((3 * n, 6))
             self.P = kernels.augment(self.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), self._R_pix)
-        limits = self._limits(disparity)
         stash = self._outlier_stash
         runs = (np.array([stash.pop(i, 0) for i in ids.tolist()], dtype=np.int64) if stash
                 else np.zeros(n, dtype=np.int64))
-        new = {"_ids": ids, "_theta": theta, "_gated_run": np.zeros(n, dtype=np.int64), "_outlier_run": runs,
-               "_obs_count": self._first_counts(ids, limits, restart), "_obs_limit": limits,
-               "_theta_first": theta, "_anchors": anchors}
+        track = np.empty((len(_TRACK_ROWS), n), dtype=np.int64)
+        track[_ID], track[_GATED], track[_COUNT], track[_LIMIT], track[_OUTLIER] = ids, 0, counts, limits, runs
+        self._track = np.concatenate([self._track, track], axis=1)
+        new = {"_theta": theta, "_theta_first": theta, "_anchors": anchors}
         for name in self._per_landmark:
             setattr(self, name, np.concatenate([getattr(self, name), new[name]]))
         self._reindex()
         stats.initialized = n
-
-    def _limits(self, disparity: np.ndarray) -> np.ndarray:
-        """Observations a landmark anchored at ``disparity`` lives for before re-anchoring (module docstring)."""
-        return np.where(disparity < self.config.reanchor_far_disparity, self._far_limit, self._near_limit)
-
-    def _first_counts(self, ids: np.ndarray, limits: np.ndarray, restart: np.ndarray | None) -> np.ndarray:
-        """Count of the anchoring observation: 1, or 1 + id mod limit on a track's first landmark
-        (not ``restart``: staggers the re-anchoring of landmarks born together)."""
-        if not self._reanchor:
-            return np.ones(ids.size, dtype=np.int64)
-        stagger = limits < _NEVER
-        if restart is not None:
-            stagger &= ~restart
-        return 1 + np.where(stagger, ids % limits, 0)
 
     def _landmark_covariances(self, slots: np.ndarray) -> np.ndarray:
         """Covariances (k,3,3) of the landmark parameters (world positions for the invariant error, I6)."""
@@ -532,19 +539,17 @@ class VisualInertialEKF:
         """Marginalize the landmarks in ``mask`` (drop their rows and columns); returns the new slot
         of each old one (-1: removed). The outlier counts of tracks that may go on (not ``ended``)
         are kept by track id."""
-        going_on = mask if ended is None else mask & ~ended
-        counted = going_on & (self._outlier_run > 0)
-        if counted.any():
+        removed, keep_lm, remap, counted = kernels.plan_removal(mask, _NONE if ended is None else ended,
+                                                                self._outlier_run)
+        if counted.size:
             self._outlier_stash.update(zip(self._ids[counted].tolist(), self._outlier_run[counted].tolist()))
         if to_map:
-            self._to_map(np.flatnonzero(mask))
-        keep_lm = np.flatnonzero(~mask)
+            self._to_map(removed)
         self.P = kernels.gather_landmarks(self.P, keep_lm)  # C-ordered, one pass
+        self._track = np.take(self._track, keep_lm, axis=1)  # C-ordered (a[:, idx] is not): contiguous rows
         for name in self._per_landmark:
             setattr(self, name, getattr(self, name)[keep_lm])
         self._reindex()
-        remap = np.full(mask.size, -1, dtype=np.int64)
-        remap[keep_lm] = np.arange(keep_lm.size)
         return remap
 
     def _slots_of(self, ids: np.ndarray) -> np.ndarray:

@@ -220,6 +220,53 @@ def observed_slots(slots, n):
     return out
 
 
+@_jit
+def admit_landmarks(ids, pixels, restart, min_disparity, max_depth, fx_baseline, reanchor, far_disparity,
+                    near_limit, far_limit):
+    """Which new features start landmarks: disparity > ``min_disparity`` and depth fx b / d <=
+    ``max_depth`` (the others wait for a later observation). Returns their indices, and for each
+    the observations it lives for before re-anchoring (``far_limit`` when anchored below
+    ``far_disparity``: distant points drift little) and the count of its anchoring observation:
+    1, or with ``reanchor`` 1 + id mod limit on a track's first landmark (not ``restart``), so that
+    landmarks born together are not all re-anchored at once (backend.ekf docstring)."""
+    ok = np.empty(ids.size, dtype=np.int64)
+    n = 0
+    for j in range(ids.size):
+        d = pixels[j, 0] - pixels[j, 2]
+        if d > min_disparity and fx_baseline / d <= max_depth:
+            ok[n] = j
+            n += 1
+    ok = ok[:n]
+    counts = np.ones(n, dtype=np.int64)
+    limits = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        j = ok[i]
+        limits[i] = far_limit if pixels[j, 0] - pixels[j, 2] < far_disparity else near_limit
+        if reanchor and not restart[j] and limits[i] < np.iinfo(np.int64).max:
+            counts[i] += ids[j] % limits[i]
+    return ok, counts, limits
+
+
+@_jit
+def plan_removal(mask, ended, outlier_run):
+    """Index arrays of a marginalization of the landmark slots ``mask``: the removed slots, the kept
+    ones, the new slot of each old one (-1: removed), and the removed ones whose tracks go on (not
+    ``ended``, an empty array meaning none ended) with a RANSAC rejection run to keep."""
+    n = mask.size
+    removed = np.flatnonzero(mask)
+    keep = np.flatnonzero(~mask)
+    remap = np.full(n, -1, dtype=np.int64)
+    for i in range(keep.size):
+        remap[keep[i]] = i
+    counted = np.empty(removed.size, dtype=np.int64)
+    c = 0
+    for s in removed:
+        if outlier_run[s] > 0 and not (ended.size and ended[s]):
+            counted[c] = s
+            c += 1
+    return removed, keep, remap, counted[:c]
+
+
 # ---------------------------------------------------------------- single-pose SE(3) (backend.se3, compiled)
 _coefficients = _jit(se3._coefficients)  # the same closed forms / Taylor series, compiled
 
@@ -842,6 +889,11 @@ def _call_every_kernel() -> None:
     counts = np.ones(k, dtype=np.int64)
     planned = plan_update(ids, ids, ids, counts, counts.copy(), True, False)
     slots_of(ids, ids, ids)
+    admit_landmarks(ids, np.array([[600.0, 180.0, 560.0, 180.0]] * k), np.zeros(k, dtype=np.bool_), 1.0, np.inf,
+                    350.0, True, 6.0, 3, 25)
+    mask = np.array([True, False])
+    plan_removal(mask, mask, counts)
+    plan_removal(mask, np.zeros(0, dtype=np.bool_), counts)
     observed_slots(planned[0], k)
     points = np.ones((k, 3))
     landmark_covariances(P, slots, points, True)

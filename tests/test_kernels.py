@@ -436,3 +436,31 @@ def test_plan_update_routes_observations_and_expires_landmarks():
     _, leaving, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, False, True)
     assert not leaving.any() and not restart.any() and expired == 0  # full state: nothing leaves
     np.testing.assert_array_equal(counts, [1, 3, 2])
+
+
+def test_admit_landmarks_filters_by_disparity_and_depth_and_staggers_first_counts():
+    """New features start landmarks where disparity > min and depth fx b / d <= max; the limit is the
+    far one below the far disparity; a track's first landmark starts at 1 + id mod limit, a
+    re-anchored one (restart) at 1."""
+    ids = np.array([7, 8, 9, 10, 11])
+    d = np.array([0.5, 3.0, 20.0, 2.0, 40.0])  # disparity, px
+    pixels = np.column_stack([500.0 + d, np.full(5, 200.0), np.full(5, 500.0), np.full(5, 200.0)])
+    restart = np.array([False, False, True, False, False])
+    ok, counts, limits = kernels.admit_landmarks(ids, pixels, restart, 1.0, 100.0, 250.0, True, 6.0, 3, 25)
+    np.testing.assert_array_equal(ok, [1, 2, 4])  # 0.5 px: too small; 2 px: 125 m > 100 m
+    np.testing.assert_array_equal(limits, [25, 3, 3])
+    np.testing.assert_array_equal(counts, [1 + 8 % 25, 1, 1 + 11 % 3])
+    _, counts, _ = kernels.admit_landmarks(ids, pixels, restart, 1.0, np.inf, 350.0, False, 6.0, 3, 25)
+    assert (counts == 1).all()  # no re-anchoring: no stagger
+
+
+def test_plan_removal_index_arrays():
+    mask = np.array([True, False, True, True, False])
+    ended = np.array([True, False, False, False, False])
+    runs = np.array([2, 0, 3, 0, 1])
+    removed, keep, remap, counted = kernels.plan_removal(mask, ended, runs)
+    np.testing.assert_array_equal(removed, [0, 2, 3])
+    np.testing.assert_array_equal(keep, [1, 4])
+    np.testing.assert_array_equal(remap, [-1, 0, -1, -1, 1])
+    np.testing.assert_array_equal(counted, [2])  # slot 0 ended, slot 3 has no run
+    np.testing.assert_array_equal(kernels.plan_removal(mask, np.zeros(0, dtype=bool), runs)[3], [0, 2])
