@@ -357,10 +357,9 @@ class VisualInertialEKF:
             return stats
         t0 = time.perf_counter()
         # where each observation goes; ended tracks and expired landmarks (re-anchoring) leave
-        slots, leaving, restart, stats.reanchored = kernels.plan_update(
+        slots, leaving, ended, restart, stats.reanchored = kernels.plan_update(
             ids, self._ids_sorted, self._ids_order, self._obs_count, self._obs_limit, self._reanchor,
             self.config.full_state)
-        ended = leaving & ~kernels.observed_slots(slots, leaving.size)  # these tracks do not go on
         stats.marginalized = int(ended.sum())
         if leaving.any():
             remap = self._remove(leaving, to_map=True, ended=ended)

@@ -187,37 +187,29 @@ def slots_of(ids, ids_sorted, ids_order):
 @_jit
 def plan_update(ids, ids_sorted, ids_order, obs_count, obs_limit, reanchor, full_state):
     """Where a step's observations go (backend.ekf ``update``), for the state's landmark ids sorted
-    (``ids_sorted``, at slots ``ids_order``): the slot of each observation's landmark (-1: new),
-    the landmarks that leave before the joint update (tracks not seen, unless ``full_state``; with
-    ``reanchor`` those seen beyond their ``obs_limit`` observations, counted in ``obs_count`` in
-    place), the observations that restart a re-anchored track, and how many were re-anchored."""
+    (``ids_sorted``, at slots ``ids_order``). Returns the slot of each observation's landmark (-1:
+    new); the landmarks that leave before the joint update: the tracks not seen (``ended``, unless
+    ``full_state``) and with ``reanchor`` those seen beyond their ``obs_limit`` observations
+    (counted in ``obs_count`` in place); the observations that restart such a track; their number."""
     slots = slots_of(ids, ids_sorted, ids_order)
-    leaving = np.zeros(ids_sorted.size, dtype=np.bool_)
+    ended = np.zeros(ids_sorted.size, dtype=np.bool_)
     if not full_state:
-        leaving[:] = True
+        ended[:] = True
     restart = np.zeros(ids.size, dtype=np.bool_)
+    for j in range(ids.size):
+        if slots[j] >= 0:
+            ended[slots[j]] = False
+    leaving = ended.copy()
     expired = 0
     for j in range(ids.size):
         s = slots[j]
-        if s >= 0:
-            leaving[s] = False
-            if reanchor:
-                obs_count[s] += 1
-                if obs_count[s] > obs_limit[s]:
-                    leaving[s] = True
-                    restart[j] = True
-                    expired += 1
-    return slots, leaving, restart, expired
-
-
-@_jit
-def observed_slots(slots, n):
-    """(n,) True at the slots that ``slots`` (-1: none) names."""
-    out = np.zeros(n, dtype=np.bool_)
-    for s in slots:
-        if s >= 0:
-            out[s] = True
-    return out
+        if reanchor and s >= 0:
+            obs_count[s] += 1
+            if obs_count[s] > obs_limit[s]:
+                leaving[s] = True
+                restart[j] = True
+                expired += 1
+    return slots, leaving, ended, restart, expired
 
 
 @_jit
@@ -887,14 +879,13 @@ def _call_every_kernel() -> None:
     gather_landmarks(P, np.arange(k, dtype=np.int64))
     ids = np.arange(k, dtype=np.int64)
     counts = np.ones(k, dtype=np.int64)
-    planned = plan_update(ids, ids, ids, counts, counts.copy(), True, False)
+    plan_update(ids, ids, ids, counts, counts.copy(), True, False)
     slots_of(ids, ids, ids)
-    admit_landmarks(ids, np.array([[600.0, 180.0, 560.0, 180.0]] * k), np.zeros(k, dtype=np.bool_), 1.0, np.inf,
-                    350.0, True, 6.0, 3, 25)
+    pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
+    admit_landmarks(ids, pixels, np.zeros(k, dtype=np.bool_), 1.0, np.inf, 350.0, True, 6.0, 3, 25)
     mask = np.array([True, False])
     plan_removal(mask, mask, counts)
     plan_removal(mask, np.zeros(0, dtype=np.bool_), counts)
-    observed_slots(planned[0], k)
     points = np.ones((k, 3))
     landmark_covariances(P, slots, points, True)
     predict_invariant_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)

@@ -427,14 +427,17 @@ def test_plan_update_routes_observations_and_expires_landmarks():
     ids = np.array([7, 10, 42])
     np.testing.assert_array_equal(kernels.slots_of(ids, state_ids[order], order), [2, 0, -1])
     counts, limits = np.array([1, 3, 2]), np.array([5, 3, 2])
-    slots, leaving, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, True, False)
+    slots, leaving, ended, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, True,
+                                                                  False)
     np.testing.assert_array_equal(slots, [2, 0, -1])
     assert leaving.tolist() == [False, True, True]  # id 3 not seen; id 7 seen a third time, limit 2
+    assert ended.tolist() == [False, True, False]
     assert restart.tolist() == [True, False, False] and expired == 1
     np.testing.assert_array_equal(counts, [2, 3, 3])
     counts = np.array([1, 3, 2])
-    _, leaving, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, False, True)
-    assert not leaving.any() and not restart.any() and expired == 0  # full state: nothing leaves
+    _, leaving, ended, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, False,
+                                                              True)
+    assert not leaving.any() and not ended.any() and not restart.any() and expired == 0  # full state: none leaves
     np.testing.assert_array_equal(counts, [1, 3, 2])
 
 
