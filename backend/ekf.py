@@ -35,7 +35,7 @@ NIS, gate and RANSAC errors are computed over all 4), at (3/4)^2 of the dense wo
 Each 3-row block of H touches 6 pose and 3 landmark columns. Per step: chi-square gate (4 dof)
 on the prior innovation blocks; 1-point RANSAC (Civera et al. 2010), every observation a
 hypothesis; a rescue test of the rest against the inliers' update (U3); then, with S = L L^T
-over the kept rows (U2 and U3 in one compiled call, ``kernels.joint_update_inplace``),
+over the kept rows (all of it one compiled call, ``kernels.select_and_update_inplace``),
 
     A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A                               (U2)
 

@@ -1,18 +1,22 @@
 """Compiled kernels of the EKF step (numba): the small-matrix work between the BLAS calls.
 
 Why compiled: at the filter's sizes (D ~ 210 states, ~140 measurement rows, ~65 landmarks) the
-dense BLAS work of a step takes ~0.6 ms, but written with numpy the rest of the step was ~100
+dense BLAS work of a step takes ~0.35 ms, but written with numpy the rest of the step was ~100
 array calls of 5-20 us each plus several passes over the D x D covariance (~3 ms a step on the
 real drives). Each kernel below replaces one group of those calls with a single loop nest over
 the same numbers; the equations are the ones of ``backend.ekf`` and ``backend.invariant``, cited
-by their labels (U1-U3, I2, I3). The BLAS/LAPACK routines they call (potrf, trsm, syrk, gemm)
-are declared in ``backend.linalg``, so the whole joint update is one compiled call.
+by their labels (U1-U3, I2-I6). The BLAS/LAPACK routines they call (potrf, trsm, syrk, gemm)
+are declared in ``backend.linalg``. A step of the default (invariant) filter is a handful of
+calls: ``predict_invariant_step``; then ``plan_update`` (where each observation goes),
+``plan_removal`` + ``gather_landmarks`` (ended tracks to the map), ``innovation_invariant``,
+``select_and_update_inplace`` (gate, RANSAC, the joint update), ``retract_invariant_inplace``,
+``admit_landmarks`` + ``initialize_invariant`` (new landmarks).
 
 Compiled on first use and cached beside this file (``cache=True``): the first run after an
-install compiles for ~20 s; later processes load the cache in ~0.5 s (numba's start-up).
-All kernels are pure functions except the ones named ``*_inplace``.
+install compiles for ~30 s; later processes load the cache in ~0.5 s (numba's start-up).
+All kernels are pure functions except the ones named ``*_inplace`` (and ``plan_update``, which
+counts the observations in place).
 """
-
 from __future__ import annotations
 
 import numpy as np
