@@ -33,17 +33,23 @@ def _problem(rng, n_landmarks: int = 12, k: int = 8):
     return P, slots, H_x, H_m
 
 
+def _prediction_problem(rng, K: int):
+    """P over pose, bias and K landmarks, a pose, a twist, K world points, dt, the twist noise q and a
+    bias random-walk variance."""
+    P = _spd(rng, CORE + 3 * K)
+    mu = se3.exp_se3(rng.normal(size=6))
+    twist = rng.normal(size=6) * 0.1
+    points = rng.normal(size=(K, 3)) * 10.0
+    return P, mu, twist, points, 0.1, rng.uniform(0.01, 0.1, 6), 3e-7
+
+
 @pytest.mark.parametrize("bias", [True, False])
 def test_predict_invariant_equals_dense_propagation(bias):
     """(I2): P <- F P F^T + G Q G^T with F = I + g e_b^T, G = [G_pose; m_i^ R_phi] diag(q)."""
     rng = np.random.default_rng(1)
     K = 7
     D = CORE + 3 * K
-    P = _spd(rng, D)
-    mu = se3.exp_se3(rng.normal(size=6))
-    twist = rng.normal(size=6) * 0.1
-    points = rng.normal(size=(K, 3)) * 10.0
-    dt, q, walk = 0.1, rng.uniform(0.01, 0.1, 6), 3e-7
+    P, mu, twist, points, dt, q, walk = _prediction_problem(rng, K)
     G_pose, G_lm = invariant.noise_jacobian(mu, twist, points)
     G = np.zeros((D, 6))
     G[:6] = G_pose
@@ -79,11 +85,8 @@ def test_predict_step_is_mean_propagation_then_invariant_covariance():
     rng = np.random.default_rng(3)
     K = 5
     D = CORE + 3 * K
-    P = _spd(rng, D)
-    mu = se3.exp_se3(rng.normal(size=6))
-    twist = rng.normal(size=6) * 0.1
-    points = rng.normal(size=(K, 3)) * 10.0
-    dt, q, walk, lm_walk = 0.1, rng.uniform(0.01, 0.1, 6), 3e-7, 2e-4
+    P, mu, twist, points, dt, q, walk = _prediction_problem(rng, K)
+    lm_walk = 2e-4
     mu_next = mu @ se3.exp_se3(twist)
     expected = P.copy()
     expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
