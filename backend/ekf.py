@@ -84,6 +84,11 @@ _TRACK_ROWS = _ID, _GATED, _COUNT, _LIMIT, _OUTLIER = range(5)  # rows of Visual
 _NONE = np.zeros(0, dtype=bool)  # an empty mask: none
 
 
+def _track_row(row: int, doc: str) -> property:
+    """A read-only attribute that is row ``row`` of ``VisualInertialEKF._track`` (a view)."""
+    return property(lambda self: self._track[row], doc=doc)
+
+
 def _three_rows(a: np.ndarray) -> np.ndarray:
     """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
     out = a[:, :3].copy()
@@ -259,30 +264,13 @@ class VisualInertialEKF:
         self.step_index = 0
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
 
-    # the rows of _track (views: kernels change the counts in place)
-    @property
-    def _ids(self) -> np.ndarray:
-        return self._track[_ID]
-
-    @property
-    def _gated_run(self) -> np.ndarray:
-        """Steps in a row the landmark was not used (gated or rejected)."""
-        return self._track[_GATED]
-
-    @property
-    def _obs_count(self) -> np.ndarray:
-        """Observations since the landmark was anchored."""
-        return self._track[_COUNT]
-
-    @property
-    def _obs_limit(self) -> np.ndarray:
-        """... after which it is re-anchored."""
-        return self._track[_LIMIT]
-
-    @property
-    def _outlier_run(self) -> np.ndarray:
-        """Steps in a row the RANSAC rejected the landmark's track (``kernels.count_rejections_inplace``)."""
-        return self._track[_OUTLIER]
+    # the rows of _track, as views (kernels change the counts in place)
+    _ids = _track_row(_ID, "Track id (the feature column) of each landmark.")
+    _gated_run = _track_row(_GATED, "Steps in a row the landmark was not used (gated or rejected).")
+    _obs_count = _track_row(_COUNT, "Observations since the landmark was anchored.")
+    _obs_limit = _track_row(_LIMIT, "... after which it is re-anchored.")
+    _outlier_run = _track_row(_OUTLIER, "Steps in a row the RANSAC rejected the landmark's track "
+                                        "(``kernels.count_rejections_inplace``).")
 
     # ------------------------------------------------------------------ public state
     @property

@@ -35,7 +35,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import queue
 import tempfile
+import threading
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -439,9 +441,6 @@ class _InflateAhead:
     _AHEAD = 4
 
     def __init__(self, path: Path, info: zipfile.ZipInfo) -> None:
-        import queue
-        import threading
-
         self._info = info
         self._queue: queue.Queue = queue.Queue(self._AHEAD)
         self._stop = threading.Event()
@@ -453,8 +452,6 @@ class _InflateAhead:
         self._thread.start()
 
     def _put(self, item) -> bool:
-        import queue
-
         while not self._stop.is_set():
             try:
                 self._queue.put(item, timeout=0.1)
