@@ -26,7 +26,7 @@ import numpy as np
 
 from backend.errors import InputError
 
-__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose"]
+__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose", "alignment_scale"]
 
 MIN_MATCHES = 3
 FALLBACK_DELTA_FRAMES = 10
@@ -121,20 +121,21 @@ def associate(
     )
 
 
-def _aligned(est_t, est_poses, gt_t, gt_poses, sim3: bool, max_diff: float):
-    """(aligned estimate, ground truth) evo trajectories of the matched poses."""
+def _aligned(est_t, est_poses, gt_t, gt_poses, sim3: bool, max_diff: float, with_scale: bool = False):
+    """(aligned estimate, ground truth) evo trajectories of the matched poses, and with
+    ``with_scale`` the scale the alignment applied to the estimate."""
     from evo.core.geometry import GeometryException
 
     est_sync, ref_sync = _associated(est_t, est_poses, gt_t, gt_poses, max_diff)
     est_aligned = copy.deepcopy(est_sync)
     try:
-        est_aligned.align(ref_sync, correct_scale=sim3)
+        *_, scale = est_aligned.align(ref_sync, correct_scale=sim3)
     except GeometryException as exc:
         raise InputError(
             f"cannot align the estimate to the ground truth ({exc}); are the "
             f"{ref_sync.num_poses} matched positions all on one straight line?"
         ) from exc
-    return est_aligned, ref_sync
+    return (est_aligned, ref_sync, float(scale)) if with_scale else (est_aligned, ref_sync)
 
 
 def _ape(est_aligned, ref):
@@ -255,3 +256,10 @@ def aligned_poses(
     est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
     return (np.array(est_aligned.timestamps, dtype=float), np.array(est_aligned.poses_se3, dtype=float),
             np.array(ref.poses_se3, dtype=float))
+
+
+def alignment_scale(est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, max_diff: float = 0.01) -> float:
+    """The scale a Sim(3) (Umeyama) alignment of the matched poses applies to the estimate, as in
+    ``trajectory_errors(..., sim3=True)``: < 1 when the estimate's path is longer than the
+    ground truth's."""
+    return _aligned(est_t, est_poses, gt_t, gt_poses, True, max_diff, with_scale=True)[2]

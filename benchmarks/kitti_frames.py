@@ -31,7 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from backend.metrics import alignment_scale, trajectory_errors  # noqa: E402
 from tools.cli import main as vislam  # noqa: E402
+from tools.outputs import read_tum  # noqa: E402
 
 BIAS = np.array([0.01, -0.01, 0.01])
 
@@ -67,16 +69,9 @@ def run(images: Path, imu: Path, gt: Path, overrides: list[str]) -> dict:
 
 
 def sim3_ate(estimate: Path, gt: Path) -> tuple[float, float]:
-    """(ATE RMSE after a Sim(3) alignment, the scale applied to the estimate), evo."""
-    from evo.core import metrics, sync
-    from evo.tools import file_interface
-
-    ref, est = sync.associate_trajectories(file_interface.read_tum_trajectory_file(str(gt)),
-                                           file_interface.read_tum_trajectory_file(str(estimate)), max_diff=0.01)
-    *_, scale = est.align(ref, correct_scale=True)
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((ref, est))
-    return float(ape.get_statistic(metrics.StatisticsType.rmse)), float(scale)
+    """(ATE RMSE after a Sim(3) alignment, the scale applied to the estimate)."""
+    poses = (*read_tum(estimate), *read_tum(gt))
+    return trajectory_errors(*poses, sim3=True).ate_rmse, alignment_scale(*poses)
 
 
 def main() -> int:

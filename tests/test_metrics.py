@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from backend.errors import InputError
-from backend.metrics import TrajectoryErrors, associate, ate_per_pose, trajectory_errors
+from backend.metrics import TrajectoryErrors, alignment_scale, associate, ate_per_pose, trajectory_errors
 
 N = 200  # even, so alternating offsets cancel exactly over the closed circle
 
@@ -104,6 +104,7 @@ def test_sim3_removes_scale_se3_does_not():
     assert sim3.alignment == "sim3" and se3.alignment == "se3"
     assert sim3.ate_rmse < 1e-9
     assert sim3.rpe_trans_rmse < 1e-9
+    assert alignment_scale(t, est, t, gt) == pytest.approx(1 / 1.5, rel=1e-9)  # the estimate shrunk onto gt
     assert se3.ate_rmse > 1.0  # half the radius, roughly
     assert se3.rpe_trans_rmse > 0.1
 
