@@ -1,17 +1,17 @@
-"""The four numbers of issue 4 on the 51 real KITTI frames: images -> vislam's tracker -> filter.
+"""SLAM from pixels on the 51 real KITTI frames: images -> vislam's tracker -> filter, clean and noisy IMU.
 
 ``../shared/images/kitti_odom01_f000000-000050`` lines up with ``ece276a2019_0042.npz`` (frame i =
 step i). The IMU is that file's, as given ("clean"), or with white noise of 0.5 m/s and 0.05 rad/s
 per axis and a gyro bias of (0.01, -0.01, 0.01) rad/s added to every step ("noisy": the 2020
 files' noise; ``numpy.random.default_rng(seed)``, linear then angular noise, (500, 3) each).
-Each runs ``vislam run IMAGES --imu IMU --gt GT`` in-process and prints the ATE (SE(3)-aligned, as
-the issues define it) of SLAM and of dead reckoning over frames 0-50, their ratio, and the
+Each runs ``vislam run IMAGES --imu IMU --gt GT`` in-process and prints the ATE (SE(3)-aligned)
+of SLAM and of dead reckoning over frames 0-50, their ratio, and the
 filter's mean NIS; then the same ATE after a Sim(3) alignment (Umeyama with scale, evo) and the
 scale it applies. On these frames the ground truth is ~5 % shorter than what both the images and
 the IMU show (BENCHMARKS.md, front end), and the Sim(3) columns show what remains once that one
-number is taken out: they are evidence, not the issues' metric.
+number is taken out.
 
-Usage: python benchmarks/kitti_frames.py [--seed 0] [--seeds N] [--shared ../shared] [--set KEY=VALUE ...]
+Usage: python benchmarks/kitti_frames.py [--seed 0] [--seeds N] [--shared ../shared] [--set TABLE.KEY=VALUE ...]
 (``--seeds N``: noisy rows for seeds 0 .. N-1 instead of the one ``--seed``.)
 """
 
@@ -29,11 +29,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from backend.metrics import alignment_scale, trajectory_errors  # noqa: E402
-from tools.cli import main as vislam  # noqa: E402
-from tools.outputs import read_tum  # noqa: E402
+from vislam.backend.evaluation.metrics import alignment_scale, trajectory_errors
+from vislam.tools.cli import main as vislam
+from vislam.backend.data.tum import read_tum
 
 BIAS = np.array([0.01, -0.01, 0.01])
 
@@ -79,7 +78,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--seeds", type=int, default=0, help="noisy rows for seeds 0 .. N-1")
     parser.add_argument("--shared", type=Path, default=ROOT.parent / "shared")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="TABLE.KEY=VALUE")
     args = parser.parse_args()
     images = args.shared / "images" / "kitti_odom01_f000000-000050"
     clean = args.shared / "data" / "ece276a2019_0042.npz"

@@ -18,12 +18,11 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from backend.conventions import matched_pairs, reprojection_error  # noqa: E402
-from backend.imu import dead_reckoning  # noqa: E402
-from backend.sequence import load_sequence  # noqa: E402
-from frontend.images import open_stereo_directory  # noqa: E402
+from vislam.backend.run.conventions import matched_pairs, reprojection_error
+from vislam.backend.estimator.propagation import dead_reckoning
+from vislam.backend.data.npz import load_sequence
+from vislam.frontend.images import open_stereo_directory
 
 shared = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT.parent / "shared"
 stereo = open_stereo_directory(shared / "images" / "kitti_odom01_f000000-000050")

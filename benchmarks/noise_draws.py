@@ -1,7 +1,7 @@
 """SLAM accuracy on KITTI 07 over several draws of the velocity noise (BENCHMARKS.md, accuracy).
 
 ``ece276a_0027.npz`` carries one draw of white velocity noise, so its single ATE moves by about a
-metre under any small change of the filter (BENCHMARKS.md, finding 5). This script keeps the
+metre under any small change of the filter. This script keeps the
 file's feature tracks and rebuilds the velocities from ground truth: the body twist between
 consecutive ground-truth poses, xi_k = log(T_k^-1 T_{k+1}) / tau_k, stamped k+1 as the file's
 convention says (velocity_index = next). Each draw adds white noise of 0.5 m/s and 0.05 rad/s per
@@ -10,10 +10,10 @@ axis and a constant gyro bias N(0, 0.005^2) rad/s per axis (the 2020 files' nois
 fixed as measured on the file (extrinsic as given, velocity k+1).
 
 ``--noise-scale 0`` keeps the true velocities (one draw is enough then); with
-``--set linear_velocity_sigma=0.5 --set angular_velocity_sigma=0.05`` the filter still weighs them
+``--set noise.linear_velocity_sigma=0.5 --set noise.angular_velocity_sigma=0.05`` the filter still weighs them
 as noisy, which measures where the feature tracks alone pull the estimate.
 
-Usage: python benchmarks/noise_draws.py [--draws 6] [--noise-scale 1] [--shared ../shared] [--set KEY=VALUE ...]
+Usage: python benchmarks/noise_draws.py [--draws 6] [--noise-scale 1] [--shared ../shared] [--set TABLE.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -28,15 +28,15 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from backend import se3  # noqa: E402
-from backend.config import FilterConfig, apply_overrides  # noqa: E402
-from backend.errors import VislamError  # noqa: E402
-from backend.metrics import trajectory_errors  # noqa: E402
-from backend.pipeline import run_sequence  # noqa: E402
-from backend.sequence import Sequence, load_sequence  # noqa: E402
-from tools.outputs import read_tum  # noqa: E402
+from vislam.backend.geometry import se3
+from vislam.backend.config import Config
+from vislam.backend.errors import VislamError
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.run.runner import run_sequence
+from vislam.backend.data.sequence import Sequence
+from vislam.backend.data.npz import load_sequence
+from vislam.backend.data.tum import read_tum
 
 LINEAR_SIGMA, ANGULAR_SIGMA, BIAS_SIGMA = 0.5, 0.05, 0.005
 
@@ -56,12 +56,13 @@ def main() -> int:
     parser.add_argument("--draws", type=int, default=6)
     parser.add_argument("--noise-scale", type=float, default=1.0, help="multiplies the three noise sigmas")
     parser.add_argument("--shared", type=Path, default=ROOT.parent / "shared")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE")
     args = parser.parse_args()
     try:
         seq = load_sequence(args.shared / "data" / "ece276a_0027.npz")
         gt_t, gt = read_tum(args.shared / "data" / "gt" / "ece276a_0027_gt_tum.txt")
-        config = apply_overrides(FilterConfig(imu_flip="no", velocity_index="next"), args.set).validate()
+        base = Config.from_values({"conventions.imu_flip": "no", "conventions.velocity_index": "next"})
+        config = base.with_assignments(args.set)
     except VislamError as e:  # missing ../shared, a bad --set
         print(f"noise_draws: error: {e}", file=sys.stderr)
         return 2

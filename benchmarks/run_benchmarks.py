@@ -16,7 +16,7 @@ A warm-up run of the smallest file comes first and is reported
 below the table: the first run after an install compiles the kernels (one time, slower and larger),
 so that the table measures the runs a user makes every day. "import + kernels" is the start-up a
 process pays once, apart from the real-time factor: imports (numba's included) and loading the
-compiled kernels (~0.5 s; compiling them, ~15-20 s, happens once after an install).
+compiled kernels (~0.5 s; compiling them, up to a minute, happens once after an install).
 """
 
 from __future__ import annotations
@@ -44,16 +44,16 @@ def status_mb():  # resident memory at the end: anonymous (own data) and mapped 
     except (OSError, KeyError, ValueError):
         return {"anon_mb": float("nan"), "file_mb": float("nan")}
 t0 = time.perf_counter()
-from backend.config import FilterConfig
-from backend.pipeline import run_sequence
-from backend.sequence import load_sequence
-from tools.report import write_run_outputs
+from vislam.backend.config import Config
+from vislam.backend.data.npz import load_sequence
+from vislam.backend.run.runner import run_sequence
+from vislam.tools.report import write_run_outputs
 t_import = time.perf_counter() - t0
 t1 = time.perf_counter()
 seq = load_sequence(sys.argv[1])
 t_load = time.perf_counter() - t1
 warnings.simplefilter("ignore")
-runs = [run_sequence(seq, FilterConfig()) for _ in range(REPEATS)]
+runs = [run_sequence(seq, Config()) for _ in range(REPEATS)]
 result = min(runs, key=lambda r: r.stats.wall_seconds)  # best of REPEATS: the machine is shared
 step_min_s = float(np.min([r.step_seconds for r in runs], axis=0).sum())  # each step's fastest run
 t2 = time.perf_counter()

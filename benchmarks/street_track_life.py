@@ -5,7 +5,7 @@ excluded) at several start frames, the true 3-D point under each (``synth.render
 is followed with the true poses until it leaves either image (the tracker's ``border_px``), falls
 behind the camera or is hidden by a nearer surface (depth test against that frame's depth map,
 5 %). Its life is the number of frames it was visible, the start frame included: what a tracker
-that spreads its tracks over the image (issue 4 asks for a grid with a per-cell budget) could
+that spreads its tracks over the image (a grid with a per-cell budget, as vislam's does) could
 reach if it never lost a track. The tracker's own numbers on the same frames follow.
 
 Usage: python benchmarks/street_track_life.py [--frames 50] [--seed 0] [--spacing 16]
@@ -20,13 +20,12 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from backend import se3  # noqa: E402
-from frontend.config import TrackerConfig  # noqa: E402
-from frontend.tracker import StereoTracker  # noqa: E402
-from synth.render import RENDER_STREAM, build_street_planes, render_depth, render_pair  # noqa: E402
-from synth.scene import SceneConfig, make_scene  # noqa: E402
+from vislam.backend.geometry import se3
+from vislam.frontend.config import TrackerConfig
+from vislam.frontend.tracker import StereoTracker
+from vislam.synth.render import RENDER_STREAM, build_street_planes, render_depth, render_pair
+from vislam.synth.scene import SceneConfig, make_scene
 
 
 def visible_life(depths, world_T_cam, K, baseline, start, spacing, border) -> np.ndarray:

@@ -3,5 +3,5 @@
 Modules: ``config`` (TrackerConfig), ``images`` (KITTI-layout directories), ``imu_input`` (IMU
 CSV / course .npz, extrinsic), ``tracker`` (StereoTracker.step), ``detect`` (grid corners),
 ``affine`` (drift-free patch refinement), ``motion`` (camera motion, rigid-motion checks),
-``draw`` (debug pictures), ``track`` (track_directory, iter_tracks).
+``draw`` (debug pictures), ``track`` (track_directory, iter_tracks, image_steps).
 """

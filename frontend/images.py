@@ -21,8 +21,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from backend.errors import InputError
-from backend.textio import content_lines, finite_numbers, read_lines
+from ..backend.errors import InputError
+from ..backend.data.textio import content_lines, finite_numbers, read_lines
 
 __all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey"]
 

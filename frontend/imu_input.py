@@ -7,7 +7,7 @@ Two sources, chosen by :func:`read_imu` from the file name:
   needs at least as many rows as there are frames and its first ``n_frames`` rows are used,
   time stamps included. The CSV carries no extrinsic: it comes from ``--imu-T-cam FILE``
   (:func:`read_imu_T_cam`, a 4x4 text matrix mapping camera-frame points into the IMU frame);
-* a course ``.npz`` (either layout, read with :func:`backend.sequence.load_sequence`): frame i
+* a course ``.npz`` (either layout, read with :func:`~vislam.backend.data.npz.load_sequence`): frame i
   is step i, steps beyond the last frame are ignored; its time stamps, velocities and
   ``imu_T_cam`` are used (so ground truth stamped like that file lines up). An explicit
   ``--imu-T-cam`` overrides the file's extrinsic.
@@ -23,14 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from backend.errors import InputError
-from backend.sequence import load_sequence
-from backend.textio import content_lines, read_lines
+from ..backend.errors import InputError
+from ..backend.data.npz import load_sequence
+from ..backend.data.sequence import check_rigid
+from ..backend.data.textio import content_lines, read_lines
 
 __all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam"]
 
-#: Tolerance of R^T R = I for a text extrinsic (as backend.sequence).
-_ORTHO_TOL = 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,16 +124,7 @@ def read_imu_T_cam(path) -> np.ndarray:
     if len(rows) != 4:
         raise InputError(f"{path}: expected a 4x4 matrix (4 rows), got {len(rows)} rows")
     T = np.array(rows, dtype=np.float64)
-    if not np.isfinite(T).all():
-        raise InputError(f"{path}: non-finite entries in imu_T_cam")
-    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InputError(f"{path}: not a rigid transform: last row must be 0 0 0 1, got {T[3].tolist()}")
-    R = T[:3, :3]
-    dev = float(np.abs(R.T @ R - np.eye(3)).max())
-    if dev > _ORTHO_TOL:
-        raise InputError(f"{path}: not a rigid transform: max |R^T R - I| = {dev:.3g} > {_ORTHO_TOL:g}")
-    if np.linalg.det(R) <= 0:
-        raise InputError(f"{path}: not a rigid transform: det(R) <= 0 (a reflection)")
+    check_rigid(str(path), "imu_T_cam", T)
     return T
 
 

@@ -1,11 +1,12 @@
 """Track a KITTI-layout image directory into the course sequence layout (what `vislam track` does).
 
-:func:`track_directory` runs :class:`~frontend.tracker.StereoTracker` over every frame and
-returns a :class:`backend.sequence.Sequence`: time stamps, velocities and the camera mount from
-the IMU source (:mod:`frontend.imu_input`; frame i = IMU row/step i), K and baseline from
-``calib.txt``, observations per frame, ``num_features`` = number of ids issued.
-:func:`iter_tracks` is the online form: it yields each frame's tracks as soon as they exist
-(``vislam run IMAGES`` feeds them to the filter frame by frame, tools/track.py).
+:func:`track_directory` runs :class:`~vislam.frontend.tracker.StereoTracker` over every frame and
+returns a :class:`~vislam.backend.data.sequence.Sequence`: time stamps, velocities and the camera
+mount from the IMU source (:mod:`~vislam.frontend.imu_input`; frame i = IMU row/step i), K and
+baseline from ``calib.txt``, observations per frame, ``num_features`` = number of ids issued.
+:func:`iter_tracks` is the online form: it yields each frame's tracks as soon as they exist, and
+:func:`image_steps` pairs them with the IMU sample of their frame, the steps
+``backend.run.runner.run_stream`` takes (``vislam run IMAGES`` in one pass).
 """
 
 from __future__ import annotations
@@ -17,15 +18,15 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from backend.errors import InputError
-from backend.sequence import VISLAM_TRACKER, Sequence, validate_sequence
-from frontend.config import TrackerConfig
-from frontend.draw import TrackDrawer
-from frontend.images import StereoDirectory, open_stereo_directory
-from frontend.imu_input import ImuVelocities, read_imu
-from frontend.tracker import StereoTracker
+from ..backend.errors import InputError
+from ..backend.data.sequence import VISLAM_TRACKER, Sequence
+from .config import TrackerConfig
+from .draw import TrackDrawer
+from .images import StereoDirectory, open_stereo_directory
+from .imu_input import ImuVelocities, read_imu
+from .tracker import StereoTracker
 
-__all__ = ["track_directory", "iter_tracks", "check_imu", "tracks_to_sequence", "opencv_threads"]
+__all__ = ["track_directory", "iter_tracks", "image_steps", "check_imu", "tracks_to_sequence", "opencv_threads"]
 
 
 @contextmanager
@@ -62,6 +63,14 @@ def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
             yield index, ids, pixels
 
 
+def image_steps(stereo: StereoDirectory, imu: ImuVelocities, config: TrackerConfig | None = None,
+                draw_dir=None) -> Iterator[tuple]:
+    """Yield ``(t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4))`` per frame:
+    the IMU sample of the frame (:func:`check_imu`) and its tracks, as soon as they exist."""
+    for index, ids, pixels in iter_tracks(stereo, config, draw_dir):
+        yield imu.time_stamps[index], imu.linear_velocity[index], imu.angular_velocity[index], ids, pixels
+
+
 def check_imu(imu, stereo: StereoDirectory, imu_T_cam_path=None) -> ImuVelocities:
     """The IMU samples of ``stereo``'s frames (path or :class:`~frontend.imu_input.ImuVelocities`):
     one row per frame and a camera extrinsic, else InputError."""
@@ -79,25 +88,9 @@ def tracks_to_sequence(stereo: StereoDirectory, imu: ImuVelocities, ids: list, p
     """The course-layout sequence of the first ``len(ids)`` frames: per-frame ids and pixels, the IMU
     rows of those frames, K and baseline from ``calib.txt``; validated."""
     n = len(ids)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum([i.size for i in ids], out=ptr[1:])
-    seq = Sequence(
-        time_stamps=np.array(imu.time_stamps[:n], dtype=np.float64),
-        linear_velocity=np.array(imu.linear_velocity[:n], dtype=np.float64),
-        angular_velocity=np.array(imu.angular_velocity[:n], dtype=np.float64),
-        K=np.array(stereo.K, dtype=np.float64),
-        baseline=float(stereo.baseline),
-        imu_T_cam=np.array(imu.imu_T_cam, dtype=np.float64),
-        obs_ptr=ptr,
-        obs_ids=np.concatenate(ids) if ids else np.zeros(0, np.int64),
-        obs_pixels=np.concatenate(pixels) if pixels else np.zeros((0, 4)),
-        num_features=int(num_ids),
-        source=str(Path(stereo.root)),
-        layout=imu.layout,
-        tracker=VISLAM_TRACKER,
-    )
-    validate_sequence(seq)
-    return seq
+    return Sequence.from_steps(imu.time_stamps[:n], imu.linear_velocity[:n], imu.angular_velocity[:n], ids, pixels,
+                               stereo.K, stereo.baseline, imu.imu_T_cam, num_features=num_ids,
+                               source=str(Path(stereo.root)), layout=imu.layout, tracker=VISLAM_TRACKER)
 
 
 def track_directory(

@@ -57,8 +57,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontend import affine, detect, motion as rigid
-from frontend.config import TrackerConfig
+from . import affine, detect, motion as rigid
+from .config import TrackerConfig
 
 __all__ = ["StereoTracker", "FrameStats"]
 

@@ -1,7 +1,7 @@
 """Measured IMU velocities from the true twists: stamping, white noise and a gyro bias.
 
 ``measured = stamped true twist + bias (angular only) + white noise``, where the stamping follows
-``velocity_index`` (see :mod:`backend.imu`): with "this" the sample stamped k holds the twist of
+``velocity_index`` (see :mod:`~vislam.backend.estimator.propagation`): with "this" the sample stamped k holds the twist of
 step k -> k+1; with "next" the sample stamped k+1 holds it (and sample 0 repeats twist 0).
 """
 
@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from synth._random import generator
+from ._random import generator
 
 __all__ = [
     "ImuMeasurements",

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from synth._random import generator
+from ._random import generator
 
 __all__ = ["path_frames", "street_landmarks", "aerial_landmarks", "LANDMARKS"]
 

@@ -17,9 +17,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from backend import se3
-from backend.camera import StereoCamera
-from synth._random import generator
+from ..backend.geometry import se3
+from ..backend.geometry.camera import StereoCamera
+from ._random import generator
 
 __all__ = [
     "Calibration",

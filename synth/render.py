@@ -17,7 +17,7 @@ So row 0 of the texture runs along the edge c0 -> c1, and for an upright wall c0
 corner as seen from the side it is meant to be seen from (planes are drawn from both sides).
 
 Image convention (OpenCV and KITTI): pixel (column u, row v) is centred on the integer point (u, v)
-of the pinhole projection ``K p / p_z`` (as :meth:`backend.camera.StereoCamera.project`).
+of the pinhole projection ``K p / p_z`` (as :meth:`~vislam.backend.geometry.camera.StereoCamera.project`).
 
 Rendering (:func:`render_pair`)
 -------------------------------
@@ -67,9 +67,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from backend import se3
-from synth import textures
-from synth.observe import Calibration
+from ..backend.data.files import atomic_write
+from ..backend.geometry import se3
+from . import textures
+from .observe import Calibration
 
 __all__ = [
     "NEAR",
@@ -804,7 +805,8 @@ def kitti_calib_text(calibration: Calibration) -> str:
 
 
 def _write_text(path: Path, text: str) -> None:
-    path.write_text(text, encoding="utf-8")
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
 
 
 def write_kitti_sequence(

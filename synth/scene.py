@@ -8,24 +8,24 @@ they are.
 
 from __future__ import annotations
 
-import os
-import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 
-from backend import se3
-from backend.config import FilterConfig
-from backend.errors import ConfigError
-from backend.sequence import SYNTHETIC_TRACKER, Sequence, save_sequence, validate_sequence
-from synth._random import generator
-from synth.imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
-from synth.landmarks import LANDMARKS
-from synth.observe import Calibration, kitti_calibration, observe
-from synth.trajectories import TRAJECTORIES
+from ..backend.config import Config
+from ..backend.errors import ConfigError
+from ..backend.data.sequence import SYNTHETIC_TRACKER, Sequence, validate_sequence
+from ..backend.data.files import atomic_write
+from ..backend.data.npz import save_sequence
+from ..backend.data.tum import write_tum
+from ._random import generator
+from .imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
+from .landmarks import LANDMARKS
+from .observe import Calibration, kitti_calibration, observe
+from .trajectories import TRAJECTORIES
 
-__all__ = ["SceneConfig", "Scene", "make_scene", "write_scene", "write_tum_text"]
+__all__ = ["SceneConfig", "SceneFactory", "Scene", "make_scene", "write_scene"]
 
 
 @dataclass(frozen=True)
@@ -87,15 +87,35 @@ class SceneConfig:
     def source(self) -> str:
         return f"synthetic:{self.scenario}:seed{self.seed}"
 
-    def filter_config(self) -> FilterConfig:
+    def filter_config(self) -> Config:
         """The filter told this scene's own noise (pixel and velocity sigmas, the largest axis),
         as `vislam demo` and `vislam mc` run it. (Left to the defaults, the velocity noise would be
-        estimated and raised to ``linear_velocity_sigma_floor``, an allowance meant for real data.)"""
-        return FilterConfig(
-            pixel_sigma=self.pixel_sigma,
-            linear_velocity_sigma=float(np.max(self.linear_sigma)),
-            angular_velocity_sigma=float(np.max(self.angular_sigma)),
-        ).validate()
+        estimated and raised to ``noise.linear_velocity_sigma_floor``, an allowance meant for real data.)"""
+        return Config.from_values({
+            "noise.pixel_sigma": self.pixel_sigma,
+            "noise.linear_velocity_sigma": float(np.max(self.linear_sigma)),
+            "noise.angular_velocity_sigma": float(np.max(self.angular_sigma)),
+        })
+
+    def as_dict(self) -> dict:
+        """The configuration's fields (the calibration left out)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "calibration"}
+
+
+@dataclass(frozen=True)
+class SceneFactory:
+    """The scene of ``config`` with the noise of a noise seed and, optionally, another constant gyro
+    bias: what a Monte Carlo run needs (``backend.evaluation.consistency``); picklable, so runs can
+    go to worker processes. ``factory(s)`` equals ``make_scene(config, noise_seed=s)``."""
+
+    config: SceneConfig
+
+    def __call__(self, noise_seed: int, gyro_bias=None) -> "Scene":
+        config = self.config if gyro_bias is None else replace(self.config, gyro_bias=tuple(float(b) for b in gyro_bias))
+        return make_scene(config, noise_seed=noise_seed)
+
+    def as_dict(self) -> dict:
+        return self.config.as_dict()
 
 
 @dataclass(eq=False)
@@ -184,52 +204,14 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
     )
 
 
-def _replace_text(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file next to ``path``, then move it onto ``path``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_tum_text(path, time_stamps: np.ndarray, world_T_imu: np.ndarray, header: str = "") -> None:
-    """TUM trajectory ``t tx ty tz qx qy qz qw`` (quaternion scalar last, qw >= 0), written atomically."""
-    poses = np.asarray(world_T_imu, dtype=float)
-    quat = se3.quaternion_from_rotation(poses[:, :3, :3])  # x, y, z, w with w >= 0
-    lines = [f"# {line}" for line in header.splitlines()]
-    lines += [
-        f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
-        for t, p, q in zip(np.asarray(time_stamps, dtype=float), poses[:, :3, 3], quat)
-    ]
-    _replace_text(Path(path), "\n".join(lines) + "\n")
-
-
-def _save_npz(path: Path, **arrays) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_scene(scene: Scene, out_dir) -> Path:
     """Write ``data.npz`` (course 2022 layout), ``gt_tum.txt`` (world_T_imu) and ``landmarks.npz``
     (``ids``, ``positions``) into ``out_dir`` (created if missing); returns the directory."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_sequence(scene.sequence, out / "data.npz")
-    write_tum_text(
-        out / "gt_tum.txt",
-        scene.sequence.time_stamps,
-        scene.world_T_imu_true,
-        header=f"{scene.config.source} ground truth world_T_imu: t tx ty tz qx qy qz qw",
-    )
-    _save_npz(out / "landmarks.npz", ids=scene.landmark_ids, positions=scene.landmark_positions)
+    write_tum(out / "gt_tum.txt", scene.sequence.time_stamps, scene.world_T_imu_true,
+              header=f"{scene.config.source} ground truth world_T_imu: t tx ty tz qx qy qz qw")
+    with atomic_write(out / "landmarks.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, ids=scene.landmark_ids, positions=scene.landmark_positions)
     return out

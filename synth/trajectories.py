@@ -3,7 +3,7 @@
 A trajectory is generated as body twists ``u_k = [v_k, w_k]`` (m/s, rad/s; IMU frame x forward,
 y left, z up) and integrated in closed form,
 ``world_T_imu_{k+1} = world_T_imu_k exp(tau_k u_k^)`` with ``tau_k = t_{k+1} - t_k``, the same
-arithmetic as :func:`backend.imu.dead_reckoning`. So ``u_k`` is exactly the velocity stamped k
+arithmetic as :func:`~vislam.backend.estimator.propagation.dead_reckoning`. So ``u_k`` is exactly the velocity stamped k
 ("this") of the course formulation, and dead reckoning on the noise-free twists gives back the
 poses to rounding.
 """
@@ -14,8 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from backend import se3
-from synth._random import generator
+from ..backend.geometry import se3
+from ._random import generator
 
 __all__ = ["Trajectory", "integrate", "street", "aerial", "TRAJECTORIES"]
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vislam.backend.estimator import tracks
+
 
 def numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     """Central finite differences of f at x: (..., x.size), one column per coordinate of x."""
@@ -15,8 +17,8 @@ def numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     return np.stack(cols, axis=-1)
 
 
-# (U1) of backend.ekf: the orthogonal change of the 4 pixel rows [uL, vL, uR, vR] into the
-# 3 rows the filter keeps, [uL, (vL + vR)/sqrt 2, uR], and the fourth, (vL - vR)/sqrt 2
+# (U1) of backend.estimator.update: the orthogonal change of the 4 pixel rows [uL, vL, uR, vR] into
+# the 3 rows the filter keeps, [uL, (vL + vR)/sqrt 2, uR], and the fourth, (vL - vR)/sqrt 2
 _S = np.sqrt(0.5)
 THREE_ROWS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, _S, 0.0, _S], [0.0, 0.0, 1.0, 0.0]])
 OFF_ROW = np.array([0.0, _S, 0.0, -_S])
@@ -25,3 +27,17 @@ OFF_ROW = np.array([0.0, _S, 0.0, -_S])
 def four_rows(three: np.ndarray, off: np.ndarray | float = 0.0) -> np.ndarray:
     """Back from the 3-row form (..., 3, n) with the fourth row's values ``off`` to the 4 pixel rows."""
     return THREE_ROWS.T @ three + OFF_ROW[:, None] * np.asarray(off)[..., None, None]
+
+
+def slots_of(ekf, ids) -> np.ndarray:
+    """State slots of the track ``ids`` in a VisualInertialEKF (-1 where not in the state)."""
+    return tracks.slots_of(np.asarray(ids, dtype=np.int64), *ekf.state.index)
+
+
+def observation_model(ekf, slots: np.ndarray, pixels: np.ndarray):
+    """The filter's observation model of landmarks ``slots`` seen at ``pixels`` (k,4), whatever its error
+    model, from the prior innovation it updates with (``ekf.model.innovation``), in the 3-row form (U1):
+    residual (k,3), off_row (k,), H_xi (k,3,6), H_theta (k,3,3), in_front (k,)."""
+    inn = ekf.model.innovation(ekf.state, np.asarray(slots, dtype=np.int64), np.asarray(pixels, dtype=float),
+                               ekf.config.noise.pixel_sigma**2)
+    return inn.residual, inn.off_row, inn.H_x.reshape(-1, 3, 6), inn.H_m, inn.in_front

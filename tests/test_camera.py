@@ -1,3 +1,6 @@
+"""Tests of vislam.backend.geometry.camera: the stereo observation model, triangulation, their
+Jacobians against finite differences, and the unscented expected triangulation."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from backend.camera import StereoCamera, dpi_dq, pi
+from vislam.backend.geometry.camera import StereoCamera, dpi_dq, pi
 from helpers import numeric_jacobian
 
 SETTINGS = settings(max_examples=60, deadline=None)
@@ -24,6 +27,28 @@ def _points_in_front(draw, max_n: int = 20) -> np.ndarray:
     return np.column_stack([lateral * depth[:, None], depth])
 
 
+def projection_jacobian(cam: StereoCamera, p_in_cam: np.ndarray) -> np.ndarray:
+    """Reference dz/dp of the observation model z = Ks pi([p; 1]), in closed form; (..., 3) -> (..., 4, 3):
+    rows uL: [fx, 0, -fx x/z]/z, vL and vR: [0, fy, -fy y/z]/z, uR: [fx, 0, -fx (x - b)/z]/z."""
+    p = np.asarray(p_in_cam, dtype=float)
+    x, y, inv_z = p[..., 0], p[..., 1], 1.0 / p[..., 2]
+    J = np.zeros(p.shape[:-1] + (4, 3))
+    J[..., 0, 0] = J[..., 2, 0] = cam.fx * inv_z
+    J[..., 1, 1] = J[..., 3, 1] = cam.fy * inv_z
+    J[..., 0, 2] = -cam.fx * x * inv_z * inv_z
+    J[..., 2, 2] = -cam.fx * (x - cam.baseline) * inv_z * inv_z
+    J[..., 1, 2] = J[..., 3, 2] = -cam.fy * y * inv_z * inv_z
+    return J
+
+
+def triangulation_jacobian(cam: StereoCamera, z: np.ndarray) -> np.ndarray:
+    """d triangulate / d z at the pixels z; (..., 4) -> (..., 3, 4)."""
+    return cam.triangulate_with_jacobian(z)[1]
+
+
+def triangulate_mean(cam: StereoCamera, z: np.ndarray, pixel_sigma: float) -> np.ndarray:
+    """The unscented expected triangulation of pixels z under N(0, pixel_sigma^2 I4) noise; (..., 4) -> (..., 3)."""
+    return cam.triangulate_with_jacobian(z, pixel_sigma)[0]
 
 
 def test_ks_structure():
@@ -54,9 +79,12 @@ def test_single_point_shapes():
     z = CAM.project(p)
     assert z.shape == (4,)
     assert np.allclose(z, CAM.project(p[None])[0])
-    assert CAM.projection_jacobian(p).shape == (4, 3)
     assert np.allclose(CAM.triangulate(z), p)
-    assert CAM.triangulation_jacobian(z).shape == (3, 4)
+    point, J = CAM.triangulate_with_jacobian(z)
+    assert point.shape == (3,) and J.shape == (3, 4)
+    point, J = CAM.triangulate_with_jacobian(z, 0.5)
+    assert point.shape == (3,) and J.shape == (3, 4)
+    assert CAM.triangulate_with_jacobian(np.stack([z, z]).reshape(2, 1, 4))[1].shape == (2, 1, 3, 4)
     q = np.append(p, 1.0)
     assert pi(q).shape == (4,)
     assert dpi_dq(q).shape == (4, 4)
@@ -65,8 +93,12 @@ def test_single_point_shapes():
 @SETTINGS
 @given(_points_in_front(max_n=5))
 def test_projection_jacobian_finite_differences(p_in_cam):
-    J = CAM.projection_jacobian(p_in_cam)
+    """The observation model's dz/dp (closed form, and Ks dpi/dq [I3; 0]) against finite
+    differences of project."""
+    J = projection_jacobian(CAM, p_in_cam)
     assert J.shape == (len(p_in_cam), 4, 3)
+    q = np.column_stack([p_in_cam, np.ones(len(p_in_cam))])
+    assert np.allclose(CAM.Ks @ dpi_dq(q)[..., :3], J, rtol=1e-12, atol=1e-12 * np.abs(J).max())
     for p, J_p in zip(p_in_cam, J):
         numeric = numeric_jacobian(CAM.project, p, eps=1e-5 * p[2])
         assert np.allclose(J_p, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_p).max())
@@ -76,11 +108,14 @@ def test_projection_jacobian_finite_differences(p_in_cam):
 @given(_points_in_front(max_n=5))
 def test_triangulation_jacobian_finite_differences(p_in_cam):
     z = CAM.project(p_in_cam)
-    J = CAM.triangulation_jacobian(z)
+    points, J = CAM.triangulate_with_jacobian(z)
     assert J.shape == (len(p_in_cam), 3, 4)
+    assert np.array_equal(points, CAM.triangulate(z))
     for z_i, J_i in zip(z, J):
         numeric = numeric_jacobian(CAM.triangulate, z_i, eps=1e-4)
         assert np.allclose(J_i, numeric, rtol=1e-6, atol=1e-6 * np.abs(J_i).max())
+    # with pixel noise the point moves to the expected triangulation; the Jacobian stays the one at z
+    assert np.array_equal(CAM.triangulate_with_jacobian(z, 0.5)[1], J)
 
 
 @SETTINGS
@@ -95,7 +130,7 @@ def test_dpi_dq_finite_differences(p_in_cam, w):
 
 def test_projection_jacobian_is_inverse_of_triangulation_jacobian():
     p_in_cam = np.array([[1.0, -0.5, 12.0], [-3.0, 1.0, 40.0]])
-    product = CAM.triangulation_jacobian(CAM.project(p_in_cam)) @ CAM.projection_jacobian(p_in_cam)
+    product = triangulation_jacobian(CAM, CAM.project(p_in_cam)) @ projection_jacobian(CAM, p_in_cam)
     assert np.allclose(product, np.eye(3), atol=1e-10)
 
 
@@ -122,7 +157,7 @@ def test_triangulate_mean_matches_monte_carlo_expectation():
     sigma = 0.5
     p = np.array([[3.0, -1.0, 40.0], [-8.0, 2.0, 25.0], [1.0, 0.5, 60.0]])
     z = CAM.project(p)
-    mean = CAM.triangulate_mean(z, sigma)
+    mean = triangulate_mean(CAM, z, sigma)
     samples = CAM.triangulate(z[None] + rng.normal(0.0, sigma, (400_000,) + z.shape))
     sample_mean = samples.mean(axis=0)
     stderr = samples.std(axis=0) / np.sqrt(samples.shape[0])
@@ -145,11 +180,11 @@ def test_triangulate_mean_equals_the_nine_point_unscented_transform():
     full = -CAM.triangulate(z) / 3.0 + CAM.triangulate(z[:, None, :] + shifts).sum(axis=1) / 6.0
     valid = z[:, 0] - z[:, 2] > 2 * c  # (elsewhere the plain triangulation, tested below)
     assert 20 < valid.sum() < z.shape[0]
-    np.testing.assert_allclose(CAM.triangulate_mean(z, 1.5)[valid], full[valid], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(triangulate_mean(CAM, z, 1.5)[valid], full[valid], rtol=1e-12, atol=1e-12)
 
 
 def test_triangulate_mean_falls_back_where_the_expansion_fails():
     z = CAM.project(np.array([[1.0, 0.0, 500.0], [1.0, 0.0, 20.0]]))  # disparities 0.77 px and 19 px
-    mean = CAM.triangulate_mean(z, 1.0)
+    mean = triangulate_mean(CAM, z, 1.0)
     np.testing.assert_array_equal(mean[0], CAM.triangulate(z[0]))
     assert mean[1, 2] > CAM.triangulate(z[1])[2]

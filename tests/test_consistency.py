@@ -6,24 +6,24 @@ import argparse
 import json
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.stats import chi2
 from threadpoolctl import threadpool_info
 
-from backend import se3
-from backend.config import FilterConfig
-from backend.consistency import (
+from vislam.backend.config import Config
+from vislam.backend.evaluation.consistency import (
     SKIP_STEPS,
     average_band,
     landmark_nees,
     monte_carlo,
     pose_nees,
     run_one,
-    scene_with_noise,
 )
-from synth.scene import SceneConfig, make_scene
+from vislam.backend.geometry import se3
+from vislam.synth.scene import Scene, SceneConfig, SceneFactory, make_scene
 
 
 def _random_spd(rng: np.random.Generator, n: int, scale: float) -> np.ndarray:
@@ -61,14 +61,36 @@ def test_average_band():
     assert lo < 6.0 < hi and (lo, hi) == pytest.approx((4.58, 7.61), abs=0.01)
 
 
-def test_scene_with_noise_keeps_geometry_and_reproduces_make_scene():
+def _assert_same_scene(a, b) -> None:
+    """Every array of two scenes and of their sequences equal."""
+    for name, value in vars(a).items():
+        if isinstance(value, np.ndarray):
+            np.testing.assert_array_equal(value, getattr(b, name), err_msg=name)
+    arrays = [name for name, value in vars(a.sequence).items() if isinstance(value, np.ndarray)]
+    assert {"obs_ptr", "obs_ids", "obs_pixels", "linear_velocity", "angular_velocity"} <= set(arrays)
+    for name in arrays:
+        np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)
+
+
+def test_scene_factory_is_make_scene_with_a_noise_seed():
+    """``SceneFactory(config)(s)`` is ``make_scene(config, noise_seed=s)``, array for array."""
     cfg = SceneConfig(scenario="street", steps=50, landmark_density=0.5, seed=3)
-    same = scene_with_noise(cfg, cfg.seed)
+    factory = SceneFactory(cfg)
+    for seed in (3, 7):
+        scene = factory(seed)
+        assert isinstance(scene, Scene) and scene.config == cfg
+        _assert_same_scene(scene, make_scene(cfg, noise_seed=seed))
+
+
+def test_scene_factory_keeps_geometry_and_reproduces_make_scene():
+    cfg = SceneConfig(scenario="street", steps=50, landmark_density=0.5, seed=3)
+    factory = SceneFactory(cfg)
+    same = factory(cfg.seed)
     reference = make_scene(cfg)
     for key in ("obs_ptr", "obs_ids", "obs_pixels", "linear_velocity", "angular_velocity"):
         np.testing.assert_array_equal(getattr(same.sequence, key), getattr(reference.sequence, key))
     np.testing.assert_array_equal(same.landmark_positions, reference.landmark_positions)
-    other = scene_with_noise(cfg, 7)
+    other = factory(7)
     np.testing.assert_array_equal(other.world_T_imu_true, reference.world_T_imu_true)
     np.testing.assert_array_equal(other.points, reference.points)
     assert not np.array_equal(other.sequence.linear_velocity, reference.sequence.linear_velocity)
@@ -76,11 +98,31 @@ def test_scene_with_noise_keeps_geometry_and_reproduces_make_scene():
     np.testing.assert_array_equal(other.landmark_positions, other.points[other.landmark_point_index])
 
 
+def test_scene_factory_gyro_bias_replaces_the_scene_bias():
+    """``factory(s, gyro_bias=b)`` is the scene of the config with gyro bias b, same noise seed: the
+    true bias is b at every step (no bias walk) and only the angular velocities change, by b - b0."""
+    cfg = SceneConfig(scenario="street", steps=50, landmark_density=0.5, seed=3)
+    factory = SceneFactory(cfg)
+    plain = factory(7)
+    bias = np.array([0.004, -0.003, 0.0015])
+    biased = factory(7, gyro_bias=bias)
+    _assert_same_scene(biased, make_scene(replace(cfg, gyro_bias=tuple(bias)), noise_seed=7))
+    assert factory.config == cfg  # the factory's own scene is unchanged
+    np.testing.assert_array_equal(biased.gyro_bias_true, np.tile(bias, (cfg.steps, 1)))
+    assert not np.allclose(plain.gyro_bias_true, bias)
+    np.testing.assert_allclose(biased.sequence.angular_velocity - plain.sequence.angular_velocity,
+                               np.tile(bias - plain.gyro_bias_true[0], (cfg.steps, 1)), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(biased.sequence.linear_velocity, plain.sequence.linear_velocity)
+    np.testing.assert_array_equal(biased.sequence.obs_pixels, plain.sequence.obs_pixels)
+    np.testing.assert_array_equal(biased.world_T_imu_true, plain.world_T_imu_true)
+    _assert_same_scene(factory(7, gyro_bias=None), plain)
+
+
 @pytest.fixture(scope="module")
 def tiny_mc():
     """5 noise realizations of a 100-step street at half landmark density, filter on its own model."""
-    scene = SceneConfig(scenario="street", steps=100, landmark_density=0.5, seed=0)
-    config = scene.filter_config()
+    scene = SceneFactory(SceneConfig(scenario="street", steps=100, landmark_density=0.5, seed=0))
+    config = scene.config.filter_config()
     filters_before = list(warnings.filters)
     blas_before = [p["num_threads"] for p in threadpool_info()]
     ticks = []
@@ -132,41 +174,41 @@ def test_filter_is_consistent_on_its_own_model(tiny_mc):
 
 
 def test_monte_carlo_refuses_bad_arguments():
-    from backend.errors import ConfigError
+    from vislam.backend.errors import ConfigError
 
-    scene = SceneConfig(steps=20, landmark_density=0.5)
+    scene = SceneFactory(SceneConfig(steps=20, landmark_density=0.5))
     with pytest.raises(ConfigError):
-        monte_carlo(scene, FilterConfig(), runs=0)
+        monte_carlo(scene, Config(), runs=0)
     with pytest.raises(ConfigError):
-        monte_carlo(scene, FilterConfig(mode="mapping"), runs=1)
+        monte_carlo(scene, Config.from_values({"estimator.mode": "mapping"}), runs=1)
 
 
 def test_mc_command_writes_json_and_plot(tmp_path, capsys):
-    from tools import mc
+    from vislam.tools.commands import mc
 
     parser = argparse.ArgumentParser()
-    mc.add_parsers(parser.add_subparsers(dest="command"))
+    mc.add_parser(parser.add_subparsers(dest="command"))
     out = tmp_path / "mc"
     args = parser.parse_args(["mc", "--runs", "2", "--steps", "40", "--landmark-density", "0.5",
-                              "--out", str(out), "--set", "ransac_threshold_px=2.5"])
+                              "--out", str(out), "--set", "update.ransac_threshold_px=2.5"])
     assert args.func(args) == 0  # default workers: a process pool
     data = json.loads((out / "consistency.json").read_text())
     assert data["runs"] == 2 and data["steps"] == 40
     assert len(data["pose_nees"]["mean_per_step"]) == 40
-    assert data["filter"]["pixel_sigma"] == 0.5 and data["filter"]["ransac_threshold_px"] == 2.5
+    assert data["filter"]["noise"]["pixel_sigma"] == 0.5 and data["filter"]["update"]["ransac_threshold_px"] == 2.5
     assert (out / "nees.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and lines[0].startswith("pose NEES")
 
 
 def test_filter_is_consistent_over_20_runs():
-    """Issue 3: over 20 runs of the default street scene (300 steps), the run-averaged pose NEES lies
+    """Over 20 runs of the default street scene (300 steps), the run-averaged pose NEES lies
     in its 95 % band for >= 90 % of the steps after the first 10 (measured: 95 %, time average
     6.74), the NIS per observation is at its expectation and the landmark NEES near 3 (3.70).
     The filter is given the scene's own noise model; each run draws its gyro bias from the prior."""
     scene = SceneConfig(scenario="street", steps=300, seed=0)
     config = scene.filter_config()
-    result = monte_carlo(scene, config, runs=20, seed0=0)
+    result = monte_carlo(SceneFactory(scene), config, runs=20, seed0=0)
     assert result.pose_nees_in_band >= 0.90
     assert 5.5 <= result.pose_nees_time_average <= 7.5
     assert abs(result.nis_mean - 4.0) <= 0.05

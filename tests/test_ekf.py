@@ -1,4 +1,5 @@
-"""Tests of backend.ekf.VisualInertialEKF on small synthetic stereo problems (no data files).
+"""Tests of backend.estimator.ekf.VisualInertialEKF (with its FilterState and error models) on small
+synthetic stereo problems (no data files).
 
 The scene: a KITTI-like stereo camera on a car driving forward at ~8 m/s with gentle turns,
 landmarks 5-40 m ahead, exact projections plus Gaussian pixel noise, and velocities with white
@@ -14,15 +15,21 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from backend import kernels, se3
-from backend.camera import StereoCamera
-from backend.config import FilterConfig
-from backend.ekf import BIAS, CORE, POSE, ImuNoise, StepStats, VisualInertialEKF
-from backend.errors import FilterError
-from backend.imu import dead_reckoning
-from backend.pipeline import run_sequence
-from backend.sequence import Sequence
-from helpers import OFF_ROW, THREE_ROWS, four_rows, numeric_jacobian
+from vislam.backend.config import Config
+from vislam.backend.data.sequence import Sequence
+from vislam.backend.errors import FilterError
+from vislam.backend.estimator import update
+from vislam.backend.estimator.body import BodyModel
+from vislam.backend.estimator.ekf import ImuNoise, StepStats, VisualInertialEKF, check_full_state_size, make_error_model
+from vislam.backend.estimator.invariant import InvariantModel
+from vislam.backend.estimator.layout import BIAS, CORE, POSE
+from vislam.backend.estimator.propagation import dead_reckoning
+from vislam.backend.estimator.state import ID, TRACK_ROWS, FilterState
+from vislam.backend.estimator.tracks import slots_of as slots_of_index
+from vislam.backend.geometry import se3
+from vislam.backend.geometry.camera import StereoCamera
+from vislam.backend.run.runner import run_sequence
+from helpers import OFF_ROW, THREE_ROWS, four_rows, numeric_jacobian, observation_model, slots_of
 
 K_KITTI = np.array([[718.856, 0.0, 607.19], [0.0, 718.856, 185.22], [0.0, 0.0, 1.0]])
 BASELINE = 0.537
@@ -117,7 +124,7 @@ def make_drive(n: int, seed: int = 0, density: float = 2.5, track=(3, 30), pix_s
     )
 
 
-def run_filter(drive: Drive, config: FilterConfig, steps: int | None = None, clean_velocity: bool = False,
+def run_filter(drive: Drive, config: Config, steps: int | None = None, clean_velocity: bool = False,
                on_step=None):
     """Online loop: update at step 0, then predict + update. Returns (ekf, poses (steps,4,4), [StepStats])."""
     steps = drive.n if steps is None else steps
@@ -148,14 +155,21 @@ def to_sequence(drive: Drive) -> Sequence:
     )
 
 
-def slam_config(**kw) -> FilterConfig:
-    values = dict(pixel_sigma=PIX_SIGMA, linear_velocity_sigma=LIN_SIGMA, angular_velocity_sigma=ANG_SIGMA,
-                  imu_flip="no", velocity_index="this",
-                  track_drift="no")  # exact tracks; the drift model is tested on its own below
-    values.update(kw)
-    if values.get("landmark_parametrization", "xyz") != "xyz":
-        values.setdefault("error_model", "body")  # the invariant error needs world xyz landmarks
-    return FilterConfig(**values).validate()
+def slam_config(values: dict | None = None) -> Config:
+    """The noise of the synthetic drives and known conventions, with ``values`` ({"table.key": value}) over them."""
+    merged = {"noise.pixel_sigma": PIX_SIGMA, "noise.linear_velocity_sigma": LIN_SIGMA,
+              "noise.angular_velocity_sigma": ANG_SIGMA, "conventions.imu_flip": "no",
+              "conventions.velocity_index": "this",
+              "drift.track_drift": "no"}  # exact tracks; the drift model is tested on its own below
+    merged.update(values or {})
+    if merged.get("landmarks.parametrization", "xyz") != "xyz":
+        merged.setdefault("estimator.error_model", "body")  # the invariant error needs world xyz landmarks
+    return Config.from_values(merged)
+
+
+def body_config(values: dict | None = None) -> Config:
+    """Defaults with the body (right perturbation) error model and ``values`` over them."""
+    return Config.from_values({"estimator.error_model": "body", **(values or {})})
 
 
 def random_pose(rng, angle: float = 0.6, spread: float = 5.0) -> np.ndarray:
@@ -165,8 +179,6 @@ def random_pose(rng, angle: float = 0.6, spread: float = 5.0) -> np.ndarray:
 def random_spd(rng, n: int, scale: float) -> np.ndarray:
     A = rng.normal(size=(n, n))
     return scale * (A @ A.T / n + 0.2 * np.eye(n))
-
-
 
 
 def rel_err(a: np.ndarray, b: np.ndarray) -> float:
@@ -198,8 +210,8 @@ def drive200() -> Drive:
 def test_prediction_mean(dt, v, w, bias):
     rng = np.random.default_rng(3)
     mu0 = random_pose(rng)
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(error_model="body"), NOISE, world_T_imu=mu0)
-    ekf.gyro_bias = np.array(bias, dtype=float)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, body_config(), NOISE, world_T_imu=mu0)
+    ekf.state.gyro_bias = np.array(bias, dtype=float)
     ekf.predict(dt, np.array(v), np.array(w))
     expected = mu0 @ se3.exp_se3(dt * np.concatenate([v, np.subtract(w, bias)]))
     np.testing.assert_allclose(ekf.world_T_imu, expected, rtol=0, atol=1e-12)
@@ -207,9 +219,10 @@ def test_prediction_mean(dt, v, w, bias):
 
 def _pose_only_filter(rng, P0: np.ndarray, mu0: np.ndarray) -> VisualInertialEKF:
     tiny = ImuNoise(np.full(3, 1e-12), np.full(3, 1e-12))
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=False, error_model="body"), tiny, world_T_imu=mu0)
-    ekf.P[:] = 0.0
-    ekf.P[POSE, POSE] = P0
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, body_config({"estimator.estimate_gyro_bias": False}), tiny,
+                            world_T_imu=mu0)
+    ekf.state.P[:] = 0.0
+    ekf.state.P[POSE, POSE] = P0
     return ekf
 
 
@@ -225,16 +238,16 @@ def test_prediction_covariance_monte_carlo():
     xi = rng.multivariate_normal(np.zeros(6), P0, size=2000)
     logs = np.array([se3.log_se3(mu_new_inv @ mu0 @ se3.exp_se3(x) @ step) for x in xi])
     sample_cov = logs.T @ logs / len(logs)  # the mean is known to be zero
-    P = ekf.P[POSE, POSE] - np.diag(np.full(6, 1e-24) * dt * dt)
+    P = ekf.state.P[POSE, POSE] - np.diag(np.full(6, 1e-24) * dt * dt)
     assert rel_err(sample_cov, P) < 0.10
     assert rel_err(P, P0) > 0.3  # the prediction did transform the covariance
-    assert np.all(ekf.P[BIAS] == 0.0) and np.all(ekf.P[:, BIAS] == 0.0)
+    assert np.all(ekf.state.P[BIAS] == 0.0) and np.all(ekf.state.P[:, BIAS] == 0.0)
 
     # without sampling error: mu_new^-1 T_new = exp((Ad(exp(-dt u)) xi)^) exactly, so a filter
     # started from the sample covariance of the xi must predict the sample covariance of the logs
     exact = _pose_only_filter(rng, xi.T @ xi / len(xi), mu0)
     exact.predict(dt, v, w)
-    np.testing.assert_allclose(exact.P[POSE, POSE], sample_cov, rtol=0, atol=1e-9 * np.abs(sample_cov).max())
+    np.testing.assert_allclose(exact.state.P[POSE, POSE], sample_cov, rtol=0, atol=1e-9 * np.abs(sample_cov).max())
 
 
 def test_gyro_bias_jacobian():
@@ -245,10 +258,11 @@ def test_gyro_bias_jacobian():
     dt, v, w = 0.4, np.array([7.0, 0.3, -0.1]), np.array([0.2, -0.5, 0.9])
 
     def filter_with_bias(bias):
-        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=True, error_model="body"), NOISE, world_T_imu=mu0)
-        ekf.P[:] = 0.0
-        ekf.P[BIAS, BIAS] = sigma_b**2 * np.eye(3)
-        ekf.gyro_bias = np.array(bias, dtype=float)
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, body_config({"estimator.estimate_gyro_bias": True}), NOISE,
+                                world_T_imu=mu0)
+        ekf.state.P[:] = 0.0
+        ekf.state.P[BIAS, BIAS] = sigma_b**2 * np.eye(3)
+        ekf.state.gyro_bias = np.array(bias, dtype=float)
         return ekf
 
     ekf = filter_with_bias(bias0)
@@ -264,20 +278,21 @@ def test_gyro_bias_jacobian():
     twist = dt * np.concatenate([v, w - bias0])
     J_closed = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
     assert rel_err(J_fd, J_closed) < 1e-6
-    cross = ekf.P[POSE, BIAS]
+    cross = ekf.state.P[POSE, BIAS]
     assert rel_err(cross, J_fd * sigma_b**2) < 1e-6
     np.testing.assert_allclose(cross, J_closed * sigma_b**2, rtol=1e-12, atol=1e-18)
-    assert np.allclose(ekf.P[BIAS, POSE], cross.T, rtol=1e-12, atol=0)
+    assert np.allclose(ekf.state.P[BIAS, POSE], cross.T, rtol=1e-12, atol=0)
     # pose block: J sigma_b^2 J^T plus the process noise
     Q = np.diag(np.concatenate([NOISE.linear_sigma**2, NOISE.angular_sigma**2]) * dt * dt)
-    np.testing.assert_allclose(ekf.P[POSE, POSE], sigma_b**2 * J_closed @ J_closed.T + Q, rtol=1e-10, atol=1e-18)
+    np.testing.assert_allclose(ekf.state.P[POSE, POSE], sigma_b**2 * J_closed @ J_closed.T + Q, rtol=1e-10,
+                               atol=1e-18)
 
 
 def test_no_bias_states_without_bias_estimation():
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(estimate_gyro_bias=False), NOISE)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, Config.from_values({"estimator.estimate_gyro_bias": False}), NOISE)
     for _ in range(5):
         ekf.predict(0.1, np.array([8.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.2]))
-    assert np.all(ekf.P[BIAS] == 0.0) and np.all(ekf.P[:, BIAS] == 0.0)
+    assert np.all(ekf.state.P[BIAS] == 0.0) and np.all(ekf.state.P[:, BIAS] == 0.0)
     assert np.all(ekf.gyro_bias == 0.0)
 
 
@@ -286,7 +301,7 @@ def test_no_bias_states_without_bias_estimation():
 
 
 def _world_point_from_parameters(kind: str, theta: np.ndarray, anchor: np.ndarray) -> np.ndarray:
-    """Homogeneous world point of a landmark, from the documented parametrizations (backend.landmarks)."""
+    """Homogeneous world point of a landmark, from the documented parametrizations (backend.estimator.landmarks)."""
     if kind == "xyz":
         return homogeneous(theta)
     alpha, beta, rho = theta
@@ -300,16 +315,16 @@ def _pixels(mu: np.ndarray, w_world: np.ndarray) -> np.ndarray:
 
 def _anchor_of(ekf: VisualInertialEKF, slot: int) -> np.ndarray:
     """The anchor frame of a landmark (the filter stores none for xyz: there it is the identity)."""
-    return np.eye(4) if ekf._kind == "xyz" else ekf._anchors[slot].copy()
+    return np.eye(4) if ekf.model.parametrization == "xyz" else ekf.state.anchors[slot].copy()
 
 
 @pytest.mark.parametrize("kind", PARAMETRIZATIONS)
 def test_observation_jacobians(kind):
     rng = np.random.default_rng(7)
     mu0 = random_pose(rng)
-    config = FilterConfig(landmark_parametrization=kind, error_model="body")
+    config = body_config({"landmarks.parametrization": kind})
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE, world_T_imu=mu0)
-    ekf.P[POSE, POSE] = random_spd(rng, 6, 1e-4)
+    ekf.state.P[POSE, POSE] = random_spd(rng, 6, 1e-4)
     p_cam = np.array([[2.0, -1.0, 15.0], [-6.0, 0.5, 8.0], [0.3, 1.2, 35.0], [9.0, -2.0, 22.0]])
     z0 = CAMERA.project(p_cam)
     ids = np.array([3, 7, 8, 20])
@@ -318,13 +333,13 @@ def test_observation_jacobians(kind):
     # move the pose so that the linearization point differs from the initialization pose
     ekf.predict(0.1, np.array([2.0, 0.1, 0.0]), np.array([0.02, -0.01, 0.05]))
     mu = ekf.world_T_imu.copy()
-    slots = ekf._slots_of(ids)
+    slots = slots_of(ekf, ids)
     z_meas = z0 + 3.0
     z_meas[:, 3] += 1.0  # vL != vR: the fourth row (U1) has a residual too
-    residual, off_row, H_xi, H_theta, in_front = ekf._observation_model(slots, z_meas)
+    residual, off_row, H_xi, H_theta, in_front = observation_model(ekf, slots, z_meas)
     assert in_front.all()
     for k, slot in enumerate(slots):
-        theta = ekf._theta[slot].copy()
+        theta = ekf.state.theta[slot].copy()
         anchor = _anchor_of(ekf, slot)
         w0 = _world_point_from_parameters(kind, theta, anchor)
         r4 = z_meas[k] - _pixels(mu, w0)
@@ -343,12 +358,12 @@ def test_observation_jacobians(kind):
 
 
 def test_observation_jacobian_mapping_mode_has_no_pose_columns():
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, FilterConfig(mode="mapping"), NOISE)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, Config.from_values({"estimator.mode": "mapping"}), NOISE)
     z = CAMERA.project(np.array([[1.0, 0.5, 12.0]]))
     ekf.update(np.array([0]), z)
-    _, _, H_xi, H_theta, _ = ekf._observation_model(np.array([0]), z)
+    _, _, H_xi, H_theta, _ = observation_model(ekf, np.array([0]), z)
     assert np.all(H_xi == 0.0) and np.abs(H_theta).max() > 0.0
-    assert np.all(ekf.P[:CORE] == 0.0)
+    assert np.all(ekf.state.P[:CORE] == 0.0)
 
 
 @pytest.mark.parametrize("kind", PARAMETRIZATIONS)
@@ -356,17 +371,18 @@ def test_landmark_initialization(kind):
     rng = np.random.default_rng(9)
     mu0 = random_pose(rng)
     sigma_pix = 0.8
-    config = FilterConfig(landmark_parametrization=kind, pixel_sigma=sigma_pix, error_model="body",
-                          unbiased_triangulation=False)  # the linearized model; the mean shift is tested in test_camera
+    # the linearized model (no unbiased triangulation); the mean shift is tested in test_camera
+    config = body_config({"landmarks.parametrization": kind, "noise.pixel_sigma": sigma_pix,
+                          "landmarks.unbiased_triangulation": False})
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE, world_T_imu=mu0)
     P_core = random_spd(rng, CORE, 1e-3)  # pose and gyro bias, correlated
-    ekf.P[:] = P_core
+    ekf.state.P[:] = P_core
     p_cam = np.array([[2.0, -1.0, 15.0], [-6.0, 0.5, 8.0], [0.3, 1.2, 35.0]])
     z = CAMERA.project(p_cam) + rng.normal(0.0, 0.5, (3, 4))
     ids = np.array([4, 10, 11])
     stats = ekf.update(ids, z)
     assert (stats.initialized, stats.used, stats.active) == (3, 0, 3)
-    np.testing.assert_array_equal(ekf.P[:CORE, :CORE], P_core)
+    np.testing.assert_array_equal(ekf.state.P[:CORE, :CORE], P_core)
 
     def world(d, zi):  # m = mu exp(d^) imu_T_cam triangulate(z)
         return (mu0 @ se3.exp_se3(d) @ IMU_T_CAM @ homogeneous(CAMERA.triangulate(zi)))[:3]
@@ -384,7 +400,7 @@ def test_landmark_initialization(kind):
         assert rel_err(map_cov[i], expected_cov[3 * i : 3 * i + 3, 3 * i : 3 * i + 3]) < 1e-4
 
     # the state block in world coordinates: dm/dtheta (identity for xyz) maps parameters to positions
-    slots = ekf._slots_of(ids)
+    slots = slots_of(ekf, ids)
     J_world = np.zeros((9, 9))
     for i, slot in enumerate(slots):
         anchor = _anchor_of(ekf, slot)
@@ -393,18 +409,19 @@ def test_landmark_initialization(kind):
             w = _world_point_from_parameters(kind, th, anchor)
             return w[:3] / w[3]
 
-        J_world[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = numeric_jacobian(position, ekf._theta[slot].copy(), 1e-8)
+        J_world[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = numeric_jacobian(position, ekf.state.theta[slot].copy(), 1e-8)
+    P = ekf.state.P
     cols = (CORE + 3 * slots[:, None] + np.arange(3)).ravel()
-    world_block = J_world @ ekf.P[np.ix_(cols, cols)] @ J_world.T
+    world_block = J_world @ P[np.ix_(cols, cols)] @ J_world.T
     assert rel_err(world_block, expected_cov) < 1e-4  # includes the landmark-landmark cross terms
-    world_cross = J_world @ ekf.P[cols, :CORE]
+    world_cross = J_world @ P[cols, :CORE]
     assert rel_err(world_cross[:, POSE], J_xi @ P_core[POSE, POSE]) < 1e-4
     assert rel_err(world_cross[:, BIAS], J_xi @ P_core[POSE, BIAS]) < 1e-4
-    np.testing.assert_allclose(ekf.P, ekf.P.T, rtol=0, atol=1e-15 * np.abs(ekf.P).max())
+    np.testing.assert_allclose(P, P.T, rtol=0, atol=1e-15 * np.abs(P).max())
 
 
 def test_initialization_defers_too_small_disparity_and_too_far():
-    config = FilterConfig(min_disparity=2.0, max_depth=60.0)
+    config = Config.from_values({"landmarks.min_disparity": 2.0, "landmarks.max_depth": 60.0})
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
     fb = CAMERA.fx * BASELINE
     # depths: 20 m (ok), 70 m (too far: disparity 5.5 px), 300 m (disparity 1.3 px < 2), zero disparity
@@ -418,27 +435,28 @@ def test_initialization_defers_too_small_disparity_and_too_far():
 
 @pytest.mark.parametrize("error_model", ["invariant", "body"])
 def test_three_row_update_equals_four_row_joseph_update(error_model):
-    """The 3-row update (ekf module docstring, U1-U2) against the textbook 4-row Joseph form
+    """The 3-row update (backend.estimator.update module docstring, U1-U2) against the textbook 4-row Joseph form
     K = P H^T S^-1,  P+ = (I - K H) P (I - K H)^T + K R K^T,  dx = K r  on the same linearization."""
     drive = make_drive(30, seed=3)
-    config = slam_config(error_model=error_model, ransac_threshold_px=0.0, gate_probability=0.999999)
+    config = slam_config({"estimator.error_model": error_model, "update.ransac_threshold_px": 0.0,
+                          "update.gate_probability": 0.999999})
     ekf, _, _ = run_filter(drive, config, steps=20)
     ekf.predict(DT, drive.v_meas[19], drive.w_meas[19])
     ids, pix = drive.observations(20)
-    slots = ekf._slots_of(ids)
+    slots = slots_of(ekf, ids)
     ids, pix, slots = ids[slots >= 0], pix[slots >= 0], slots[slots >= 0]
     assert slots.size >= 10
-    residual, off_row, H_x3, H_m3, in_front = ekf._observation_model(slots, pix)
+    residual, off_row, H_x3, H_m3, in_front = observation_model(ekf, slots, pix)
     assert in_front.all()
     r4 = four_rows(residual[:, :, None], off_row)[:, :, 0]  # the pixel rows, as a textbook filter has them
     H_x, H_m = four_rows(H_x3), four_rows(H_m3)
-    D = ekf.P.shape[0]
+    D = ekf.state.P.shape[0]
     H = np.zeros((4 * slots.size, D))
     for i, j in enumerate(slots):
         H[4 * i : 4 * i + 4, :6] = H_x[i]
         H[4 * i : 4 * i + 4, CORE + 3 * j : CORE + 3 * j + 3] = H_m[i]
     R = PIX_SIGMA**2 * np.eye(H.shape[0])
-    P = ekf.P.copy()
+    P = ekf.state.P.copy()
     S = H @ P @ H.T + R
     K = np.linalg.solve(S, H @ P).T
     IKH = np.eye(D) - K @ H
@@ -446,18 +464,19 @@ def test_three_row_update_equals_four_row_joseph_update(error_model):
     dx_ref = K @ r4.ravel()
     nis_ref = sum(r4[i] @ np.linalg.solve(S[4 * i : 4 * i + 4, 4 * i : 4 * i + 4], r4[i]) for i in range(slots.size))
 
-    mu, theta = ekf.mu.copy(), ekf._theta.copy()
-    ekf._apply_correction(dx_ref)
-    mu_ref, theta_ref = ekf.mu, ekf._theta
-    ekf.mu, ekf._theta = mu, theta
+    st = ekf.state
+    mu, theta, bias = st.mu.copy(), st.theta.copy(), st.gyro_bias.copy()
+    ekf.model.correct(st, dx_ref)
+    mu_ref, theta_ref = st.mu, st.theta
+    st.mu, st.theta, st.gyro_bias = mu, theta, bias
     stats = StepStats()
     ekf._joint_update(slots, pix, stats)
     assert stats.used == slots.size
     assert stats.nis_sum == pytest.approx(nis_ref, rel=1e-9)
     scale = np.abs(P_ref).max()
-    assert np.abs(ekf.P - P_ref).max() <= 1e-9 * scale
-    assert np.abs(ekf.mu - mu_ref).max() <= 1e-9
-    assert np.abs(ekf._theta - theta_ref).max() <= 1e-9
+    assert np.abs(st.P - P_ref).max() <= 1e-9 * scale
+    assert np.abs(st.mu - mu_ref).max() <= 1e-9
+    assert np.abs(st.theta - theta_ref).max() <= 1e-9
 
 
 # ----------------------------------------------------------------------------------------------
@@ -469,12 +488,12 @@ def test_covariance_symmetric_positive_definite():
     worst = []
 
     def check(k, ekf, ids, pix):
-        P = ekf.P
+        P = ekf.state.P
         worst.append(np.abs(P - P.T).max() / np.abs(P).max())
         return pix
 
     ekf, _, stats = run_filter(drive, slam_config(), on_step=check)
-    P = ekf.P
+    P = ekf.state.P
     assert P.shape[0] > CORE + 3 * 20
     assert max(worst) <= 1e-15
     assert np.abs(P - P.T).max() <= 1e-15 * np.abs(P).max()
@@ -490,14 +509,14 @@ def test_covariance_exactly_symmetric_after_every_step():
     for k in range(drive.n - 1):
         ekf.predict(DT, drive.v_meas[k], drive.w_meas[k])
         ekf.update(*drive.observations(k + 1))
-        if not np.array_equal(ekf.P, ekf.P.T):
+        if not np.array_equal(ekf.state.P, ekf.state.P.T):
             asymmetric_steps.append(k + 1)
     assert asymmetric_steps == []
 
 
 @pytest.mark.parametrize("error_model", ["invariant", "body"])
 def test_slam_beats_dead_reckoning(drive200, error_model):
-    ekf, poses, stats = run_filter(drive200, slam_config(error_model=error_model))
+    ekf, poses, stats = run_filter(drive200, slam_config({"estimator.error_model": error_model}))
     truth = drive200.poses
     dr = dead_reckoning(drive200.t, drive200.v_meas, drive200.w_meas, "this")
     err_slam = np.linalg.norm(poses[-1, :3, 3] - truth[-1, :3, 3])
@@ -530,8 +549,8 @@ def test_full_state_matches_marginalized(seq60, error_model):
     for i in np.unique(seq60.obs_ids):  # no landmark is seen again after its track ends
         seen = steps[seq60.obs_ids == i]
         assert seen[-1] - seen[0] == seen.size - 1
-    marg = run_sequence(seq60, slam_config(full_state=False, error_model=error_model))
-    full = run_sequence(seq60, slam_config(full_state=True, error_model=error_model))
+    marg = run_sequence(seq60, slam_config({"estimator.full_state": False, "estimator.error_model": error_model}))
+    full = run_sequence(seq60, slam_config({"estimator.full_state": True, "estimator.error_model": error_model}))
     assert marg.stats.observations_used > 500
     assert full.stats.active_landmarks_max > 2 * marg.stats.active_landmarks_max
     assert marg.stats.observations_used == full.stats.observations_used
@@ -541,8 +560,9 @@ def test_full_state_matches_marginalized(seq60, error_model):
 
 
 def _relabel_segments(seq: Sequence, near: int, far: int, far_disparity: float) -> Sequence:
-    """The re-anchoring rule of backend.ekf written as new track ids: track i's s-th landmark gets id
-    1000 i + s; its first segment is shortened by i mod limit (limit from the anchoring disparity)."""
+    """The re-anchoring rule (R1, R2 of backend.estimator.tracks) written as new track ids: track i's
+    s-th landmark gets id 1000 i + s; its first segment is shortened by i mod limit (limit from the
+    anchoring disparity)."""
     limit = lambda px: far if px[0] - px[2] < far_disparity else near  # noqa: E731
     state: dict[int, list[int]] = {}  # id -> [count, segment, limit]
     new_ids = np.empty_like(seq.obs_ids)
@@ -561,15 +581,16 @@ def _relabel_segments(seq: Sequence, near: int, far: int, far_disparity: float) 
 
 @pytest.mark.parametrize("error_model", ["invariant", "body"])
 def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
-    """Re-anchoring (backend.ekf docstring) marginalizes a landmark and starts a new one from the same
+    """Re-anchoring (backend.estimator.tracks docstring) marginalizes a landmark and starts a new one from the same
     observation: the same filter as one that sees each track segment as a separate track."""
     seq = to_sequence(make_drive(80, seed=5, density=1.5, track=(8, 30)))
     near, far, far_disparity = 3, 7, 20.0  # depth 5-40 m here: disparity 10-77 px
-    on = run_sequence(seq, slam_config(error_model=error_model, track_drift="yes", reanchor_observations=near,
-                                       reanchor_far_observations=far, reanchor_far_disparity=far_disparity))
+    on = run_sequence(seq, slam_config({"estimator.error_model": error_model, "drift.track_drift": "yes",
+                                        "drift.reanchor_observations": near, "drift.reanchor_far_observations": far,
+                                        "drift.reanchor_far_disparity": far_disparity}))
     cut = run_sequence(_relabel_segments(seq, near, far, far_disparity),  # same random walk, no re-anchoring
-                       slam_config(error_model=error_model, track_drift="yes", reanchor_observations=0,
-                                   reanchor_far_observations=0))
+                       slam_config({"estimator.error_model": error_model, "drift.track_drift": "yes",
+                                    "drift.reanchor_observations": 0, "drift.reanchor_far_observations": 0}))
     assert on.stats.landmarks_dropped == 0 == cut.stats.landmarks_dropped  # (a dropped track restarts its phase)
     assert on.stats.landmarks_reanchored > 300
     assert on.stats.landmarks_initialized == cut.stats.landmarks_initialized
@@ -587,18 +608,18 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
 
 
 def test_persistent_ransac_outliers_are_not_rescued():
-    """A track rejected by the RANSAC persistent_outlier_steps times in a row is not rescued;
+    """A track rejected by the RANSAC update.persistent_outlier_steps times in a row is not rescued;
     the count follows the track id (across re-anchoring) and any other outcome resets it."""
 
     def count(ekf, slots, rejected):  # what the filter's step does with the RANSAC's rejections
-        return kernels.count_rejections_inplace(ekf._outlier_run, slots, np.array(rejected, dtype=bool),
-                                                ekf.config.persistent_outlier_steps)
+        return update.count_rejections_inplace(ekf.state.outlier_run, slots, np.array(rejected, dtype=bool),
+                                               ekf.config.update.persistent_outlier_steps)
 
     drive = make_drive(10, seed=6)
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=3), NOISE)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config({"update.persistent_outlier_steps": 3}), NOISE)
     ekf.update(*drive.observations(0))
     slots = np.arange(4)
-    a, b, c, d = ekf._ids[:4].tolist()
+    a, b, c, d = ekf.state.ids[:4].tolist()
     steps = [[1, 1, 0, 1], [1, 1, 1, 1], [1, 0, 1, 1], [1, 1, 1, 1], [0, 1, 1, 1]]
     flagged = [count(ekf, slots, r).tolist() for r in steps]
     assert flagged == [[False] * 4, [False] * 4, [True, False, False, True], [True, False, True, True],
@@ -607,14 +628,14 @@ def test_persistent_ransac_outliers_are_not_rescued():
     # d leaves the state as at re-anchoring (its track goes on) and comes back: the count goes on;
     # c's track ends: its count ends with it
     ids, pixels = drive.observations(0)
-    ekf._remove(np.isin(ekf._ids, [c, d]), to_map=True, ended=ekf._ids == c)
+    ekf._remove(np.isin(ekf.state.ids, [c, d]), to_map=True, ended=ekf.state.ids == c)
     assert _outlier_counts(ekf) == {b: 2, d: 5}
     back = ids == d
     ekf.update(ids[back], pixels[back])
-    slot = ekf._slots_of(np.array([d]))
+    slot = slots_of(ekf, [d])
     assert count(ekf, slot, [True]).tolist() == [True]
     assert _outlier_counts(ekf) == {d: 6}  # b was not seen in that step: its track ended
-    off = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(persistent_outlier_steps=0), NOISE)
+    off = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config({"update.persistent_outlier_steps": 0}), NOISE)
     off.update(*drive.observations(0))
     for k in range(1, 6):  # never counted when the rule is off
         off.predict(DT, drive.v_true[k - 1], drive.w_true[k - 1])
@@ -624,26 +645,27 @@ def test_persistent_ransac_outliers_are_not_rescued():
 
 def _outlier_counts(ekf: VisualInertialEKF) -> dict:
     """Track id -> steps in a row the RANSAC rejected it (nonzero only), in the state or not."""
-    counts = {int(i): int(r) for i, r in zip(ekf._ids, ekf._outlier_run) if r}
-    counts.update(ekf._outlier_stash)
+    counts = {int(i): int(r) for i, r in zip(ekf.state.ids, ekf.state.outlier_run) if r}
+    counts.update(ekf.state.outlier_stash)
     return counts
 
 
 def test_no_reanchoring_in_full_state(seq60):
-    config = slam_config(full_state=True, track_drift="yes", reanchor_observations=2, reanchor_far_observations=2)
+    config = slam_config({"estimator.full_state": True, "drift.track_drift": "yes", "drift.reanchor_observations": 2,
+                          "drift.reanchor_far_observations": 2})
     result = run_sequence(seq60, config)
     assert result.stats.landmarks_reanchored == 0
-    assert "no re-anchoring (--full-state" in result.stats.track_drift
+    assert "no re-anchoring (estimator.full_state keeps every landmark)" in result.stats.track_drift
 
 
 @pytest.mark.parametrize("tracker, drift", [("", True), ("vislam", False), ("synthetic", False), ("someone else", True)])
 def test_track_drift_auto_follows_the_tracker(seq60, tracker, drift):
-    """track_drift = "auto": modelled for tracks of unknown origin, not for vislam's own tracker
+    """drift.track_drift = "auto": modelled for tracks of unknown origin, not for vislam's own tracker
     (patches aligned to the track's first) nor for synthetic projections."""
     seq = dataclasses.replace(seq60, tracker=tracker)
-    result = run_sequence(seq, slam_config(track_drift="auto", reanchor_observations=2))
+    result = run_sequence(seq, slam_config({"drift.track_drift": "auto", "drift.reanchor_observations": 2}))
     assert (result.stats.landmarks_reanchored > 0) is drift
-    assert result.config.track_drift == ("yes" if drift else "no")
+    assert result.config.drift.track_drift == ("yes" if drift else "no")
     assert ("not modelled" in result.stats.track_drift) is not drift
     assert (f"the {tracker} tracker" in result.stats.track_drift) is not drift
 
@@ -653,18 +675,19 @@ def test_landmark_random_walk_only_with_track_drift():
     drive = make_drive(10, seed=6)
     inflation = {}
     for drift in ("yes", "no"):
-        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(track_drift=drift, landmark_random_walk=0.3), NOISE)
+        config = slam_config({"drift.track_drift": drift, "drift.landmark_random_walk": 0.3})
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
         ekf.update(*drive.observations(0))
         n = ekf.num_active
-        before = np.diag(ekf.P)[CORE:].copy()
+        before = np.diag(ekf.state.P)[CORE:].copy()
         ekf.predict(DT, drive.v_true[0], drive.w_true[0])
-        inflation[drift] = np.diag(ekf.P)[CORE:CORE + 3 * n] - before
+        inflation[drift] = np.diag(ekf.state.P)[CORE:CORE + 3 * n] - before
     assert n > 10
     np.testing.assert_allclose(inflation["yes"] - inflation["no"], 0.3**2 * DT, rtol=1e-9)
 
 
 def test_mapping_mode_poses_are_dead_reckoning(seq60):
-    result = run_sequence(seq60, slam_config(mode="mapping"))
+    result = run_sequence(seq60, slam_config({"estimator.mode": "mapping"}))
     dr = dead_reckoning(seq60.time_stamps, seq60.linear_velocity, seq60.angular_velocity, "this")
     np.testing.assert_allclose(result.world_T_imu, dr, rtol=0, atol=1e-12)  # (dr: batched exp)
     np.testing.assert_allclose(result.dead_reckoning, dr, rtol=0, atol=1e-12)
@@ -683,7 +706,8 @@ def test_mapping_mode_landmark_covariance_shrinks(kind):
             if i in seen:
                 traces.setdefault(i, []).append(float(np.trace(c)))
 
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(mode="mapping", landmark_parametrization=kind), NOISE)
+    config = slam_config({"estimator.mode": "mapping", "landmarks.parametrization": kind})
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
     ids, pix = drive.observations(0)
     ekf.update(ids, pix)
     record(ekf, set(ids.tolist()))
@@ -704,7 +728,7 @@ def test_mapping_mode_landmark_covariance_shrinks(kind):
 
 
 def test_dead_reckoning_mode_makes_no_map(seq60):
-    result = run_sequence(seq60, slam_config(mode="dead-reckoning"))
+    result = run_sequence(seq60, slam_config({"estimator.mode": "dead-reckoning"}))
     dr = dead_reckoning(seq60.time_stamps, seq60.linear_velocity, seq60.angular_velocity, "this")
     np.testing.assert_allclose(result.world_T_imu, dr, rtol=0, atol=1e-12)  # (dr: batched exp)
     assert result.map_ids.size == 0 and result.map_positions.shape == (0, 3)
@@ -718,13 +742,13 @@ def test_dead_reckoning_mode_makes_no_map(seq60):
 @pytest.mark.parametrize("robust", [True, False], ids=["ransac", "chi2-only"])
 def test_outlier_is_gated(robust):
     drive = make_drive(30, seed=4)
-    config = slam_config() if robust else slam_config(ransac_threshold_px=0.0)
+    config = slam_config() if robust else slam_config({"update.ransac_threshold_px": 0.0})
     k_bad = 20
     bad_id = []
 
     def corrupt(k, ekf, ids, pix):
         if k == k_bad:
-            tracked = np.flatnonzero(ekf._slots_of(ids) >= 0).tolist()
+            tracked = np.flatnonzero(slots_of(ekf, ids) >= 0).tolist()
             j = tracked[len(tracked) // 2]
             bad_id.append(int(ids[j]))
             pix = pix.copy()
@@ -735,7 +759,7 @@ def test_outlier_is_gated(robust):
     ekf, poses, stats = run_filter(drive, config, steps=k_bad + 1, on_step=corrupt)
     assert stats[k_bad].gated >= 1
     assert stats[k_bad].used == clean_stats[k_bad].used - 1
-    assert ekf._gated_run[ekf._slots_of(np.array(bad_id))[0]] == 1
+    assert ekf.state.gated_run[slots_of(ekf, bad_id)[0]] == 1
     assert np.linalg.norm(poses[k_bad, :3, 3] - clean_poses[k_bad, :3, 3]) < 0.05
     assert np.array_equal(poses[:k_bad], clean_poses[:k_bad])
 
@@ -745,19 +769,20 @@ def test_outlier_is_gated(robust):
 
 
 def test_full_state_size_refused():
-    config = FilterConfig(full_state=True, max_state_mib=1.0)
-    VisualInertialEKF.check_full_state_size(100, config)  # 309^2 * 8 B = 0.73 MiB
+    config = Config.from_values({"estimator.full_state": True, "estimator.max_state_mib": 1.0})
+    check_full_state_size(100, config.estimator.max_state_mib)  # 309^2 * 8 B = 0.73 MiB
     with pytest.raises(FilterError, match="max_state_mib"):
-        VisualInertialEKF.check_full_state_size(120, config)  # 369^2 * 8 B = 1.04 MiB
+        check_full_state_size(120, config.estimator.max_state_mib)  # 369^2 * 8 B = 1.04 MiB
     with pytest.raises(FilterError):
         VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE, expected_landmarks=1000)
-    VisualInertialEKF(CAMERA, IMU_T_CAM, dataclasses.replace(config, full_state=False), NOISE, expected_landmarks=1000)
+    VisualInertialEKF(CAMERA, IMU_T_CAM, config.with_values({"estimator.full_state": False}), NOISE,
+                      expected_landmarks=1000)
 
 
 def test_full_state_refused_by_run_sequence(seq60):
     big = dataclasses.replace(seq60, num_features=100_000)
     with pytest.raises(FilterError):
-        run_sequence(big, slam_config(full_state=True, max_state_mib=64.0))
+        run_sequence(big, slam_config({"estimator.full_state": True, "estimator.max_state_mib": 64.0}))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -765,10 +790,11 @@ def test_full_state_refused_by_run_sequence(seq60):
 
 
 def test_health_reports_inconsistent_nis():
-    """Pixel noise 10x pixel_sigma. The gate is opened (and RANSAC off) so that the NIS the monitor
+    """Pixel noise 10x noise.pixel_sigma. The gate is opened (and RANSAC off) so that the NIS the monitor
     sees is not truncated at the gate; the test below covers the default gates."""
     drive = make_drive(60, seed=5, pix_sigma=10 * PIX_SIGMA)
-    config = slam_config(nis_window=10, gate_probability=0.999999, ransac_threshold_px=0.0)
+    config = slam_config({"health.nis_window": 10, "update.gate_probability": 0.999999,
+                          "update.ransac_threshold_px": 0.0})
     with pytest.warns(RuntimeWarning, match="inconsistent"):
         ekf, _, _ = run_filter(drive, config)
     assert len(ekf.health.messages) >= 1
@@ -792,7 +818,7 @@ def test_health_reports_inconsistent_nis_with_default_gates():
 def test_health_one_message_per_episode_with_hysteresis():
     """An episode starts outside [4/f, 4 f] and ends only inside [4/sqrt f, 4 sqrt f] (f = 3): a NIS
     hovering at the band's edge is one episode, a return to 4 and a new excursion a second one."""
-    from backend.ekf import HealthMonitor
+    from vislam.backend.estimator.health import HealthMonitor
 
     monitor = HealthMonitor(window=1, warn_factor=3.0)
     with warnings.catch_warnings():
@@ -807,19 +833,19 @@ def test_health_quiet_when_consistent():
     drive = make_drive(60, seed=5)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        ekf, _, _ = run_filter(drive, slam_config(nis_window=10))
+        ekf, _, _ = run_filter(drive, slam_config({"health.nis_window": 10}))
     assert ekf.health.messages == []
 
 
 def test_marginalized_landmark_keeps_estimate():
     drive = make_drive(10, seed=6)
-    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config(landmark_parametrization="xyz"), NOISE)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, slam_config({"landmarks.parametrization": "xyz"}), NOISE)
     ekf.update(*drive.observations(0))
     ids0, pos0, cov0 = ekf.landmark_map()
     ekf.predict(DT, drive.v_meas[0], drive.w_meas[0])
     before_ids, before_pos, before_cov = ekf.landmark_map()
     stats = ekf.update(np.zeros(0, dtype=np.int64), np.zeros((0, 4)))  # every track ends
-    assert stats.marginalized == ids0.size and ekf.num_active == 0 and ekf.P.shape == (CORE, CORE)
+    assert stats.marginalized == ids0.size and ekf.num_active == 0 and ekf.state.P.shape == (CORE, CORE)
     ids, pos, cov = ekf.landmark_map()
     np.testing.assert_array_equal(ids, before_ids)
     np.testing.assert_array_equal(pos, before_pos)
@@ -838,7 +864,7 @@ def test_points_at_near_infinite_depth_do_not_break_the_filter(kind):
         return np.vstack([pix, far]) if ids.size else pix
 
     def run(with_far: bool):
-        config = slam_config(landmark_parametrization=kind)
+        config = slam_config({"landmarks.parametrization": kind})
         ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
         ekf.update(*drive.observations(0))
         for k in range(drive.n - 1):
@@ -853,4 +879,140 @@ def test_points_at_near_infinite_depth_do_not_break_the_filter(kind):
         warnings.simplefilter("ignore", RuntimeWarning)
         plain, far = run(False), run(True)
     assert np.linalg.norm(far.world_T_imu[:3, 3] - plain.world_T_imu[:3, 3]) < 0.05
-    assert np.linalg.eigvalsh(0.5 * (far.P + far.P.T)).min() > 0
+    assert np.linalg.eigvalsh(0.5 * (far.state.P + far.state.P.T)).min() > 0
+
+
+# ----------------------------------------------------------------------------------------------
+# 13 the filter's state (backend.estimator.state) and its error model
+
+
+def _landmark_batch(rng, ids, P_dim):
+    """Distinct parameters, anchors, counts and limits for landmarks ``ids``, and an SPD P of size P_dim."""
+    n = len(ids)
+    theta = rng.normal(0.0, 10.0, (n, 3))
+    anchors = np.array([random_pose(rng) for _ in range(n)])
+    counts = rng.integers(1, 5, n)
+    limits = rng.integers(5, 30, n)
+    return np.array(ids, dtype=np.int64), theta, anchors, counts, limits, random_spd(rng, P_dim, 1.0)
+
+
+def test_filter_state_keeps_landmarks_in_one_slot_order():
+    """add_landmarks appends theta, the track rows, theta_first and the anchors in the order of P's
+    landmark blocks; remove_landmarks drops the same slots from all of them and from P's rows and
+    columns, returns the new slot of each old one, rebuilds the id look-up, and stashes the RANSAC
+    rejection runs of removed tracks that go on (not ended; nonzero only), which come back when
+    such a track's landmark is added again."""
+    rng = np.random.default_rng(21)
+    st = FilterState(theta_first=np.zeros((0, 3)), anchors=np.zeros((0, 4, 4)))
+    ids1, theta1, anchors1, counts1, limits1, P1 = _landmark_batch(rng, [40, 7, 23], CORE + 9)
+    st.add_landmarks(P1, ids1, theta1, counts1, limits1, anchors1)
+    ids2, theta2, anchors2, counts2, limits2, P2 = _landmark_batch(rng, [5, 31], CORE + 15)
+    st.add_landmarks(P2, ids2, theta2, counts2, limits2, anchors2)
+
+    ids = np.concatenate([ids1, ids2])
+    theta = np.concatenate([theta1, theta2])
+    anchors = np.concatenate([anchors1, anchors2])
+    assert st.num_landmarks == 5 and st.track.shape == (len(TRACK_ROWS), 5)
+    assert st.P is P2
+    np.testing.assert_array_equal(st.ids, ids)
+    np.testing.assert_array_equal(st.track[ID], ids)
+    np.testing.assert_array_equal(st.theta, theta)
+    np.testing.assert_array_equal(st.theta_first, theta)
+    np.testing.assert_array_equal(st.anchors, anchors)
+    np.testing.assert_array_equal(st.obs_count, np.concatenate([counts1, counts2]))
+    np.testing.assert_array_equal(st.obs_limit, np.concatenate([limits1, limits2]))
+    assert np.all(st.gated_run == 0) and np.all(st.outlier_run == 0)
+    np.testing.assert_array_equal(slots_of_index(np.array([31, 40, 6, 5, 7, 23]), *st.index), [4, 0, -1, 3, 1, 2])
+
+    # the filter's corrections and counting between the steps: theta moves away from theta_first
+    st.theta = st.theta + rng.normal(0.0, 0.5, st.theta.shape)
+    moved = st.theta.copy()
+    st.gated_run[:] = [1, 0, 2, 0, 1]
+    st.outlier_run[:] = [2, 1, 3, 0, 4]
+    track = st.track.copy()
+    P = st.P.copy()
+
+    mask = np.array([True, False, True, True, False])  # ids 40, 23, 5 leave
+    ended = np.array([False, False, True, False, False])  # 23's track ended; 40's and 5's may go on
+    remap = st.remove_landmarks(mask, ended)
+    np.testing.assert_array_equal(remap, [-1, 0, -1, -1, 1])
+    keep = np.array([1, 4])
+    rows = np.concatenate([np.arange(CORE), (CORE + 3 * keep[:, None] + np.arange(3)).ravel()])
+    np.testing.assert_array_equal(st.P, P[np.ix_(rows, rows)])
+    np.testing.assert_array_equal(st.track, track[:, keep])
+    np.testing.assert_array_equal(st.ids, [7, 31])
+    np.testing.assert_array_equal(st.theta, moved[keep])
+    np.testing.assert_array_equal(st.theta_first, theta[keep])
+    np.testing.assert_array_equal(st.anchors, anchors[keep])
+    np.testing.assert_array_equal(st.gated_run, [0, 1])
+    np.testing.assert_array_equal(st.outlier_run, [1, 4])
+    np.testing.assert_array_equal(slots_of_index(np.array([31, 40, 7, 23, 5]), *st.index), [1, -1, 0, -1, -1])
+    assert st.outlier_stash == {40: 2}  # 23 ended, 5 had no rejection run
+
+    # 40's track comes back (re-anchored) with a new landmark 99: its run returns from the stash
+    ids3, theta3, anchors3, counts3, limits3, P3 = _landmark_batch(rng, [99, 40], CORE + 12)
+    st.add_landmarks(P3, ids3, theta3, counts3, limits3, anchors3)
+    np.testing.assert_array_equal(st.ids, [7, 31, 99, 40])
+    np.testing.assert_array_equal(st.outlier_run, [1, 4, 0, 2])
+    np.testing.assert_array_equal(st.theta_first[2:], theta3)
+    np.testing.assert_array_equal(st.anchors[2:], anchors3)
+    assert st.outlier_stash == {}
+    np.testing.assert_array_equal(slots_of_index(np.array([40, 99]), *st.index), [3, 2])
+
+    # no ``ended``: every removed track may go on
+    remap = st.remove_landmarks(np.array([False, True, False, True]))
+    np.testing.assert_array_equal(remap, [0, -1, 1, -1])
+    np.testing.assert_array_equal(st.ids, [7, 99])
+    assert st.outlier_stash == {31: 4, 40: 2}
+    assert st.P.shape == (CORE + 6, CORE + 6)
+
+
+def test_filter_state_without_per_landmark_extras():
+    """A model that reads neither first estimates nor anchors: they stay None through adds and removals."""
+    rng = np.random.default_rng(22)
+    st = FilterState()
+    ids, theta, _, counts, limits, P = _landmark_batch(rng, [3, 1, 2], CORE + 9)
+    st.add_landmarks(P, ids, theta, counts, limits)
+    remap = st.remove_landmarks(np.array([False, True, False]), np.array([False, True, False]))
+    np.testing.assert_array_equal(remap, [0, -1, 1])
+    np.testing.assert_array_equal(st.theta, theta[[0, 2]])
+    assert st.theta_first is None and st.anchors is None
+
+
+@pytest.mark.parametrize(
+    "error_model, kind, mode, bias, fej",
+    [
+        ("invariant", "xyz", "slam", True, True),
+        ("invariant", "xyz", "mapping", False, True),
+        ("body", "xyz", "slam", True, True),
+        ("body", "xyz", "slam", False, False),
+        ("body", "inverse-depth", "mapping", True, True),
+        ("body", "inverse-depth", "slam", True, False),
+    ],
+)
+def test_make_error_model_follows_the_config(error_model, kind, mode, bias, fej):
+    """estimator.error_model picks InvariantModel or BodyModel, with the landmark parametrization,
+    whether the pose (mode "slam") and the gyro bias are estimated, and for the body model the
+    per-landmark arrays it reads (theta_first with first_estimate_jacobians, anchors for inverse depth)."""
+    config = Config.from_values({"estimator.error_model": error_model, "landmarks.parametrization": kind,
+                                 "estimator.mode": mode, "estimator.estimate_gyro_bias": bias,
+                                 "estimator.first_estimate_jacobians": fej})
+    model = make_error_model(config, CAMERA, IMU_T_CAM)
+    assert type(model) is (InvariantModel if error_model == "invariant" else BodyModel)
+    assert model.parametrization == kind
+    assert model.estimate_pose is (mode == "slam")
+    assert model.estimate_bias is bias
+    assert model.camera is CAMERA
+    np.testing.assert_array_equal(model.imu_T_cam, IMU_T_CAM)
+    np.testing.assert_allclose(model.cam_T_imu, CAM_T_IMU, rtol=0, atol=1e-15)
+    expected = () if error_model == "invariant" else (
+        (("theta_first",) if fej else ()) + (("anchors",) if kind != "xyz" else ()))
+    assert tuple(model.per_landmark) == expected
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, config, NOISE)
+    assert type(ekf.model) is type(model)
+    assert (ekf.state.theta_first is not None) is ("theta_first" in expected)
+    assert (ekf.state.anchors is not None) is ("anchors" in expected)
+
+
+def test_default_error_model_is_invariant():
+    assert type(make_error_model(Config(), CAMERA, IMU_T_CAM)) is InvariantModel

@@ -1,12 +1,14 @@
-"""Tests of backend.imu: velocity timing, dead reckoning, white-noise estimation, noise decision."""
+"""The IMU velocities: velocity timing and dead reckoning (``backend.estimator.propagation``),
+white-noise estimation and the noise decision (``backend.run.noise``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from backend import se3
-from backend.imu import dead_reckoning, decide_imu_noise, estimate_white_noise, step_velocities
+from vislam.backend.geometry import se3
+from vislam.backend.estimator.propagation import dead_reckoning, step_velocities
+from vislam.backend.run.noise import decide_imu_noise, estimate_white_noise
 
 
 def smooth_signal(n: int = 3000, dt: float = 0.1) -> np.ndarray:

@@ -1,12 +1,18 @@
-"""The compiled kernels of the EKF step (backend.kernels) against dense textbook formulas."""
+"""The compiled kernels of the EKF step (``backend.estimator.covariance``, ``.tracks``, ``.update``,
+``.invariant``) against dense textbook formulas and readable numpy references."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
 
-from backend import invariant, kernels, se3
-from backend.ekf import CORE
+from vislam.backend import compiled
+from vislam.backend.estimator import covariance, invariant, tracks, update
+from vislam.backend.estimator.layout import CORE
+from vislam.backend.geometry import se3
+from test_se3 import _exp_se3_and_left_jacobian_jit, _right_jacobian_se3_jit
 
 SIGMA2 = 1.7  # pixel variance
 
@@ -43,6 +49,86 @@ def _prediction_problem(rng, K: int):
     return P, mu, twist, points, 0.1, rng.uniform(0.01, 0.1, 6), 3e-7
 
 
+# ----------------------------------------------------------------------------------------------
+# readable references (Barfoot, "State Estimation for Robotics", ch. 7): power series and block
+# formulas, independent of the closed forms and Taylor switches of ``backend.geometry.se3``
+
+
+def _hat(w: np.ndarray) -> np.ndarray:
+    """w^ with w^ v = w x v."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _hat_se3(xi: np.ndarray) -> np.ndarray:
+    """xi^ = [[phi^, rho], [0, 0]] of xi = [rho, phi]."""
+    out = np.zeros((4, 4))
+    out[:3, :3] = _hat(xi[3:])
+    out[:3, 3] = xi[:3]
+    return out
+
+
+def _curly_hat(xi: np.ndarray) -> np.ndarray:
+    """xi^curly = [[phi^, rho^], [0, phi^]], the adjoint action of the Lie algebra."""
+    out = np.zeros((6, 6))
+    out[:3, :3] = out[3:, 3:] = _hat(xi[3:])
+    out[:3, 3:] = _hat(xi[:3])
+    return out
+
+
+def _series(A: np.ndarray, shift: int) -> np.ndarray:
+    """sum_n A^n / (n + shift)! over 80 terms: exp (shift 0) or J_l (shift 1)."""
+    out = np.zeros_like(A)
+    term = np.eye(A.shape[0])
+    for n in range(80):
+        out = out + term / math.factorial(n + shift)
+        term = term @ A
+    return out
+
+
+def _exp_se3(xi: np.ndarray) -> np.ndarray:
+    """exp(xi^) as the power series of the matrix exponential."""
+    return _series(_hat_se3(xi), 0)
+
+
+def _left_jacobian_so3(phi: np.ndarray) -> np.ndarray:
+    """J_l(phi) = sum (phi^)^n / (n+1)!."""
+    return _series(_hat(phi), 1)
+
+
+def _right_jacobian_se3(xi: np.ndarray) -> np.ndarray:
+    """J_r(xi) = J_l(-xi) = sum (-xi^curly)^n / (n+1)!."""
+    return _series(-_curly_hat(xi), 1)
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """Ad(T) = [[R, p^ R], [0, R]] (eq. 7.48)."""
+    A = np.zeros((6, 6))
+    A[:3, :3] = A[3:, 3:] = T[:3, :3]
+    A[:3, 3:] = _hat(T[:3, 3]) @ T[:3, :3]
+    return A
+
+
+def _noise_jacobian_pose(world_T_imu_next: np.ndarray, twist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose part of G J_r(twist) in (I2) of ``backend.estimator.invariant``: the pose rows
+    Ad(mu_next) J_r(twist) (6,6), and R_phi = R_next J_r[3:6] (3,6), the world-frame rotation error
+    per unit twist error."""
+    J = _right_jacobian_se3(twist)
+    return _adjoint(world_T_imu_next) @ J, world_T_imu_next[:3, :3] @ J[3:6]
+
+
+def _noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.ndarray):
+    """G J_r(twist) of (I2): pose rows (6,6) and landmark rows m_i^ R_phi (K,3,6)."""
+    pose, R_phi = _noise_jacobian_pose(world_T_imu_next, twist)
+    return pose, np.array([_hat(m) @ R_phi for m in points]).reshape(-1, 3, 6)
+
+
+def _retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_points: np.ndarray):
+    """(I5) exp(dx) X_hat: pose exp(d_pose^) world_T_imu, landmarks m <- R_d m + J_l(phi) zeta."""
+    E = _exp_se3(d_pose)
+    J = _left_jacobian_so3(d_pose[3:])
+    return E @ world_T_imu, points @ E[:3, :3].T + d_points.reshape(-1, 3) @ J.T
+
+
 @pytest.mark.parametrize("bias", [True, False])
 def test_predict_invariant_equals_dense_propagation(bias):
     """(I2): P <- F P F^T + G Q G^T with F = I + g e_b^T, G = [G_pose; m_i^ R_phi] diag(q)."""
@@ -50,7 +136,7 @@ def test_predict_invariant_equals_dense_propagation(bias):
     K = 7
     D = CORE + 3 * K
     P, mu, twist, points, dt, q, walk = _prediction_problem(rng, K)
-    G_pose, G_lm = invariant.noise_jacobian(mu, twist, points)
+    G_pose, G_lm = _noise_jacobian(mu, twist, points)
     G = np.zeros((D, 6))
     G[:6] = G_pose
     G[CORE:] = G_lm.reshape(-1, 6)
@@ -60,53 +146,60 @@ def test_predict_invariant_equals_dense_propagation(bias):
     expected = F @ P @ F.T + G @ np.diag(q**2) @ G.T
     if bias:
         expected[6:9, 6:9] += walk * np.eye(3)
-    pose, R_phi = invariant.noise_jacobian_pose(mu, twist)
+    pose, R_phi = _noise_jacobian_pose(mu, twist)
     out = P.copy()
-    kernels.predict_invariant_inplace(out, pose, R_phi, points, q, dt, bias, walk)
+    invariant.predict_covariance_inplace(out, pose, R_phi, points, q, dt, bias, walk)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
     assert np.array_equal(out, out.T)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-7, 0.05, 0.3, 2.5])
 def test_compiled_se3_matches_backend_se3(angle):
-    """The compiled single-pose exp and J_r (both sides of the Taylor switch) equal backend.se3's."""
+    """``backend.geometry.se3``'s exp (with its J_l) and J_r compiled, as the kernels call them, equal
+    the same functions run by Python, on both sides of the Taylor switch; and both equal the power
+    series."""
     rng = np.random.default_rng(2)
     axis = rng.normal(size=3)
     xi = np.concatenate([rng.normal(size=3), angle * axis / np.linalg.norm(axis)])
-    T, J_l = kernels._exp_se3_parts(xi)
+    T, J_l = _exp_se3_and_left_jacobian_jit(xi)
+    J_r = _right_jacobian_se3_jit(xi)
     np.testing.assert_allclose(T, se3.exp_se3(xi), rtol=0, atol=1e-14)
     np.testing.assert_allclose(J_l, se3.left_jacobian_so3(xi[3:]), rtol=0, atol=1e-14)
-    np.testing.assert_allclose(kernels._right_jacobian_se3(xi), se3.right_jacobian_se3(xi), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(J_r, se3.right_jacobian_se3(xi), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(T, _exp_se3(xi), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(J_l, _left_jacobian_so3(xi[3:]), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(J_r, _right_jacobian_se3(xi), rtol=0, atol=1e-13)
 
 
 def test_predict_step_is_mean_propagation_then_invariant_covariance():
     """One compiled prediction = mu exp(tau u^), the landmark walk on the landmark diagonal, then (I2)
-    with backend.invariant's noise Jacobian at the propagated pose."""
+    with the noise Jacobian Ad(mu_next) J_r(twist) at the propagated pose."""
     rng = np.random.default_rng(3)
     K = 5
     D = CORE + 3 * K
     P, mu, twist, points, dt, q, walk = _prediction_problem(rng, K)
     lm_walk = 2e-4
-    mu_next = mu @ se3.exp_se3(twist)
+    mu_next = mu @ _exp_se3(twist)
     expected = P.copy()
     expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
-    kernels.predict_invariant_inplace(expected, *invariant.noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk)
+    invariant.predict_covariance_inplace(expected, *_noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk)
     out = P.copy()
-    pose = kernels.predict_invariant_step(mu, out, points, twist, q, dt, True, walk, lm_walk)
+    pose = invariant.predict_step(mu, out, points, twist, q, dt, True, walk, lm_walk)
     np.testing.assert_allclose(pose, mu_next, rtol=0, atol=1e-13)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 
-def test_retract_invariant_equals_backend_invariant():
-    """(I5) compiled: the pose and the world points after exp(dx) X_hat, as backend.invariant.retract."""
+def test_retract_invariant_equals_the_group_update():
+    """(I5) compiled: the pose and the world points after exp(dx) X_hat, i.e. pose exp(d_pose^) mu
+    and m <- R_d m + J_l(phi) zeta."""
     rng = np.random.default_rng(4)
     K = 6
     mu = se3.exp_se3(rng.normal(size=6))
     points = rng.normal(size=(K, 3)) * 10.0
     dx = rng.normal(size=CORE + 3 * K) * 0.05
-    pose_expected, points_expected = invariant.retract(mu, points, dx[:6], dx[CORE:])
+    pose_expected, points_expected = _retract(mu, points, dx[:6], dx[CORE:])
     moved = points.copy()
-    pose = kernels.retract_invariant_inplace(mu, moved, dx)
+    pose = invariant.retract_inplace(mu, moved, dx)
     np.testing.assert_allclose(pose, pose_expected, rtol=0, atol=1e-13)
     np.testing.assert_allclose(moved, points_expected, rtol=0, atol=1e-12)
 
@@ -116,7 +209,7 @@ def test_innovation_covariance_equals_dense_products():
     P, slots, H_x, H_m = _problem(rng)
     residual = rng.normal(size=(slots.size, 3))
     off_row = rng.normal(size=slots.size)
-    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     H = _dense_H(H_x, H_m, slots, P.shape[0])
     S_ref = H @ P @ H.T + SIGMA2 * np.eye(H.shape[0])
     np.testing.assert_allclose(HP, H @ P, rtol=1e-12, atol=1e-10)
@@ -130,7 +223,8 @@ def test_innovation_covariance_equals_dense_products():
 
 @pytest.mark.parametrize("pose", [True, False])
 def test_innovation_invariant_is_observation_then_products(pose):
-    """The fused call = observe_invariant from cam_T_imu world_T_imu^-1, then innovation_covariance."""
+    """The fused call = ``invariant.observe`` from cam_T_imu world_T_imu^-1, then
+    ``update.innovation_covariance``."""
     rng = np.random.default_rng(8)
     n = 9
     P = _spd(rng, CORE + 3 * n, 0.1)
@@ -142,12 +236,12 @@ def test_innovation_invariant_is_observation_then_products(pose):
     slots = np.array([8, 1, 4, 6], dtype=np.int64)
     pixels = rng.uniform(100, 600, (slots.size, 4))
     cam = (700.0, 690.0, 610.0, 180.0, 0.54)
-    expected = list(kernels.observe_invariant(theta[slots], cam_T_imu @ se3.inverse(mu), *cam, pixels))
+    expected = list(invariant.observe(theta[slots], cam_T_imu @ se3.inverse(mu), *cam, pixels))
     if not pose:
         expected[2][:] = 0.0
     residual, off_row, H_x, H_m, in_front = expected
-    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
-    out = kernels.innovation_invariant(P, theta, slots, mu, cam_T_imu, *cam, pixels, SIGMA2, pose)
+    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    out = invariant.innovation(P, theta, slots, mu, cam_T_imu, *cam, pixels, SIGMA2, pose)
     assert not out[-1][0] and out[-1][1:].all()  # slot 8 is behind the camera
     for got, want in zip(out, (residual, off_row, H_x, H_m, HP, S, nis, in_front)):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
@@ -158,14 +252,14 @@ def test_gather_and_augment_are_the_block_formulas():
     D = CORE + 3 * 10
     P = _spd(rng, D)
     keep = np.sort(rng.choice(D, 20, replace=False))
-    G = kernels.gather_symmetric(P, keep)
+    G = covariance.gather_symmetric(P, keep)
     assert G.flags.c_contiguous
     np.testing.assert_array_equal(G, P[np.ix_(keep, keep)])
 
     n = 4
     J_xi = rng.normal(size=(3 * n, 6))
     J_z = rng.normal(size=(n, 3, 4))
-    out = kernels.augment(P, J_xi, J_z, SIGMA2)
+    out = covariance.augment(P, J_xi, J_z, SIGMA2)
     cross = J_xi @ P[:6]
     block = J_xi @ P[:6, :6] @ J_xi.T
     for i in range(n):
@@ -180,15 +274,15 @@ def test_gather_landmarks_keeps_pose_bias_and_the_kept_slots():
     P = _spd(rng, CORE + 3 * 6)
     keep = np.array([1, 4, 5])
     cols = np.concatenate([np.arange(CORE), (CORE + 3 * keep[:, None] + np.arange(3)).ravel()])
-    np.testing.assert_array_equal(kernels.gather_landmarks(P, keep), P[np.ix_(cols, cols)])
+    np.testing.assert_array_equal(covariance.gather_landmarks(P, keep), P[np.ix_(cols, cols)])
 
 
 @pytest.mark.parametrize("pose", [True, False])
 def test_initialize_invariant_is_triangulation_then_augmentation(pose):
-    """One compiled call = backend.landmarks.initialize (xyz, unscented mean), (I4) J_xi = [I 0]
+    """One compiled call = ``backend.estimator.landmarks.initialize`` (xyz, unscented mean), (I4) J_xi = [I 0]
     (zero with poses held fixed) and the augmentation."""
-    from backend.camera import StereoCamera
-    from backend.landmarks import initialize
+    from vislam.backend.geometry.camera import StereoCamera
+    from vislam.backend.estimator.landmarks import initialize
 
     rng = np.random.default_rng(6)
     camera = StereoCamera(np.array([[718.0, 0, 607.0], [0, 718.0, 185.0], [0, 0, 1]]), 0.54)
@@ -200,9 +294,9 @@ def test_initialize_invariant_is_triangulation_then_augmentation(pose):
     J_xi = np.zeros((15, 6))
     if pose:
         J_xi[:, :3] = np.tile(np.eye(3), (5, 1))
-    expected = kernels.augment(P, J_xi, np.ascontiguousarray(J_z), SIGMA2)
-    out, points = kernels.initialize_invariant(P, pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx, camera.cy,
-                                               camera.baseline, 1.3, SIGMA2, pose)
+    expected = covariance.augment(P, J_xi, np.ascontiguousarray(J_z), SIGMA2)
+    out, points = invariant.initialize(P, pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx, camera.cy,
+                                       camera.baseline, 1.3, SIGMA2, pose)
     np.testing.assert_allclose(points, theta, rtol=0, atol=1e-11)
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
     assert np.array_equal(out, out.T)
@@ -220,10 +314,10 @@ def test_one_point_ransac_hypotheses_are_single_observation_updates():
     residual = (H[:, :3] @ np.array([0.3, -0.2, 0.1])).reshape(-1, 3)
     residual[6:] = (H[:, :3] @ np.array([-0.2, 0.4, 0.3])).reshape(-1, 3)[6:]
     off_row = np.zeros(slots.size)
-    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    HP, S, _ = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     threshold = 1.0
     candidates = np.ones(slots.size, dtype=bool)
-    inliers = kernels.one_point_ransac(S, residual, off_row, candidates, SIGMA2, threshold)
+    inliers = update.one_point_ransac(S, residual, off_row, candidates, SIGMA2, threshold)
 
     # reference: every hypothesis as an explicit single-observation EKF update
     support = []
@@ -247,7 +341,7 @@ def test_rescue_test_is_the_gate_after_the_inlier_update():
     residual = rng.normal(size=(slots.size, 3)) * 3.0
     residual[7] *= 20.0  # one of the rest fails the gate
     off_row = rng.normal(size=slots.size)
-    _, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    _, S, _ = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     inlier = np.array([1, 1, 0, 1, 1, 0, 1, 0], dtype=bool)
     ri = (3 * np.flatnonzero(inlier)[:, None] + np.arange(3)).ravel()
     rr = (3 * np.flatnonzero(~inlier)[:, None] + np.arange(3)).ravel()
@@ -255,7 +349,7 @@ def test_rescue_test_is_the_gate_after_the_inlier_update():
     w = np.linalg.solve(L, residual[inlier].ravel())
     X = np.linalg.solve(L, S[np.ix_(rr, ri)].T)
     gate = 9.0
-    ok = kernels._rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
+    ok = update._rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
 
     Hi = H[ri]
     K = P @ Hi.T @ np.linalg.inv(S[np.ix_(ri, ri)])
@@ -281,12 +375,12 @@ def test_joint_update_with_rescue_equals_dense_update_over_kept_rows():
     residual = rng.normal(size=(slots.size, 3)) * 3.0
     residual[7] *= 20.0  # fails the rescue gate
     off_row = rng.normal(size=slots.size)
-    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    HP, S, _ = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     inlier = np.array([1, 1, 0, 1, 1, 0, 1, 0], dtype=bool)
     rest = ~inlier
     rest[2] = False  # not a candidate (gated before): neither used nor tested
     out = P.copy()
-    status, dx, used = kernels.joint_update_inplace(out, HP, S, residual, off_row, inlier, rest, SIGMA2, 9.0)
+    status, dx, used = update.joint_update_inplace(out, HP, S, residual, off_row, inlier, rest, SIGMA2, 9.0)
     assert status == 0
     assert used.tolist() == [True, True, False, True, True, True, True, False]
     rows = (3 * np.flatnonzero(used)[:, None] + np.arange(3)).ravel()
@@ -309,7 +403,7 @@ def test_select_and_update_is_gate_ransac_count_then_joint_update(persistent):
     residual[[1, 5]] += 15.0  # two that agree with each other, not with the rest
     residual[3] *= 40.0  # gated
     off_row = rng.normal(size=slots.size)
-    HP, S, nis = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     in_front = np.ones(slots.size, dtype=bool)
     in_front[6] = False
     gate = 13.28
@@ -317,20 +411,20 @@ def test_select_and_update_is_gate_ransac_count_then_joint_update(persistent):
     gated0 = rng.integers(0, 3, 12)
     # the separate kernels
     use = in_front & (nis <= gate)
-    inlier = kernels.one_point_ransac(S, residual, off_row, use, SIGMA2, 2.0)
+    inlier = update.one_point_ransac(S, residual, off_row, use, SIGMA2, 2.0)
     rest = use & ~inlier
     runs = runs0.copy()
     if persistent:
-        rest &= ~kernels.count_rejections_inplace(runs, slots, rest, persistent)
+        rest &= ~update.count_rejections_inplace(runs, slots, rest, persistent)
     expected_P = P.copy()
-    _, expected_dx, expected_used = kernels.joint_update_inplace(expected_P, HP, S, residual, off_row, inlier, rest,
-                                                                 SIGMA2, gate)
+    _, expected_dx, expected_used = update.joint_update_inplace(expected_P, HP, S, residual, off_row, inlier, rest,
+                                                                SIGMA2, gate)
     expected_gated = gated0.copy()
     expected_gated[slots] = np.where(expected_used, 0, gated0[slots] + 1)
     # fused
     out_P, out_runs, out_gated = P.copy(), runs0.copy(), gated0.copy()
-    status, dx, used = kernels.select_and_update_inplace(out_P, HP, S, residual, off_row, nis, in_front, slots, gate,
-                                                         2.0, SIGMA2, out_runs, persistent, out_gated)
+    status, dx, used = update.select_and_update_inplace(out_P, HP, S, residual, off_row, nis, in_front, slots, gate,
+                                                        2.0, SIGMA2, out_runs, persistent, out_gated)
     assert status == 0 and not used[3] and not used[6]
     assert used.tolist() == expected_used.tolist()
     np.testing.assert_array_equal(out_P, expected_P)
@@ -345,11 +439,11 @@ def test_joint_update_refuses_an_indefinite_innovation_covariance():
     rng = np.random.default_rng(9)
     P, slots, H_x, H_m = _problem(rng, n_landmarks=6, k=4)
     residual, off_row = rng.normal(size=(4, 3)), rng.normal(size=4)
-    HP, S, _ = kernels.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    HP, S, _ = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     S[3, 3] = -1.0
     out = P.copy()
-    status, dx, used = kernels.joint_update_inplace(out, HP, S, residual, off_row, np.ones(4, dtype=bool),
-                                                    np.zeros(4, dtype=bool), SIGMA2, 9.0)
+    status, dx, used = update.joint_update_inplace(out, HP, S, residual, off_row, np.ones(4, dtype=bool),
+                                                   np.zeros(4, dtype=bool), SIGMA2, 9.0)
     assert status > 0 and not used.any() and not dx.any()
     assert np.array_equal(out, P)  # the prior is kept
 
@@ -358,7 +452,7 @@ def test_mirror_lower_copies_the_lower_triangle():
     rng = np.random.default_rng(6)
     A = rng.normal(size=(7, 7))
     B = A.copy()
-    kernels.mirror_lower_inplace(B)
+    covariance.mirror_lower_inplace(B)
     np.testing.assert_array_equal(np.tril(B), np.tril(A))
     assert np.array_equal(B, B.T)
 
@@ -367,34 +461,46 @@ _NO_LAZY_COMPILE = r"""
 import json, sys, warnings
 sys.path.insert(0, "tests")
 warnings.simplefilter("ignore")
-from backend import camera, conventions, kernels, timing
-from backend.config import FilterConfig
-from backend.pipeline import run_sequence
+from vislam.backend import compiled
+from vislam.backend.config import Config
+from vislam.backend.estimator import covariance, invariant, linalg, tracks, update
+from vislam.backend.geometry import camera
+from vislam.backend.run import conventions, runner, timing
+from vislam.backend.run.runner import run_sequence
 from test_ekf import make_drive, to_sequence
 
 def counts():
-    out = {n: len(f.signatures) for n, f in vars(kernels).items()
-           if hasattr(f, "signatures") and n[0] != "_" and f.py_func.__module__ == kernels.__name__}
-    out["camera._triangulate_rows"] = len(camera._triangulate_rows.signatures)
+    out = {}
+    for module in (covariance, tracks, update, invariant, linalg):
+        for n, f in vars(module).items():
+            if hasattr(f, "signatures") and n[0] != "_" and f.py_func.__module__ == module.__name__:
+                out[module.__name__.rsplit(".", 1)[1] + "." + n] = len(f.signatures)
+    out["camera.triangulate_rows"] = len(camera.triangulate_rows.signatures)
     out["conventions._left_errors"] = len(conventions._left_errors.signatures)
     out["timing._repeats_sorted"] = len(timing._repeats_sorted.signatures)
     return out
 
-import backend.pipeline as pipeline
-at_setup = []  # what is compiled when the first convention test starts
-prepare = pipeline.prepare
-pipeline.prepare = lambda seq, config: (at_setup.append(counts()), prepare(seq, config))[1]
+at_setup = []  # what is compiled, and which warm-ups ran, when the first convention test starts
+decide = runner.decide
+def spy(seq, config):
+    at_setup.append((counts(), len(compiled._registered), len(compiled._done & set(compiled._registered))))
+    return decide(seq, config)
+runner.decide = spy
 runs = [run_sequence(to_sequence(make_drive(40, seed=1)), config)
-        for config in (FilterConfig(), FilterConfig(mode="mapping"), FilterConfig(error_model="body"))]
-reported = [r.stats.kernel_seconds == kernels.warm_up_seconds() > 0 for r in runs]
-print(json.dumps([at_setup[0], counts(), reported]))
+        for config in (Config(), Config.from_values({"estimator.mode": "mapping"}),
+                       Config.from_values({"estimator.error_model": "body"}))]
+reported = [r.stats.kernel_seconds == compiled.warm_up_seconds() > 0 for r in runs]
+before, registered, done = at_setup[0]
+print(json.dumps([before, counts(), reported, registered, done, len(at_setup)]))
 """
 
 
 def test_warm_up_compiles_what_the_filter_calls():
-    """Every kernel signature a run needs is compiled (or loaded) by ``warm_up`` before the run's
-    convention test, so neither the setup nor a step pays for it; in a fresh process, as other
-    tests call kernels too."""
+    """Every kernel signature a run needs is compiled (or loaded) by ``compiled.warm_up`` before the
+    run's convention test, so neither the setup nor a step pays for it; in a fresh process, as other
+    tests call kernels too. The kernels are the jitted functions of ``backend.estimator.covariance``,
+    ``.tracks``, ``.update``, ``.invariant`` and ``.linalg``, ``geometry.camera.triangulate_rows``,
+    ``run.conventions._left_errors`` and ``run.timing._repeats_sorted``."""
     import json
     import subprocess
     import sys
@@ -402,24 +508,64 @@ def test_warm_up_compiles_what_the_filter_calls():
 
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run([sys.executable, "-c", _NO_LAZY_COMPILE], cwd=root, capture_output=True, text=True,
-                         check=True)
-    before, after, reported = json.loads(out.stdout.strip().splitlines()[-1])
+                         check=False)
+    assert out.returncode == 0, out.stderr
+    before, after, reported, registered, done, decisions = json.loads(out.stdout.strip().splitlines()[-1])
+    assert decisions == 3  # each run decided its conventions
+    assert registered >= 8 and done == registered  # every module's warm-up ran
+    for module in ("covariance", "tracks", "update", "invariant", "linalg"):
+        assert any(name.startswith(module + ".") for name in before)
     assert len(before) >= 9 and all(n >= 1 for n in before.values())  # all loaded before the convention test
     assert after == before
     assert reported == [True, True, True]  # each run reports the process's warm-up, apart from its timing
 
 
 def test_warm_up_says_so_when_it_takes_a_while(monkeypatch):
-    """The command line's notice (``slow_notice``) fires when warming up outlasts ``NOTICE_AFTER``."""
+    """``compiled.warm_up(notice)`` calls ``notice`` when warming up outlasts ``NOTICE_AFTER``; it
+    runs each registered warm-up once per process."""
     import threading
 
     called = threading.Event()
-    monkeypatch.setattr(kernels, "_warm", False)
-    monkeypatch.setattr(kernels, "NOTICE_AFTER", 0.0)
-    monkeypatch.setattr(kernels, "slow_notice", called.set)
-    monkeypatch.setattr(kernels, "_call_every_kernel", lambda: called.wait(5.0))  # busy until the notice came
-    assert kernels.warm_up() > 0.0 and called.is_set()
-    assert kernels.warm_up() == 0.0  # once per process
+
+    def slow():
+        called.wait(5.0)  # busy until the notice came
+
+    monkeypatch.setattr(compiled, "_registered", [slow])
+    monkeypatch.setattr(compiled, "_done", set())
+    monkeypatch.setattr(compiled, "_seconds", compiled._seconds)  # restored afterwards
+    monkeypatch.setattr(compiled, "NOTICE_AFTER", 0.0)
+    assert compiled.warm_up(notice=called.set) > 0.0 and called.is_set()
+    assert compiled._done == {slow}
+    assert compiled.warm_up(notice=called.set) == 0.0  # once per process
+
+
+def test_run_says_compiling_when_warm_up_takes_a_while(monkeypatch):
+    """A run passes its ``say`` to the warm-up: a slow warm-up says ``runner.COMPILING``, once."""
+    import threading
+
+    from vislam.backend.run import runner
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    said = threading.Event()
+    messages = []
+
+    def say(text):
+        messages.append(text)
+        if text == runner.COMPILING:
+            said.set()
+
+    def slow():
+        said.wait(5.0)
+
+    compiled.warm_up()  # the real kernels: loaded before the registry is replaced
+    monkeypatch.setattr(compiled, "_registered", [slow])
+    monkeypatch.setattr(compiled, "_done", set())
+    monkeypatch.setattr(compiled, "_seconds", compiled._seconds)
+    monkeypatch.setattr(compiled, "NOTICE_AFTER", 0.0)
+    seq = make_scene(SceneConfig(steps=20, seed=1)).sequence
+    runner.run_sequence(seq, say=say)
+    assert said.is_set() and messages.count(runner.COMPILING) == 1
+    assert compiled._done == {slow}
 
 
 def test_plan_update_routes_observations_and_expires_landmarks():
@@ -428,18 +574,18 @@ def test_plan_update_routes_observations_and_expires_landmarks():
     state_ids = np.array([10, 3, 7])
     order = np.argsort(state_ids)
     ids = np.array([7, 10, 42])
-    np.testing.assert_array_equal(kernels.slots_of(ids, state_ids[order], order), [2, 0, -1])
+    np.testing.assert_array_equal(tracks.slots_of(ids, state_ids[order], order), [2, 0, -1])
     counts, limits = np.array([1, 3, 2]), np.array([5, 3, 2])
-    slots, leaving, ended, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, True,
-                                                                  False)
+    slots, leaving, ended, restart, expired = tracks.plan_update(ids, state_ids[order], order, counts, limits, True,
+                                                                 False)
     np.testing.assert_array_equal(slots, [2, 0, -1])
     assert leaving.tolist() == [False, True, True]  # id 3 not seen; id 7 seen a third time, limit 2
     assert ended.tolist() == [False, True, False]
     assert restart.tolist() == [True, False, False] and expired == 1
     np.testing.assert_array_equal(counts, [2, 3, 3])
     counts = np.array([1, 3, 2])
-    _, leaving, ended, restart, expired = kernels.plan_update(ids, state_ids[order], order, counts, limits, False,
-                                                              True)
+    _, leaving, ended, restart, expired = tracks.plan_update(ids, state_ids[order], order, counts, limits, False,
+                                                             True)
     assert not leaving.any() and not ended.any() and not restart.any() and expired == 0  # full state: none leaves
     np.testing.assert_array_equal(counts, [1, 3, 2])
 
@@ -452,11 +598,11 @@ def test_admit_landmarks_filters_by_disparity_and_depth_and_staggers_first_count
     d = np.array([0.5, 3.0, 20.0, 2.0, 40.0])  # disparity, px
     pixels = np.column_stack([500.0 + d, np.full(5, 200.0), np.full(5, 500.0), np.full(5, 200.0)])
     restart = np.array([False, False, True, False, False])
-    ok, counts, limits = kernels.admit_landmarks(ids, pixels, restart, 1.0, 100.0, 250.0, True, 6.0, 3, 25)
+    ok, counts, limits = tracks.admit_landmarks(ids, pixels, restart, 1.0, 100.0, 250.0, True, 6.0, 3, 25)
     np.testing.assert_array_equal(ok, [1, 2, 4])  # 0.5 px: too small; 2 px: 125 m > 100 m
     np.testing.assert_array_equal(limits, [25, 3, 3])
     np.testing.assert_array_equal(counts, [1 + 8 % 25, 1, 1 + 11 % 3])
-    _, counts, _ = kernels.admit_landmarks(ids, pixels, restart, 1.0, np.inf, 350.0, False, 6.0, 3, 25)
+    _, counts, _ = tracks.admit_landmarks(ids, pixels, restart, 1.0, np.inf, 350.0, False, 6.0, 3, 25)
     assert (counts == 1).all()  # no re-anchoring: no stagger
 
 
@@ -464,9 +610,9 @@ def test_plan_removal_index_arrays():
     mask = np.array([True, False, True, True, False])
     ended = np.array([True, False, False, False, False])
     runs = np.array([2, 0, 3, 0, 1])
-    removed, keep, remap, counted = kernels.plan_removal(mask, ended, runs)
+    removed, keep, remap, counted = tracks.plan_removal(mask, ended, runs)
     np.testing.assert_array_equal(removed, [0, 2, 3])
     np.testing.assert_array_equal(keep, [1, 4])
     np.testing.assert_array_equal(remap, [-1, 0, -1, -1, 1])
     np.testing.assert_array_equal(counted, [2])  # slot 0 ended, slot 3 has no run
-    np.testing.assert_array_equal(kernels.plan_removal(mask, np.zeros(0, dtype=bool), runs)[3], [0, 2])
+    np.testing.assert_array_equal(tracks.plan_removal(mask, np.zeros(0, dtype=bool), runs)[3], [0, 2])

@@ -1,10 +1,13 @@
-"""backend.linalg: BLAS/LAPACK called from compiled code, against plain numpy."""
+"""backend.estimator.linalg: BLAS/LAPACK called from compiled code, against plain numpy; and the
+block NIS of the landmark NEES (backend.evaluation.consistency) against per-block solves."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from backend.linalg import add_product_lower, block_nis, cholesky_upper_inplace, downdate_lower, solve_lower_inplace
+from vislam.backend.estimator.linalg import (add_product_lower, cholesky_upper_inplace, downdate_lower,
+                                              solve_lower_inplace)
+from vislam.backend.evaluation.consistency import landmark_nees
 
 RNG = np.random.default_rng(7)
 
@@ -40,13 +43,34 @@ def test_cholesky_and_triangular_solve():
     assert cholesky_upper_inplace(bad) > 0
 
 
+def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """Reference: r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals, one solve per block; inf
+    where a block is singular."""
+    out = np.full(residual.shape[0], np.inf)
+    for i in range(residual.shape[0]):
+        try:
+            out[i] = residual[i] @ np.linalg.solve(blocks[i], residual[i])
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
 def test_block_nis():
+    """landmark_nees(positions, covariances, truth) is the block NIS of the errors positions - truth."""
     blocks = np.stack([_spd(3) for _ in range(4)])
     r = RNG.normal(size=(4, 3))
+    truth = RNG.normal(0.0, 10.0, size=(4, 3))
     expected = [r[i] @ np.linalg.solve(blocks[i], r[i]) for i in range(4)]
     np.testing.assert_allclose(block_nis(blocks, r), expected, rtol=1e-12)
+    np.testing.assert_allclose(landmark_nees(r, blocks, np.zeros((4, 3))), expected, rtol=1e-12)
+    np.testing.assert_allclose(landmark_nees(truth + r, blocks, truth), block_nis(blocks, (truth + r) - truth),
+                               rtol=1e-12)
     blocks[2] = 0.0
     assert np.isinf(block_nis(blocks, r)[2]) and np.isfinite(block_nis(blocks, r)[[0, 1, 3]]).all()
+    nees = landmark_nees(r, blocks, np.zeros((4, 3)))
+    assert np.isinf(nees[2]) and np.isfinite(nees[[0, 1, 3]]).all()
+    np.testing.assert_allclose(nees[[0, 1, 3]], np.array(expected)[[0, 1, 3]], rtol=1e-12)
+    assert landmark_nees(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3))).shape == (0,)
 
 
 def test_add_product_lower():

@@ -1,4 +1,4 @@
-"""Tests of backend.metrics (ATE / RPE via evo) on synthetic trajectories."""
+"""Tests of vislam.backend.evaluation.metrics (ATE / RPE via evo) on synthetic trajectories."""
 
 from __future__ import annotations
 
@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from backend.errors import InputError
-from backend.metrics import TrajectoryErrors, alignment_scale, associate, ate_per_pose, trajectory_errors
+from vislam.backend.errors import InputError
+from vislam.backend.evaluation.metrics import (
+    TrajectoryErrors,
+    alignment_scale,
+    associate,
+    ate_per_pose,
+    trajectory_errors,
+)
 
 N = 200  # even, so alternating offsets cancel exactly over the closed circle
 

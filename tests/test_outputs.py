@@ -1,4 +1,6 @@
-"""Tests of tools.outputs (file writers/readers) and tools.plots."""
+"""Tests of the output files: vislam.backend.data.files (atomic_write), vislam.backend.data.tum (TUM
+trajectories), vislam.tools.outputs (output directory, map and trajectory PLY/NPZ, JSON) and
+vislam.tools.plots."""
 
 from __future__ import annotations
 
@@ -9,17 +11,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from backend.errors import InputError, VislamError
-from tools.outputs import (
-    atomic_write,
+from vislam.backend.data.files import atomic_write
+from vislam.backend.data.tum import read_tum, write_tum
+from vislam.backend.errors import InputError, VislamError
+from vislam.tools.outputs import (
     prepare_output_dir,
-    read_tum,
     uncertainty_colors,
     write_json,
     write_map_npz,
     write_map_ply,
     write_trajectory_ply,
-    write_tum,
 )
 
 
@@ -110,6 +111,11 @@ def test_tum_round_trip(tmp_path):
     assert rotation_angle(poses2[:, :3, :3], poses[:, :3, :3]).max() < 1e-8
     np.testing.assert_array_equal(poses2[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (50, 1)))
     assert listing(tmp_path) == ["traj.txt"]
+    # time with 6 decimals, translation and quaternion with 9 (qw >= 0)
+    first = text[2].split()
+    assert [len(v.split(".")[1]) for v in first] == [6] + [9] * 7
+    assert float(first[7]) >= 0.0
+    np.testing.assert_allclose(poses2[:, :3, 3], poses[:, :3, 3], atol=1e-9, rtol=0)
 
 
 def test_evo_reads_what_write_tum_wrote(tmp_path):
@@ -225,12 +231,13 @@ def test_map_ply(tmp_path):
     assert colors[-1, 1] > colors[20, 1] > colors[0, 1]
 
 
-def test_empty_map_ply(tmp_path):
-    import open3d as o3d
-
+def test_empty_map_ply_is_not_written(tmp_path):
+    """A PLY cloud needs a point: an empty map writes nothing and says so (False)."""
     path = tmp_path / "map.ply"
-    write_map_ply(path, np.zeros((0, 3)), np.zeros((0, 3, 3)))
-    assert len(o3d.io.read_point_cloud(str(path)).points) == 0
+    assert write_map_ply(path, np.zeros((0, 3)), np.zeros((0, 3, 3))) is False
+    assert listing(tmp_path) == []
+    _, pos, cov, _ = make_map()
+    assert write_map_ply(path, pos, cov) is True
 
 
 def test_trajectory_ply(tmp_path):
@@ -246,9 +253,11 @@ def test_trajectory_ply(tmp_path):
     colors = np.asarray(lines.colors)
     assert colors.shape == (29, 3) and np.abs(colors[0] - colors[-1]).max() > 0.3
     assert listing(tmp_path) == ["trajectory.ply"]
-    write_trajectory_ply(tmp_path / "one.ply", poses[:1])  # open3d refuses 0 lines
+    write_trajectory_ply(tmp_path / "one.ply", poses[:1])  # open3d refuses 0 lines: one vertex
     one = o3d.io.read_point_cloud(str(tmp_path / "one.ply"))
     np.testing.assert_allclose(np.asarray(one.points), poses[:1, :3, 3], atol=1e-9)
+    with pytest.raises(ValueError, match="no poses"):
+        write_trajectory_ply(tmp_path / "none.ply", poses[:0])
 
 
 # ---------------------------------------------------------------- JSON
@@ -278,7 +287,7 @@ def test_write_json(tmp_path):
 
 
 def test_plots(tmp_path):
-    from tools.plots import plot_error_over_time, plot_trajectories_topdown
+    from vislam.tools.plots import plot_errors_over_time, plot_trajectories_topdown
 
     poses = random_poses(100, seed=2)
     path = tmp_path / "topdown.png"
@@ -290,16 +299,42 @@ def test_plots(tmp_path):
     )
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     errors_path = tmp_path / "ate.png"
-    plot_error_over_time(errors_path, np.arange(100) * 0.1, np.abs(np.sin(np.arange(100))), "ATE")
+    plot_errors_over_time(errors_path, {"error": (np.arange(100) * 0.1, np.abs(np.sin(np.arange(100))))}, "ATE")
     assert errors_path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert listing(tmp_path) == ["ate.png", "topdown.png"]
+    two = tmp_path / "two.png"  # several series, with different stamps; an empty one is skipped
+    plot_errors_over_time(two, {"estimate": (np.arange(50) * 0.1, np.linspace(0.0, 1.0, 50)),
+                                "dead reckoning": (5.0 + np.arange(30) * 0.2, np.full(30, np.nan)),
+                                "none": (np.zeros(0), np.zeros(0))}, "ATE", ylabel="m")
+    assert two.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="same shape"):
+        plot_errors_over_time(tmp_path / "bad.png", {"e": (np.arange(3), np.arange(4))}, "ATE")
+    assert listing(tmp_path) == ["ate.png", "topdown.png", "two.png"]
+
+
+def test_plot_consistency(tmp_path):
+    from types import SimpleNamespace
+
+    from vislam.tools.plots import plot_consistency
+
+    rng = np.random.default_rng(0)
+    steps = 60
+    nees = rng.chisquare(6, steps)
+    nees[0] = 0.0  # not positive: left out of the log-scale panel
+    result = SimpleNamespace(steps=steps, runs=5, skip=10, pose_nees_mean=nees, pose_nees_band=(3.5, 9.4),
+                             pose_nees_in_band=0.9, nis_per_step=rng.chisquare(4, steps), nis_band=(3.8, 4.2),
+                             nis_mean=4.01)
+    path = tmp_path / "consistency.png"
+    plot_consistency(path, result)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert listing(tmp_path) == ["consistency.png"]
 
 
 _IMPORT_OPEN3D = r"""
 import json, sys
 from pathlib import Path
 import numpy as np
-from tools.outputs import import_open3d, write_map_ply
+from vislam.tools.outputs import import_open3d, write_map_ply
 o3d = import_open3d()
 light = [name for name in ("dash", "plotly", "plotly.graph_objects") if name in sys.modules]
 write_map_ply(Path(sys.argv[1]), np.eye(3), np.stack([np.eye(3)] * 3))

@@ -1,17 +1,20 @@
-"""backend.pipeline.OnlineRun: the streaming loop that run_sequence and the one-pass image path share."""
+"""The run loop (``backend.run.online.OnlineRun``, ``backend.run.runner``): the step-by-step filter
+that run_sequence and the image path share, and the conventions decided from a stream's first steps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from backend.camera import StereoCamera
-from backend.config import FilterConfig
-from backend.conventions import ConventionDecision
-from backend.errors import InputError
-from backend.imu import dead_reckoning, decide_imu_noise
-from backend.pipeline import OnlineRun, run_sequence
-from synth.scene import SceneConfig, make_scene
+from vislam.backend.config import Config
+from vislam.backend.errors import InputError
+from vislam.backend.estimator.propagation import dead_reckoning
+from vislam.backend.geometry.camera import StereoCamera
+from vislam.backend.run.conventions import ConventionDecision, decide_conventions
+from vislam.backend.run.noise import decide_imu_noise
+from vislam.backend.run.online import OnlineRun
+from vislam.backend.run.runner import decide, decide_online, decisive, run_sequence, run_stream
+from vislam.synth.scene import SceneConfig, make_scene
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +22,13 @@ def scene():
     return make_scene(SceneConfig(steps=60, seed=4))
 
 
-def _run(seq, velocity_index: str, config: FilterConfig) -> OnlineRun:
+@pytest.fixture(scope="module")
+def long_scene():
+    """200 steps whose convention test is first decisive after 50 steps."""
+    return make_scene(SceneConfig(steps=200, seed=3))
+
+
+def _run(seq, velocity_index: str, config: Config) -> OnlineRun:
     conventions = ConventionDecision(False, velocity_index, seq.imu_T_cam, {}, "configured", "configured")
     noise = decide_imu_noise(seq.linear_velocity, seq.angular_velocity, None, None, 0.05, 0.002)
     return OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config)
@@ -27,10 +36,11 @@ def _run(seq, velocity_index: str, config: FilterConfig) -> OnlineRun:
 
 @pytest.mark.parametrize("velocity_index", ["this", "next"])
 def test_online_dead_reckoning_matches_batch(scene, velocity_index):
-    """The dead reckoning kept alongside, step by step, equals backend.imu.dead_reckoning; the
-    filter in dead-reckoning mode follows it exactly."""
+    """The dead reckoning kept alongside, step by step, equals
+    ``backend.estimator.propagation.dead_reckoning``; the filter in dead-reckoning mode follows it
+    exactly."""
     seq = scene.sequence
-    run = _run(seq, velocity_index, FilterConfig(mode="dead-reckoning"))
+    run = _run(seq, velocity_index, Config.from_values({"estimator.mode": "dead-reckoning"}))
     for k in range(seq.num_steps):
         run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
     result = run.result()
@@ -42,7 +52,8 @@ def test_online_dead_reckoning_matches_batch(scene, velocity_index):
 
 def test_online_run_equals_run_sequence(scene):
     seq = scene.sequence
-    config = FilterConfig(pixel_sigma=scene.config.pixel_sigma, velocity_index="this", imu_flip="no")
+    config = Config.from_values({"noise.pixel_sigma": scene.config.pixel_sigma, "conventions.velocity_index": "this",
+                                 "conventions.imu_flip": "no"})
     batch = run_sequence(seq, config)
     run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.conventions, batch.imu_noise, config,
                     tracker=seq.tracker)
@@ -61,7 +72,7 @@ def test_online_run_equals_run_sequence(scene):
 
 def test_online_run_refuses_time_going_back(scene):
     seq = scene.sequence
-    run = _run(seq, "this", FilterConfig())
+    run = _run(seq, "this", Config())
     run.step(1.0, seq.linear_velocity[0], seq.angular_velocity[0], *seq.observations(0))
     with pytest.raises(InputError, match="does not increase"):
         run.step(1.0, seq.linear_velocity[1], seq.angular_velocity[1], *seq.observations(1))
@@ -70,7 +81,7 @@ def test_online_run_refuses_time_going_back(scene):
 def test_repeats_previous_compares_the_shared_features_in_any_id_order():
     """A frame repeats the previous one when every shared feature has identical pixels; sorted ids
     take the compiled merge, unsorted ones the set intersection, with the same answers."""
-    from backend.timing import repeats_previous
+    from vislam.backend.run.timing import repeats_previous
 
     rng = np.random.default_rng(0)
     prev_ids = np.array([2, 5, 9, 14])
@@ -87,3 +98,107 @@ def test_repeats_previous_compares_the_shared_features_in_any_id_order():
         assert repeats_previous(now_ids, now_px, prev_ids, prev_px) is expected
         order = np.arange(now_ids.size)[::-1]  # decreasing ids: the fallback
         assert repeats_previous(now_ids[order], now_px[order], prev_ids, prev_px) is expected
+
+
+def _same_noise(a, b) -> bool:
+    return (np.array_equal(a.linear_sigma, b.linear_sigma) and np.array_equal(a.angular_sigma, b.angular_sigma)
+            and a.gyro_bias == b.gyro_bias)
+
+
+def test_run_stream_with_online_conventions_equals_run_sequence(long_scene):
+    """``run_stream`` over ``seq.steps()`` with ``imu_velocities`` decides the conventions from the
+    first steps; when that decision is the whole file's (``run_sequence``), the trajectory is the
+    same: the steps read to decide are filtered too, none is lost."""
+    seq = long_scene.sequence
+    config = Config.from_values({"noise.pixel_sigma": long_scene.config.pixel_sigma})  # conventions: auto
+    batch = run_sequence(seq, config)
+    said = []
+    stream = run_stream(seq.steps(), StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, config,
+                        imu_velocities=(seq.linear_velocity, seq.angular_velocity), tracker=seq.tracker,
+                        say=said.append)
+    first = [line for line in said if line.startswith("conventions from the first ")]
+    assert len(first) == 1 and int(first[0].split()[4]) < seq.num_steps  # decided from part of the stream
+    online, whole = stream.conventions, batch.conventions
+    assert online.errors_px and online.flip_source == "auto" == online.velocity_source  # a decision is made
+    assert (online.imu_flip, online.velocity_index) == (whole.imu_flip, whole.velocity_index)
+    np.testing.assert_array_equal(online.imu_T_cam, whole.imu_T_cam)
+    assert _same_noise(stream.imu_noise, batch.imu_noise)
+    np.testing.assert_array_equal(stream.time_stamps, seq.time_stamps)
+    np.testing.assert_allclose(stream.world_T_imu, batch.world_T_imu, atol=1e-12)
+    assert stream.stats.observations_used == batch.stats.observations_used > 0
+    assert stream.stats.steps == seq.num_steps and stream.stats.setup_seconds > 0
+
+
+class _Counting:
+    """An iterator over ``steps`` that counts the steps taken from it."""
+
+    def __init__(self, steps):
+        self._steps = iter(steps)
+        self.taken = 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        step = next(self._steps)
+        self.taken += 1
+        return step
+
+
+def _decide_online(steps, seq, config, num_steps=None):
+    stream = _Counting(steps)
+    decisions, read, seconds = decide_online(stream, StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, config,
+                                             (seq.linear_velocity, seq.angular_velocity), num_steps)
+    assert len(read) == stream.taken and seconds >= 0.0  # every step taken is returned
+    return decisions, read, stream
+
+
+def _assert_first_steps(read, steps):
+    assert len(read) <= len(steps)
+    for got, want in zip(read, steps):
+        assert got[0] == want[0]
+        for a, b in zip(got[1:], want[1:]):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_decide_online_reads_until_decisive(long_scene):
+    """From 20 steps on, every 10, the convention test runs on the steps read so far; the first
+    decisive one ends the reading. The decision is the test's on those steps, the noise is from the
+    whole stream's velocities, and the stream goes on at the first step not read."""
+    seq = long_scene.sequence
+    config = Config()
+    steps = list(seq.steps())
+    (conventions, noise), read, stream = _decide_online(steps, seq, config)
+    n = len(read)
+    assert 30 <= n < config.conventions.online_steps and n % 10 == 0  # a test before it is not decisive
+    _assert_first_steps(read, steps)
+    for k in range(20, n, 10):  # the earlier tests were not decisive
+        assert not decisive(decide_conventions(seq.subset(k)).errors_px)
+    expected = decide_conventions(seq.subset(n))
+    assert decisive(expected.errors_px)
+    assert conventions.errors_px == expected.errors_px
+    assert (conventions.imu_flip, conventions.velocity_index) == (expected.imu_flip, expected.velocity_index)
+    whole = decide(seq, config)[1]  # the white noise of the whole stream
+    assert np.array_equal(noise.linear_sigma, whole.linear_sigma)
+    assert np.array_equal(noise.angular_sigma, whole.angular_sigma)
+    assert next(stream)[0] == seq.time_stamps[n]  # nothing read beyond
+
+
+def test_decide_online_reads_at_most_online_steps(scene):
+    """Without motion every variant fits alike and no test is decisive: the reading stops at
+    ``conventions.online_steps``, at the stream's ``num_steps``, or where the stream ends."""
+    seq = scene.sequence
+    still = [(t, np.zeros(3), np.zeros(3), ids, pixels) for t, _, _, ids, pixels in seq.steps()]
+    config = Config.from_values({"conventions.online_steps": 45})
+    (conventions, _), read, stream = _decide_online(still, seq, config)
+    assert len(read) == 45 and not decisive(conventions.errors_px)
+    assert len(conventions.errors_px) == 4 and np.isfinite(list(conventions.errors_px.values())).all()
+    _assert_first_steps(read, still)
+    assert next(stream)[0] == seq.time_stamps[45]
+    _, read, _ = _decide_online(still, seq, config, num_steps=33)
+    assert len(read) == 33
+    _, read, stream = _decide_online(still[:12], seq, config)
+    assert len(read) == 12 and stream.taken == 12
+    _assert_first_steps(read, still)
+    with pytest.raises(InputError, match="no steps"):
+        _decide_online([], seq, config)

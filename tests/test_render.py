@@ -1,4 +1,4 @@
-"""Stereo image renderer (synth.render) and procedural textures (synth.textures)."""
+"""Stereo image renderer (vislam.synth.render) and procedural textures (vislam.synth.textures)."""
 
 from __future__ import annotations
 
@@ -6,18 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from backend import se3
-from synth import textures
-from synth.observe import kitti_calibration
-from synth.render import (
-    SKY,
-    Plane,
-    build_street_planes,
-    render_image,
-    render_pair,
-    write_kitti_sequence,
-)
-from synth.trajectories import street
+from vislam.backend.geometry import se3
+from vislam.synth import textures
+from vislam.synth.observe import kitti_calibration
+from vislam.synth.render import SKY, Plane, build_street_planes, render_image, render_pair, write_kitti_sequence
+from vislam.synth.trajectories import street
 
 CAL = kitti_calibration()
 SQUARES = (10, 6)  # checker squares (columns, rows) -> 9 x 5 inner corners
@@ -58,9 +51,14 @@ def _match(detected: np.ndarray, expected: np.ndarray) -> np.ndarray:
     return expected[j]
 
 
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """The rotation exp(w^) (Rodrigues)."""
+    return se3.exp_so3_and_left_jacobian(np.asarray(w, dtype=float))[0]
+
+
 POSES = {
     "fronto": (np.eye(3), (0.13, 0.07, 3.0)),
-    "oblique": (se3.exp_so3(np.array([0.0, 0.6, 0.0])) @ se3.exp_so3(np.array([0.25, 0.0, 0.0])), (-0.3, 0.0, 3.5)),
+    "oblique": (exp_so3(np.array([0.0, 0.6, 0.0])) @ exp_so3(np.array([0.25, 0.0, 0.0])), (-0.3, 0.0, 3.5)),
 }
 
 
@@ -240,7 +238,7 @@ def test_write_kitti_sequence_layout(tmp_path, street_world):
 
 
 def test_write_kitti_sequence_from_scene(tmp_path):
-    from synth.scene import SceneConfig, make_scene
+    from vislam.synth.scene import SceneConfig, make_scene
 
     scene = make_scene(SceneConfig(steps=2, seed=4))
     out = write_kitti_sequence(tmp_path, scene)

@@ -1,4 +1,5 @@
-"""Tests of backend.sequence: streaming .npz loading, validation, CSR access and atomic saving."""
+"""Tests of vislam.backend.data.sequence (the Sequence, its CSR access, construction from per-step
+observations and validation) and vislam.backend.data.npz (streaming .npz loading and atomic saving)."""
 
 from __future__ import annotations
 
@@ -17,9 +18,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.lib import format as npformat
 
-import backend.sequence as sequence_mod
-from backend.errors import InputError, VislamError
-from backend.sequence import VISLAM_TRACKER, Sequence, load_sequence, save_sequence, validate_sequence
+from vislam.backend.data import npz as npz_mod
+from vislam.backend.data.npz import load_sequence, save_sequence
+from vislam.backend.data.sequence import VISLAM_TRACKER, Sequence, validate_sequence
+from vislam.backend.errors import InputError, VislamError
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REAL = {  # file: (layout, N, M) as documented in shared/data/SOURCES.md
@@ -167,7 +169,7 @@ def ids_increasing_within_steps(seq):
 @pytest.mark.parametrize("chunk_bytes", [None, 64, 72])
 def test_load_matches_dense_reference(tmp_path, monkeypatch, layout, compressed, order, chunk_bytes):
     if chunk_bytes is not None:  # tiny chunks: many chunk boundaries inside channels and steps
-        monkeypatch.setattr(sequence_mod, "_CHUNK_BYTES", chunk_bytes)
+        monkeypatch.setattr(npz_mod, "_CHUNK_BYTES", chunk_bytes)
     arrays = course_arrays(layout)
     F = arrays["features"]
     arrays["features"] = np.asfortranarray(F) if order == "F" else F
@@ -256,13 +258,13 @@ def test_streaming_equals_dense_reference_property(n, m, seed, chunk, order):
     F[:, rng.random((m, n)) < 0.5] = -1.0
     F[rng.random((4, m, n)) < 0.1] = -1.0  # partial observations
     arrays = course_arrays(n=n, m=m, features=np.asfortranarray(F) if order == "F" else F)
-    old = sequence_mod._CHUNK_BYTES
-    sequence_mod._CHUNK_BYTES = chunk
+    default_chunk = npz_mod._CHUNK_BYTES
+    npz_mod._CHUNK_BYTES = chunk
     try:
         with tempfile.TemporaryDirectory() as d:
             seq = load_sequence(write_npz(Path(d) / "p.npz", arrays, compressed=bool(seed % 2)))
     finally:
-        sequence_mod._CHUNK_BYTES = old
+        npz_mod._CHUNK_BYTES = default_chunk
     ptr, ids, pix, dropped = reference_csr(F, W_SYN, H_SYN)
     assert seq.dropped == dropped
     assert np.array_equal(seq.obs_ptr, ptr)
@@ -483,10 +485,10 @@ def test_zlib_fallback_reads_and_refuses_the_same(tmp_path, monkeypatch):
     stream is refused in the same way."""
     import zlib
 
-    monkeypatch.setattr(sequence_mod, "_CHUNK_BYTES", 256)
+    monkeypatch.setattr(npz_mod, "_CHUNK_BYTES", 256)
     path = write_npz(tmp_path / "z.npz", course_arrays(n=30, m=20))
     with_isal = load_sequence(path)
-    monkeypatch.setattr(sequence_mod, "_inflate_lib", zlib)
+    monkeypatch.setattr(npz_mod, "_inflate_lib", zlib)
     with_zlib = load_sequence(path)
     for key in ("obs_ptr", "obs_ids", "obs_pixels"):
         np.testing.assert_array_equal(getattr(with_zlib, key), getattr(with_isal, key))
@@ -523,11 +525,35 @@ def test_features_crc_mismatch_is_refused(tmp_path):
     assert "CRC" in assert_one_line_error(e, "crc.npz", "features")
 
 
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), layout=st.sampled_from(["2022", "2019"]), compressed=st.booleans())
+def test_random_features_corruption_is_refused_or_harmless_property(data, layout, compressed):
+    """Random bytes written into the stored 'features' member (the one the loader streams itself):
+    either a one-line InputError naming 'features', or a sequence that passes validation."""
+    with tempfile.TemporaryDirectory() as d:
+        path = write_npz(Path(d) / "x.npz", course_arrays(layout, n=20, m=15), compressed=compressed)
+        raw = bytearray(path.read_bytes())
+        with zipfile.ZipFile(path) as zf:
+            info = zf.getinfo("features.npy")
+        start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+        for _ in range(data.draw(st.integers(1, 8), label="bytes changed")):
+            i = data.draw(st.integers(start, start + info.compress_size - 1), label="offset")
+            raw[i] = data.draw(st.integers(0, 255), label="value")
+        path.write_bytes(bytes(raw))
+        try:
+            seq = load_sequence(path)
+        except InputError as e:
+            msg = str(e)
+            assert "\n" not in msg and "x.npz" in msg and "key 'features'" in msg, msg
+            return
+        validate_sequence(seq)
+
+
 def test_an_early_error_stops_the_inflating_thread(tmp_path, monkeypatch):
     """A NaN found in the first chunk ends the load at once, and no reading thread is left behind."""
     import threading
 
-    monkeypatch.setattr(sequence_mod, "_CHUNK_BYTES", 64)
+    monkeypatch.setattr(npz_mod, "_CHUNK_BYTES", 64)
     arrays = course_arrays(n=40, m=30, features=np.full((4, 30, 40), -1.0))
     arrays["features"][0, 0, 0] = np.nan
     path = write_npz(tmp_path / "nan.npz", arrays)
@@ -574,23 +600,30 @@ def test_cam_T_imu_is_the_rigid_inverse(syn_seq):
     assert np.array_equal(T[:3, :3], IMU_T_CAM[:3, :3].T)
 
 
-def test_with_imu_T_cam(syn_seq):
+def test_replaced_extrinsic(syn_seq):
+    """A copy with another imu_T_cam (dataclasses.replace) shares the observations, has the matching
+    cam_T_imu and leaves the original alone; a non-rigid replacement fails validation."""
     flip = np.diag([1.0, -1.0, -1.0, 1.0]) @ syn_seq.imu_T_cam
-    other = syn_seq.with_imu_T_cam(flip)
+    other = dataclasses.replace(syn_seq, imu_T_cam=flip, _cam_T_imu_file=None)
+    validate_sequence(other)
     assert np.array_equal(other.imu_T_cam, flip)
     assert np.array_equal(syn_seq.imu_T_cam, IMU_T_CAM)  # original untouched
     np.testing.assert_allclose(other.cam_T_imu @ flip, np.eye(4), atol=1e-14)
     assert other.obs_ids is syn_seq.obs_ids and other.num_observations == syn_seq.num_observations
-    assert other.dropped == syn_seq.dropped and other.dropped is not syn_seq.dropped
-    with pytest.raises(InputError, match="imu_T_cam"):
-        syn_seq.with_imu_T_cam(np.diag([1.0, 1.0, -1.0, 1.0]))
+    assert other.dropped == syn_seq.dropped
+    with pytest.raises(InputError) as e:
+        validate_sequence(dataclasses.replace(syn_seq, imu_T_cam=np.diag([1.0, 1.0, -1.0, 1.0])))
+    assert "det(R)" in assert_one_line_error(e, "s.npz", "imu_T_cam")
 
 
-def test_with_imu_T_cam_drops_the_2019_file_extrinsic(tmp_path):
+def test_replaced_extrinsic_ignores_the_2019_file_extrinsic(tmp_path):
+    """cam_T_imu of a 2019 file is the file's own matrix only while it still inverts imu_T_cam."""
     seq = load_sequence(write_npz(tmp_path / "o.npz", course_arrays("2019")))
     flip = np.diag([1.0, -1.0, -1.0, 1.0]) @ seq.imu_T_cam
-    other = seq.with_imu_T_cam(flip)
+    other = dataclasses.replace(seq, imu_T_cam=flip, _cam_T_imu_file=None)
     np.testing.assert_allclose(other.cam_T_imu @ flip, np.eye(4), atol=1e-14)
+    kept = dataclasses.replace(seq, imu_T_cam=flip)  # the stale file extrinsic is still attached
+    np.testing.assert_allclose(kept.cam_T_imu @ flip, np.eye(4), atol=1e-14)
     seq.imu_T_cam = flip  # stale cached file extrinsic must not be used either
     np.testing.assert_allclose(seq.cam_T_imu @ flip, np.eye(4), atol=1e-14)
 
@@ -614,6 +647,112 @@ def test_subset(syn_seq, arg):
 def test_subset_refuses_empty_or_reversed(syn_seq, arg):
     with pytest.raises(InputError):
         syn_seq.subset(arg)
+
+
+def test_steps_yields_each_step_in_order(syn_seq):
+    seq = syn_seq
+    steps = list(seq.steps())
+    assert len(steps) == seq.num_steps == 7
+    for k, (t, v, w, ids, px) in enumerate(steps):
+        assert t == seq.time_stamps[k]
+        assert v.shape == (3,) and np.array_equal(v, seq.linear_velocity[k])
+        assert w.shape == (3,) and np.array_equal(w, seq.angular_velocity[k])
+        ids_k, px_k = seq.observations(k)
+        assert np.array_equal(ids, ids_k) and np.array_equal(px, px_k)
+        assert ids.dtype == np.int64 and px.shape == (ids.shape[0], 4)
+    assert sum(step[3].shape[0] for step in steps) == seq.num_observations
+
+
+def _from_own_steps(seq, **overrides):
+    t, v, w, ids, px = zip(*seq.steps())
+    kwargs = dict(num_features=seq.num_features, source=seq.source, layout=seq.layout, tracker=seq.tracker)
+    kwargs.update(overrides)
+    return Sequence.from_steps(t, v, w, list(ids), list(px), seq.K, seq.baseline, seq.imu_T_cam, **kwargs)
+
+
+@pytest.mark.parametrize("layout", ["2022", "2019"])
+def test_from_steps_round_trip(tmp_path, layout):
+    """from_steps of a sequence's own per-step ids and pixels is that sequence."""
+    seq = dataclasses.replace(load_sequence(write_npz(tmp_path / "r.npz", course_arrays(layout))),
+                              tracker=VISLAM_TRACKER)
+    back = _from_own_steps(seq)
+    assert_same(seq, back)
+    assert (back.source, back.layout, back.tracker) == (seq.source, layout, VISLAM_TRACKER)
+    np.testing.assert_allclose(back.cam_T_imu @ back.imu_T_cam, np.eye(4), atol=1e-14)
+    # the subset of a sequence round-trips too, including steps without observations
+    sub = seq.subset(slice(1, None, 2))
+    assert_same(sub, _from_own_steps(sub))
+
+
+def test_from_steps_num_features_defaults_to_the_largest_id_plus_one(syn_seq):
+    seq = _from_own_steps(syn_seq, num_features=None)
+    assert seq.num_features == int(syn_seq.obs_ids.max()) + 1
+    assert _from_own_steps(syn_seq.subset(1), num_features=None).num_features == int(
+        syn_seq.observations(0)[0].max()) + 1
+    empty = Sequence.from_steps([0.0, 0.5], np.zeros((2, 3)), np.zeros((2, 3)), [np.zeros(0, int)] * 2,
+                                [np.zeros((0, 4))] * 2, K_SYN, 0.5, np.eye(4))
+    assert empty.num_features == 0 and empty.num_observations == 0
+    assert np.array_equal(empty.obs_ptr, [0, 0, 0]) and empty.obs_ptr.dtype == np.int64
+    assert empty.obs_ids.dtype == np.int64 and empty.obs_pixels.shape == (0, 4)
+    validate_sequence(empty)
+    hand = Sequence.from_steps([0.0, 1.0], [[1.0, 0, 0], [0, 1, 0]], [[0, 0, 1.0], [0, 0, 0]],
+                               [[4, 9], [2]], [[[10.0, 20, 5, 20], [30, 40, 20, 40]], [[50, 60, 45, 60]]],
+                               K_SYN, 0.3, np.eye(4))
+    assert hand.num_features == 10
+    assert np.array_equal(hand.obs_ptr, [0, 2, 3]) and np.array_equal(hand.obs_ids, [4, 9, 2])
+    assert hand.obs_ids.dtype == np.int64 and hand.obs_pixels.dtype == np.float64
+
+
+def _swap_first_step_ids(ids):
+    k = next(i for i, a in enumerate(ids) if len(a) >= 2)
+    ids[k] = ids[k][::-1].copy()
+
+
+def _nan_pixel(px):
+    k = next(i for i, a in enumerate(px) if len(a))
+    px[k] = px[k].copy()
+    px[k][0, 1] = np.nan
+
+
+BAD_STEPS = {
+    # id: (mutation of the from_steps arguments, key named, message fragment)
+    "ids-not-increasing": (lambda a: _swap_first_step_ids(a["ids"]), "obs_ids", "strictly increasing"),
+    "ids-negative": (lambda a: a["ids"].__setitem__(0, np.r_[-1, a["ids"][0][1:]]), "obs_ids", "[0,"),
+    "num-features-too-small": (lambda a: a.update(num_features=int(max(map(np.max, filter(len, a["ids"]))))),
+                               "obs_ids", "ids must lie in"),
+    "num-features-negative": (lambda a: a.update(num_features=-1), "num_features", ">= 0"),
+    "fewer-steps-of-ids": (lambda a: (a["ids"].pop(), a["pixels"].pop()), "obs_ptr", "shape"),
+    "fewer-pixels": (lambda a: a["pixels"].__setitem__(0, a["pixels"][0][:-1]), "obs_pixels", "shape"),
+    "pixels-nan": (lambda a: _nan_pixel(a["pixels"]), "obs_pixels", "non-finite"),
+    "time-repeated": (lambda a: a["t"].__setitem__(3, a["t"][2]), "time_stamps", "not strictly increasing"),
+    "time-empty": (lambda a: a.update(t=[], v=np.zeros((0, 3)), w=np.zeros((0, 3)), ids=[], pixels=[],
+                                      num_features=0), "time_stamps", "empty sequence"),
+    "velocity-short": (lambda a: a.update(v=a["v"][:-1]), "linear_velocity", "shape"),
+    "angular-nan": (lambda a: a.update(w=np.where(np.arange(3) == 1, np.nan, a["w"])), "angular_velocity",
+                    "non-finite"),
+    "K": (lambda a: a.update(K=K_SYN.T), "K", "camera matrix"),
+    "baseline": (lambda a: a.update(b=-0.5), "baseline", "> 0"),
+    "extrinsic": (lambda a: a.update(ext=2 * IMU_T_CAM), "imu_T_cam", "rigid"),
+    "layout": (lambda a: a.update(layout="2020"), "layout", "unknown layout"),
+    "pixels-three-columns": (lambda a: a["pixels"].__setitem__(1, a["pixels"][1][:, :3]), "obs_pixels", "shape"),
+    "pixels-for-fewer-steps": (lambda a: a["pixels"].pop(), "obs_pixels", "steps of pixels"),
+    "ids-not-integer": (lambda a: a["ids"].__setitem__(0, a["ids"][0] + 0.5), "obs_ids", "integer"),
+    "velocity-transposed": (lambda a: a.update(v=a["v"].T.copy()), "linear_velocity", "shape"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_STEPS))
+def test_from_steps_refuses_invalid_input(syn_seq, case):
+    mutate, key, fragment = BAD_STEPS[case]
+    t, v, w, ids, px = zip(*syn_seq.steps())
+    args = dict(t=list(t), v=np.array(v), w=np.array(w), ids=list(ids), pixels=list(px), K=K_SYN, b=0.54,
+                ext=IMU_T_CAM, num_features=syn_seq.num_features, layout="2022")
+    mutate(args)
+    with pytest.raises(InputError) as e:
+        Sequence.from_steps(args["t"], args["v"], args["w"], args["ids"], args["pixels"], args["K"], args["b"],
+                            args["ext"], num_features=args["num_features"], source="steps.npz",
+                            layout=args["layout"])
+    assert fragment in assert_one_line_error(e, "steps.npz", key)
 
 
 def test_repr_is_short(syn_seq):
@@ -865,3 +1004,23 @@ def test_tracker_key_round_trip_and_checked(tmp_path):
         with pytest.raises(InputError) as e:
             load_sequence(path)
         assert "expected one string" in assert_one_line_error(e, "bad.npz", "tracker")
+
+
+@pytest.mark.parametrize("member", ["time_stamps", "linear_velocity", "K"])
+def test_damaged_member_besides_features_is_refused_naming_it(tmp_path, syn_seq, member):
+    """A member whose deflated bytes are damaged gives a one-line InputError naming its key, not a
+    zipfile or zlib exception."""
+    import zipfile
+
+    path = tmp_path / "damaged.npz"
+    save_sequence(syn_seq, path)
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(member + ".npy")
+    raw = bytearray(path.read_bytes())
+    start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+    for i in range(start, start + min(info.compress_size, 24)):
+        raw[i] ^= 0x5A
+    path.write_bytes(bytes(raw))
+    with pytest.raises(InputError) as e:
+        load_sequence(path)
+    assert_one_line_error(e, str(path), member)

@@ -1,5 +1,5 @@
-"""Tests of the synthetic scenes (synth): exact trajectories, camera-consistent observations,
-tracks, noise statistics and the file round trip."""
+"""Tests of the synthetic scenes (vislam.synth): exact trajectories, camera-consistent observations,
+tracks, noise statistics, the filter configuration a scene asks for and the file round trip."""
 
 from __future__ import annotations
 
@@ -8,14 +8,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from backend import se3
-from backend.errors import ConfigError
-from backend.imu import dead_reckoning
-from backend.sequence import load_sequence
-from synth.imu import measure_velocities, stamp_twists
-from synth.observe import kitti_calibration
-from synth.scene import Scene, SceneConfig, make_scene, write_scene
-from synth.trajectories import aerial, street
+from vislam.backend.config import Config
+from vislam.backend.data.npz import load_sequence
+from vislam.backend.data.tum import read_tum
+from vislam.backend.errors import ConfigError
+from vislam.backend.estimator.propagation import dead_reckoning
+from vislam.backend.geometry import se3
+from vislam.synth.imu import measure_velocities, stamp_twists
+from vislam.synth.observe import kitti_calibration
+from vislam.synth.scene import Scene, SceneConfig, make_scene, write_scene
+from vislam.synth.trajectories import aerial, street
 
 NOISE_FREE = dict(linear_sigma=0.0, angular_sigma=0.0, gyro_bias=(0.0, 0.0, 0.0), pixel_sigma=0.0)
 
@@ -86,6 +88,21 @@ def test_config_is_validated():
     ):
         with pytest.raises(ConfigError):
             SceneConfig(**bad)
+
+
+def test_filter_config_is_the_scenes_noise():
+    """The filter is told the scene's pixel noise and the largest axis of its velocity noise; every
+    other option keeps its default."""
+    config = SceneConfig(pixel_sigma=0.7, linear_sigma=(0.1, 0.3, 0.2), angular_sigma=0.02).filter_config()
+    assert isinstance(config, Config)
+    assert config.noise.pixel_sigma == 0.7
+    assert config.noise.linear_velocity_sigma == 0.3 and isinstance(config.noise.linear_velocity_sigma, float)
+    assert config.noise.angular_velocity_sigma == 0.02
+    assert config == Config().with_values(
+        {"noise.pixel_sigma": 0.7, "noise.linear_velocity_sigma": 0.3, "noise.angular_velocity_sigma": 0.02})
+    default = SceneConfig().filter_config()
+    assert (default.noise.pixel_sigma, default.noise.linear_velocity_sigma, default.noise.angular_velocity_sigma) == (
+        0.5, 0.2, 0.01)
 
 
 # ------------------------------------------------------------------ trajectories and IMU
@@ -309,4 +326,10 @@ def test_write_scene_round_trip(tmp_path):
     R = Rotation.from_quat(rows[:, 4:]).as_matrix()
     np.testing.assert_allclose(R, scene.world_T_imu_true[:, :3, :3], atol=1e-8)
     assert np.all(rows[:, 7] >= 0)
+    # the ground truth reads back with the TUM reader the commands use (--gt)
+    t, poses = read_tum(out / "gt_tum.txt")
+    np.testing.assert_allclose(t, ref.time_stamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(poses[:, :3, 3], scene.world_T_imu_true[:, :3, 3], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(poses[:, :3, :3], scene.world_T_imu_true[:, :3, :3], rtol=0, atol=1e-8)
+    assert (out / "gt_tum.txt").read_text().startswith(f"# {scene.config.source} ground truth world_T_imu")
     assert sorted(p.name for p in out.iterdir()) == ["data.npz", "gt_tum.txt", "landmarks.npz"]

@@ -7,9 +7,9 @@ import warnings
 import numpy as np
 import pytest
 
-from backend.metrics import trajectory_errors
-from backend.pipeline import run_sequence
-from synth.scene import SceneConfig, make_scene
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.run.runner import run_sequence
+from vislam.synth.scene import SceneConfig, make_scene
 
 
 def _run(**scene_options):

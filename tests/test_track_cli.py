@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.sequence import load_sequence
-from tools.cli import main
+from vislam.backend.config import Config
+from vislam.backend.data.npz import load_sequence
+from vislam.frontend.config import TrackerConfig
+from vislam.tools.cli import main
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 IMAGES = SHARED / "images" / "kitti_odom01_f000000-000050"
@@ -47,7 +49,7 @@ def test_track_writes_the_course_layout(rendered, tracked):
 
 
 def test_images_to_trajectory_beats_dead_reckoning(rendered, tracked, tmp_path):
-    """Issue 4's end-to-end test: render, track, run SLAM: ATE <= 1/3 of dead reckoning's."""
+    """End to end: render, track, run SLAM: ATE <= 1/3 of dead reckoning's."""
     out = tmp_path / "run"
     assert main(["run", str(tracked), "--out", str(out), "--gt", str(rendered / "gt_tum.txt"), "--quiet"]) == 0
     errors = json.loads((out / "summary.json").read_text())["errors"]
@@ -62,6 +64,24 @@ def test_run_on_an_image_directory_equals_track_then_run(rendered, tracked, tmp_
     a = np.loadtxt(one / "trajectory.txt")
     b = np.loadtxt(two / "trajectory.txt")
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    # the image run records the front end's options too: summary.json and config.toml have [tracker]
+    config = json.loads((one / "summary.json").read_text())["config"]
+    assert list(config) == [*Config().tables(), "tracker"]
+    assert config["tracker"] == TrackerConfig().as_dict()
+    assert config == {**json.loads((two / "summary.json").read_text())["config"], "tracker": config["tracker"]}
+    text = (one / "config.toml").read_text()
+    assert "\n[tracker]\n" in text
+    assert TrackerConfig.load(one / "config.toml") == TrackerConfig()
+    assert Config.load(one / "config.toml", foreign=("tracker",)).as_dict() == {
+        k: v for k, v in config.items() if k != "tracker"}
+    # ... and loads back with --config, into either command
+    three = tmp_path / "three"
+    assert main(["run", str(tracked), "--out", str(three), "--quiet", "--config", str(one / "config.toml")]) == 0
+    np.testing.assert_allclose(np.loadtxt(three / "trajectory.txt"), b, rtol=0, atol=1e-9)
+    again = tmp_path / "again.npz"
+    assert main(["track", str(rendered), "--imu", str(rendered / "data.npz"), "--out", str(again), "--quiet",
+                 "--config", str(one / "config.toml")]) == 0
+    np.testing.assert_array_equal(load_sequence(again).obs_pixels, load_sequence(tracked).obs_pixels)
 
 
 def test_track_refuses_bad_requests(rendered, tracked, tmp_path, capsys):
@@ -81,13 +101,22 @@ def test_track_refuses_bad_requests(rendered, tracked, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "image_0" in err
     assert not (tmp_path / "z.npz").exists()
+    # `vislam track --set` takes only the front end's options, named tracker.KEY
+    refused = [("noise.pixel_sigma=1", "[tracker]"), ("target_tracks=100", "'tracker.target_tracks'"),
+               ("tracker.target_trakcs=100", "'tracker.target_trakcs'"), ("tracker.lk_window=14", "'tracker.lk_window'")]
+    for item, needle in refused:
+        assert main(["track", str(rendered), "--imu", str(rendered / "data.npz"), "--out", str(tmp_path / "s.npz"),
+                     "--set", item]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and needle in err, (item, err)
+        assert not (tmp_path / "s.npz").exists()
 
 
 def test_draw_writes_one_png_per_frame(rendered, tmp_path):
     draw = tmp_path / "draw"
     out = tmp_path / "t.npz"
     assert main(["track", str(rendered), "--imu", str(rendered / "data.npz"), "--out", str(out), "--quiet",
-                 "--draw", str(draw), "--set", "target_tracks=100"]) == 0
+                 "--draw", str(draw), "--set", "tracker.target_tracks=100"]) == 0
     names = sorted(p.name for p in draw.iterdir())
     assert names == [f"{i:06d}.png" for i in range(80)]
     import cv2
@@ -98,7 +127,7 @@ def test_draw_writes_one_png_per_frame(rendered, tmp_path):
 
 @pytest.mark.skipif(not (IMAGES.is_dir() and DATA_0042.is_file()), reason=f"real images or data not found under {SHARED}")
 def test_real_kitti_frames_with_clean_velocities(tmp_path):
-    """Issue 4: KITTI odometry 01 frames 0-50 with the IMU of ece276a2019_0042.npz: SLAM no worse
+    """KITTI odometry 01 frames 0-50 with the IMU of ece276a2019_0042.npz: SLAM no worse
     than 1.1x dead reckoning (numbers in BENCHMARKS.md)."""
     out = tmp_path / "run"
     assert main(["run", str(IMAGES), "--imu", str(DATA_0042), "--out", str(out), "--gt", str(GT_0042), "--quiet"]) == 0

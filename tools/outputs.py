@@ -1,6 +1,6 @@
-"""Writing (and reading back) the files a vislam run produces.
+"""Writing the files a vislam run produces (the trajectories' TUM text is ``backend.data.tum``).
 
-Every writer goes through :func:`atomic_write`: the data is written to a temporary file in
+Every writer goes through :func:`~vislam.backend.data.files.atomic_write`: the data is written to a temporary file in
 the target's directory and moved over the target only once it is complete, so an
 interrupted or failed run never leaves a half-written file behind.
 
@@ -15,22 +15,17 @@ import math
 import os
 import sys
 import types
-from contextlib import contextmanager
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-from backend import se3
-from backend.errors import InputError, VislamError
-from backend.textio import content_lines, finite_numbers, read_lines
+from ..backend.data.files import atomic_write
+from ..backend.errors import VislamError
 
 __all__ = [
-    "atomic_write",
     "prepare_output_dir",
-    "write_tum",
-    "read_tum",
     "write_map_npz",
     "write_map_ply",
     "uncertainty_colors",
@@ -68,7 +63,7 @@ def import_open3d() -> types.ModuleType:
     """``import open3d``, without importing dash and plotly.
 
     open3d (0.19, 0.20) imports its plotly/dash web viewer whenever it is imported; with dash 4
-    that alone measured 0.37 s and ~45 MB resident here, for a viewer vislam never opens. While
+    that costs ~0.4 s and ~45 MB a process, for a viewer vislam never opens. While
     open3d is first imported, placeholders stand in for those modules (unless they are imported
     already), and they are removed from ``sys.modules`` right after, so a later ``import dash``
     gets the real package; only ``open3d.visualization.draw_plotly`` cannot be used in this process.
@@ -95,34 +90,6 @@ TRAJECTORY_COLORMAP = "plasma"
 # --------------------------------------------------------------------------------------
 
 
-def _temp_path(path: Path) -> Path:
-    """``dir/name.ext`` -> ``dir/.name.tmp-<pid>.ext`` (the suffix is kept for writers
-    such as open3d or matplotlib that choose the format by the file extension)."""
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-
-
-@contextmanager
-def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it onto ``path`` on success.
-
-    The temporary name is ``.<stem>.tmp-<pid><suffix>`` in the same directory (so
-    ``os.replace`` is atomic and the extension is preserved). If the body raises anything,
-    ``KeyboardInterrupt`` included, the temporary file is removed, an existing ``path`` is
-    left untouched and the exception propagates.
-    """
-    target = Path(path)
-    tmp = _temp_path(target)
-    try:
-        yield tmp
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
-        raise
-
-
 def prepare_output_dir(path: str | os.PathLike, force: bool) -> Path:
     """Create the output directory ``path`` (with parents) and return it.
 
@@ -142,96 +109,6 @@ def prepare_output_dir(path: str | os.PathLike, force: bool) -> Path:
     except OSError as exc:
         raise VislamError(f"{path}: cannot create output directory: {exc.strerror}") from exc
     return out
-
-
-# --------------------------------------------------------------------------------------
-# TUM trajectories
-# --------------------------------------------------------------------------------------
-
-
-def _check_poses(world_T_imu: Any, what: str = "world_T_imu") -> np.ndarray:
-    poses = np.asarray(world_T_imu, dtype=float)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"{what} must have shape (N, 4, 4), got {poses.shape}")
-    return poses
-
-
-def write_tum(
-    path: str | os.PathLike,
-    time_stamps: Any,
-    world_T_imu: Any,
-    header: str | None = None,
-) -> None:
-    """Write a trajectory in TUM format: ``t tx ty tz qx qy qz qw`` per line.
-
-    Time and translation are written with ``%.6f``, the unit quaternion (scalar last, sign
-    chosen so that ``qw >= 0``) with ``%.9f``. ``header`` (may span several lines) is
-    written first as ``#`` comment lines.
-    """
-    t = np.asarray(time_stamps, dtype=float)
-    poses = _check_poses(world_T_imu)
-    if t.ndim != 1 or t.shape[0] != poses.shape[0]:
-        raise ValueError(
-            f"time_stamps must have shape ({poses.shape[0]},) to match the poses, got {t.shape}"
-        )
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(poses))):
-        bad = np.flatnonzero(~(np.isfinite(t) & np.isfinite(poses).all(axis=(1, 2))))
-        raise ValueError(f"non-finite time stamp or pose at index {int(bad[0])}")
-
-    lines: list[str] = []
-    if header:
-        for line in header.splitlines():
-            lines.append(line if line.startswith("#") else f"# {line}")
-    if len(poses):
-        quat = se3.quaternion_from_rotation(poses[:, :3, :3])  # x, y, z, w with w >= 0
-        trans = poses[:, :3, 3]
-        for ti, p, q in zip(t, trans, quat):
-            lines.append(
-                f"{ti:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
-                f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
-            )
-    text = "\n".join(lines) + ("\n" if lines else "")
-    with atomic_write(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-
-
-def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file; return ``(time_stamps (N,), world_T_imu (N, 4, 4))``.
-
-    Blank lines and lines starting with ``#`` are skipped; quaternions are normalised.
-    Raises :class:`InputError` with a one-line ``<file>:<line>: <problem>`` message for a
-    line without 8 columns, a non-numeric or non-finite value, a zero-norm quaternion or a
-    time stamp not greater than the previous one, and for a file without any pose.
-    """
-    stamps: list[float] = []
-    rows: list[list[float]] = []
-    for lineno, line in content_lines(read_lines(path)):
-        tokens = line.split()
-        if len(tokens) != 8:
-            raise InputError(
-                f"{path}:{lineno}: expected 8 columns (t tx ty tz qx qy qz qw), "
-                f"found {len(tokens)}"
-            )
-        values = finite_numbers(tokens, f"{path}:{lineno}")
-        norm = math.sqrt(sum(v * v for v in values[4:]))
-        if norm < 1e-12:
-            raise InputError(f"{path}:{lineno}: quaternion has zero norm")
-        if stamps and values[0] <= stamps[-1]:
-            raise InputError(
-                f"{path}:{lineno}: time stamp {tokens[0]} is not greater than the "
-                f"previous one ({stamps[-1]:.9g})"
-            )
-        stamps.append(values[0])
-        rows.append(values)
-
-    if not rows:
-        raise InputError(f"{path}: no poses found (empty trajectory file)")
-    data = np.asarray(rows, dtype=float)
-    quat = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
-    poses[:, :3, 3] = data[:, 1:4]
-    return data[:, 0].copy(), poses
 
 
 # --------------------------------------------------------------------------------------
@@ -297,39 +174,9 @@ def uncertainty_colors(covariances: Any) -> tuple[np.ndarray, np.ndarray, np.nda
     return rgb, sigma, u
 
 
-def _write_ply_by_hand(
-    tmp: Path, points: np.ndarray, colors: np.ndarray, edges: np.ndarray | None
-) -> None:
-    """Binary PLY for the cases open3d refuses (no points / no lines)."""
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        "comment Created by vislam",
-        f"element vertex {len(points)}",
-        "property double x",
-        "property double y",
-        "property double z",
-        "property uchar red",
-        "property uchar green",
-        "property uchar blue",
-    ]
-    if edges is not None:
-        header += [f"element edge {len(edges)}", "property int vertex1", "property int vertex2"]
-    header.append("end_header")
-    vertex = np.zeros(
-        len(points), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("rgb", "u1", (3,))]
-    )
-    vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
-    vertex["rgb"] = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
-    with open(tmp, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(vertex.tobytes())
-        if edges is not None:
-            fh.write(np.asarray(edges, dtype="<i4").tobytes())
-
-
-def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> None:
-    """Save the landmark positions as a binary PLY point cloud coloured by uncertainty.
+def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> bool:
+    """Save the landmark positions as a binary PLY point cloud coloured by uncertainty (open3d);
+    returns False, writing nothing, for an empty map (a PLY cloud needs a point).
 
     The colour mapping is the one of :func:`uncertainty_colors`: sigma = square root of the
     largest covariance eigenvalue, on a log scale clipped to its 5th..95th percentile,
@@ -337,11 +184,10 @@ def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> 
     ``path`` should end in ``.ply`` (open3d picks the format by extension).
     """
     pos, cov = _check_map(positions, covariances)
+    if len(pos) == 0:
+        return False
     rgb, _, _ = uncertainty_colors(cov)
     with atomic_write(path) as tmp:
-        if len(pos) == 0:
-            _write_ply_by_hand(tmp, pos, rgb, None)
-            return
         o3d = import_open3d()
 
         cloud = o3d.geometry.PointCloud()
@@ -351,6 +197,7 @@ def write_map_ply(path: str | os.PathLike, positions: Any, covariances: Any) -> 
             ok = o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False)
         if not ok:
             raise VislamError(f"{path}: open3d could not write the point cloud")
+    return True
 
 
 def write_trajectory_ply(
@@ -359,8 +206,8 @@ def write_trajectory_ply(
     """Save the trajectory as a PLY line set (open3d ``LineSet``: the positions as vertices,
     consecutive ones joined by edges), coloured by time through matplotlib's ``plasma``:
     dark blue = start, yellow = end. Without ``time_stamps`` the pose index stands for time.
-    With fewer than 2 poses (no line) the file holds just the vertices (a point cloud).
-    ``world_T_imu`` is ``(N, 4, 4)`` (or ``(N, 3)`` positions).
+    With one pose (no line) the file holds just its vertex (a point cloud).
+    ``world_T_imu`` is ``(N, 4, 4)`` (or ``(N, 3)`` positions), N >= 1.
     """
     import matplotlib
 
@@ -372,30 +219,34 @@ def write_trajectory_ply(
     else:
         raise ValueError(f"world_T_imu must have shape (N, 4, 4) or (N, 3), got {arr.shape}")
     n = len(pts)
+    if n == 0:
+        raise ValueError("world_T_imu: no poses to write")
     if time_stamps is None:
         tt = np.arange(n, dtype=float)
     else:
         tt = np.asarray(time_stamps, dtype=float)
         if tt.shape != (n,):
             raise ValueError(f"time_stamps must have shape ({n},), got {tt.shape}")
-    span = float(tt[-1] - tt[0]) if n > 1 else 0.0
-    frac = (tt - tt[0]) / span if span > 0 else np.zeros(n)  # n == 0: span == 0
+    span = float(tt[-1] - tt[0])
+    frac = (tt - tt[0]) / span if span > 0 else np.zeros(n)
     point_rgb = matplotlib.colormaps[TRAJECTORY_COLORMAP](np.clip(frac, 0, 1))[:, :3]
     edges = np.column_stack([np.arange(n - 1), np.arange(1, n)]) if n > 1 else np.zeros((0, 2))
     edge_rgb = 0.5 * (point_rgb[:-1] + point_rgb[1:]) if n > 1 else np.zeros((0, 3))
 
-    with atomic_write(path) as tmp:
-        if n < 2:  # open3d writes no line set without lines: a plain 0/1-vertex PLY
-            _write_ply_by_hand(tmp, pts, point_rgb, None)
+    o3d = import_open3d()
+    with atomic_write(path) as tmp, o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        if n == 1:  # open3d writes no line set without lines: the vertex as a point cloud
+            cloud = o3d.geometry.PointCloud()
+            cloud.points = o3d.utility.Vector3dVector(pts)
+            cloud.colors = o3d.utility.Vector3dVector(point_rgb)
+            if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
+                raise VislamError(f"{path}: open3d could not write the trajectory's vertex")
             return
-        o3d = import_open3d()
-
         lines = o3d.geometry.LineSet()
         lines.points = o3d.utility.Vector3dVector(pts)
         lines.lines = o3d.utility.Vector2iVector(edges.astype(np.int32))
         lines.colors = o3d.utility.Vector3dVector(edge_rgb)
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            ok = o3d.io.write_line_set(str(tmp), lines, write_ascii=False)
+        ok = o3d.io.write_line_set(str(tmp), lines, write_ascii=False)
         if not ok:
             raise VislamError(f"{path}: open3d could not write the trajectory line set")
 

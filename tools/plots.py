@@ -1,4 +1,4 @@
-"""Figures of a vislam run (PNG, 150 dpi), written through :func:`tools.outputs.atomic_write`.
+"""Figures of vislam runs and Monte Carlo consistency (PNG, 150 dpi), written atomically.
 
 Only matplotlib's object-oriented API is used (``matplotlib.figure.Figure`` rendered by the
 Agg canvas); pyplot is never imported, so no display or GUI backend is needed, no global
@@ -12,9 +12,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tools.outputs import atomic_write
+from ..backend.data.files import atomic_write
 
-__all__ = ["plot_trajectories_topdown", "plot_error_over_time", "plot_errors_over_time"]
+__all__ = ["plot_trajectories_topdown", "plot_errors_over_time", "plot_consistency"]
 
 DPI = 150
 MAX_LANDMARKS_PLOTTED = 20000
@@ -108,18 +108,6 @@ def plot_trajectories_topdown(
     _save(fig, path)
 
 
-def plot_error_over_time(
-    path: str | os.PathLike,
-    time_stamps: Any,
-    errors: Any,
-    title: str,
-    ylabel: str = "error [m]",
-) -> None:
-    """Line plot of ``errors`` (N,) over time since the first stamp (seconds), with the
-    RMSE as a horizontal dashed line."""
-    plot_errors_over_time(path, {"error": (time_stamps, errors)}, title, ylabel)
-
-
 def plot_errors_over_time(
     path: str | os.PathLike,
     series: Mapping[str, tuple[Any, Any]],
@@ -156,5 +144,40 @@ def plot_errors_over_time(
     ax.grid(True, linewidth=0.3)
     if title:
         ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_consistency(path: str | os.PathLike, result) -> None:
+    """Two panels over the steps: the run-averaged pose NEES with its 95 % band (log y), and the
+    NIS per observation with its band for one step's observations of all runs."""
+    steps = np.arange(result.steps)
+    fig = _new_figure((9.0, 6.5))
+    ax = fig.add_subplot(2, 1, 1)
+    lo, hi = result.pose_nees_band
+    nees = np.asarray(result.pose_nees_mean, dtype=float)
+    positive = nees > 0
+    ax.plot(steps[positive], nees[positive], color="tab:blue", linewidth=1.0,
+            label=f"pose NEES, average of {result.runs} runs")
+    ax.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % band [{lo:.2f}, {hi:.2f}]")
+    ax.axhline(6.0, color="tab:green", linewidth=0.8, linestyle="--", label="expectation 6")
+    ax.axvline(result.skip, color="0.5", linewidth=0.6, linestyle=":")
+    ax.set_yscale("log")
+    ax.set_ylabel("pose NEES (6 dof)")
+    ax.set_title(f"{100 * result.pose_nees_in_band:.0f} % of steps {result.skip}..{result.steps - 1} in the band")
+    ax.grid(True, which="both", linewidth=0.3)
+    ax.legend(loc="best", fontsize="small")
+
+    ax = fig.add_subplot(2, 1, 2, sharex=ax)
+    nis = np.asarray(result.nis_per_step, dtype=float)
+    ax.plot(steps, nis, color="tab:purple", linewidth=0.8, label="NIS per observation (all runs)")
+    ax.axhline(4.0, color="tab:green", linewidth=0.8, linestyle="--", label="expectation 4")
+    nlo, nhi = result.nis_band
+    ax.axhline(result.nis_mean, color="tab:red", linewidth=0.8,
+               label=f"mean {result.nis_mean:.3f} (band [{nlo:.3f}, {nhi:.3f}])")
+    ax.set_xlabel("step")
+    ax.set_ylabel("NIS / observation (4 dof)")
+    ax.grid(True, linewidth=0.3)
+    ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
     _save(fig, path)

@@ -10,7 +10,7 @@
 | trajectory.png | top-down plot: dead reckoning, estimate, ground truth, landmarks |
 | ate_over_time.png | with ground truth: position error of each pose after SE(3) alignment, estimate and dead reckoning |
 | summary.json | counts, timings, decisions, configuration and (with ground truth) errors |
-| config.toml | the configuration used, loadable with --config |
+| config.toml | the configuration used (every table; [tracker] from images), loadable with --config |
 """
 
 from __future__ import annotations
@@ -20,10 +20,11 @@ from typing import Optional
 
 import numpy as np
 
-from backend.config import to_toml
-from backend.metrics import ate_per_pose, trajectory_errors
-from backend.pipeline import RunResult
-from tools import outputs, plots
+from ..backend.data.files import atomic_write
+from ..backend.data.tum import write_tum
+from ..backend.evaluation.metrics import ate_per_pose, trajectory_errors
+from ..backend.run.online import RunResult
+from . import outputs, plots
 
 
 def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
@@ -33,11 +34,14 @@ def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
     return {"estimate": est.as_dict(), "dead_reckoning": dr.as_dict()}
 
 
-def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) -> dict:
+def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, tracker=None) -> dict:
     stats = result.stats
+    config = result.config.as_dict()
+    if tracker is not None:
+        config[tracker.TABLE] = tracker.as_dict()
     summary = {
         "input": source,
-        "mode": result.config.mode,
+        "mode": result.config.estimator.mode.value,
         "steps": stats.steps,
         "observations": {
             "valid": stats.observations,
@@ -59,8 +63,9 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) 
         "mean_nis_per_observation": stats.mean_nis,
         "gyro_bias_final": result.gyro_bias,
         "timing": {
-            "wall_seconds": stats.wall_seconds + stats.setup_seconds,
+            "wall_seconds": stats.wall_seconds + stats.setup_seconds + stats.load_seconds,
             "filter_seconds": stats.wall_seconds,
+            "load_seconds": stats.load_seconds,
             "setup_seconds": stats.setup_seconds,
             "kernel_seconds": stats.kernel_seconds,
             "predict_seconds": stats.seconds_predict,
@@ -72,7 +77,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None) 
         "conventions": result.conventions.as_dict(),
         "imu_noise": result.imu_noise.as_dict(),
         "health": stats.health_messages,
-        "config": result.config.as_dict(),
+        "config": config,
     }
     if errors is not None:
         summary["errors"] = errors
@@ -84,28 +89,34 @@ def write_run_outputs(
     out_dir: Path,
     source: str,
     gt: Optional[tuple[np.ndarray, np.ndarray]] = None,
+    tracker=None,
 ) -> dict:
-    """Write every output file (each atomically) and return the summary dict."""
+    """Write every output file (each atomically) and return the summary dict; ``tracker``: the
+    front end's options of a run from images (recorded in summary.json and config.toml)."""
     errors = evaluate(result, *gt) if gt is not None else None
-    outputs.write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
+    notes: list[str] = []
+    write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
                       header="world_T_imu estimated by vislam")
-    outputs.write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
+    write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
                       header="world_T_imu by IMU dead reckoning")
     outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
-    outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances)
+    if not outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances):
+        notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
     outputs.write_trajectory_ply(out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps)
     curves = {"dead reckoning": result.dead_reckoning, "estimate": result.world_T_imu}
     if gt is not None:
         curves["ground truth"] = gt[1]
     plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, landmarks=result.map_positions,
-                                    title=f"{Path(source).name}: {result.config.mode}")
+                                    title=f"{Path(source).name}: {result.config.estimator.mode}")
     if gt is not None:
         write_error_plot(out_dir / "ate_over_time.png", {"estimate": result.world_T_imu, "dead reckoning": result.dead_reckoning},
                          result.time_stamps, *gt)
-    summary = summary_dict(result, source, errors)
+    summary = summary_dict(result, source, errors, tracker)
+    summary["notes"] = notes
     outputs.write_json(out_dir / "summary.json", summary)
-    with outputs.atomic_write(out_dir / "config.toml") as tmp:
-        tmp.write_text(to_toml(result.config))
+    toml = result.config.to_toml() + ("\n" + tracker.to_toml() if tracker is not None else "")
+    with atomic_write(out_dir / "config.toml") as tmp:
+        tmp.write_text(toml)
     return summary
 
 
@@ -140,6 +151,8 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
         )
     for message in summary["health"]:
         lines.append(f"warning: {message}")
+    for note in summary.get("notes", []):
+        lines.append(f"note: {note}")
     if out_dir is not None:
         lines.append(f"outputs in {out_dir}/")
     return "\n".join(lines)

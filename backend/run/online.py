@@ -1,28 +1,29 @@
-"""`run_sequence`: a whole sequence through the EKF, as a loop over the online API.
+"""The filter over a stream of time stamps: what a run adds to the online API, step by step.
 
-Decides the data conventions and the IMU noise first (both recorded), then steps
-:class:`~backend.ekf.VisualInertialEKF` once per time stamp, timing prediction and update.
+:class:`OnlineRun` steps :class:`~vislam.backend.estimator.ekf.VisualInertialEKF` once per time
+stamp with the run's decisions (velocity timing, repeated frames, track drift), keeps dead
+reckoning alongside and collects the run's statistics; :meth:`OnlineRun.result` returns the
+:class:`RunResult`. The loop over a stream is ``backend.run.runner``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
-from backend import kernels, se3
-from backend.camera import StereoCamera
-from backend.config import FilterConfig
-from backend.conventions import ConventionDecision, decide_conventions
-from backend.ekf import ImuNoise, StepStats, VisualInertialEKF
-from backend.errors import InputError
-from backend.imu import VELOCITY_INDEX_OFFSET, NoiseDecision, compose_steps, decide_imu_noise
-from backend.sequence import SYNTHETIC_TRACKER, VISLAM_TRACKER, Sequence
-from backend.timing import repeats_previous
+from ..config import Config, RepeatedFrames
+from ..errors import InputError
+from ..estimator.ekf import ImuNoise, StepStats, VisualInertialEKF
+from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
+from ..geometry import se3
+from ..geometry.camera import StereoCamera
+from .conventions import ConventionDecision
+from .drift import decide_track_drift
+from .noise import NoiseDecision
+from .timing import repeats_previous
 
 
 @dataclass
@@ -44,7 +45,8 @@ class RunStats:
     active_landmarks_max: int = 0
     mean_nis: float = float("nan")  # per used observation; expectation 4 (a little less after gating)
     wall_seconds: float = 0.0  # the filter loop
-    setup_seconds: float = 0.0  # convention checks and noise estimation (and loading, from `vislam run`)
+    load_seconds: float = 0.0  # reading the input (`vislam run`)
+    setup_seconds: float = 0.0  # convention checks and noise estimation
     kernel_seconds: float = 0.0  # compiling (first run after an install) or loading the compiled kernels; apart, as imports
     sequence_seconds: float = 0.0
     seconds_predict: float = 0.0
@@ -62,8 +64,8 @@ class RunStats:
 
     @property
     def real_time_factor(self) -> float:
-        """Sequence duration / (setup + loop)."""
-        return self.sequence_seconds / max(self.wall_seconds + self.setup_seconds, 1e-9)
+        """Sequence duration / (loading + setup + loop)."""
+        return self.sequence_seconds / max(self.wall_seconds + self.setup_seconds + self.load_seconds, 1e-9)
 
     def as_dict(self) -> dict:
         out = dict(self.__dict__)
@@ -85,69 +87,20 @@ class RunResult:
     step_seconds: np.ndarray  # (N,) wall seconds of each step (predict + update)
     conventions: ConventionDecision
     imu_noise: NoiseDecision
-    config: FilterConfig
-
-
-def prepare(seq: Sequence, config: FilterConfig) -> tuple[ConventionDecision, NoiseDecision]:
-    """Decide the extrinsic, the velocity timing and the IMU noise for this sequence."""
-    conventions = decide_conventions(seq, config.imu_flip, config.velocity_index, config.convention_horizon)
-    noise = imu_noise(config, seq.linear_velocity, seq.angular_velocity, seq.num_observations / max(seq.num_steps, 1))
-    return conventions, noise
-
-
-def imu_noise(config: FilterConfig, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
-              observations_per_step: float) -> NoiseDecision:
-    """The IMU noise and gyro-bias decision of ``config`` for these velocities (backend.imu)."""
-    return decide_imu_noise(
-        linear_velocity,
-        angular_velocity,
-        config.linear_velocity_sigma,
-        config.angular_velocity_sigma,
-        config.linear_velocity_sigma_floor,
-        config.angular_velocity_sigma_floor,
-        config.estimate_gyro_bias,
-        observations_per_step,
-        config.gyro_bias_min_observations,
-    )
-
-
-def decide_track_drift(config: FilterConfig, tracker: str) -> tuple[FilterConfig, str]:
-    """Resolve ``track_drift = "auto"`` for tracks made by ``tracker`` (``Sequence.tracker``).
-
-    Tracks from another front end (the course files) drift with their age (BENCHMARKS.md,
-    finding 9), so their landmarks random-walk (``landmark_random_walk``) and are re-anchored
-    (backend.ekf); vislam's own tracker aligns every patch to its track's first patch and
-    synthetic tracks are exact projections: there the drift model only discards information.
-    Returns the config with ``track_drift`` "yes" or "no" and one line saying why.
-    """
-    if config.track_drift == "auto":
-        exact = tracker in (VISLAM_TRACKER, SYNTHETIC_TRACKER)
-        config = dataclasses.replace(config, track_drift="no" if exact else "yes")
-        source = "auto: " + (f"tracks from the {tracker} tracker, which do not drift" if exact
-                             else "tracks from another tracker, which drift with age")
-    else:
-        source = "configured"
-    if config.track_drift == "no":
-        return config, f"track drift: not modelled ({source})"
-    walk = f"landmark random walk {config.landmark_random_walk:g} m/sqrt(s)"
-    if config.full_state:
-        return config, f"track drift: {walk}, no re-anchoring (--full-state keeps every landmark) ({source})"
-    return config, (f"track drift: {walk}; re-anchoring after {config.reanchor_observations} observations "
-                    f"({config.reanchor_far_observations} when anchored below {config.reanchor_far_disparity:g} px "
-                    f"disparity; 0: never) ({source})")
+    config: Config
 
 
 class OnlineRun:
-    """The filter over a stream, one call of :meth:`step` per time stamp; :func:`run_sequence` and the
-    one-pass image path (tools/track.py) are loops over it.
+    """The filter over a stream, one call of :meth:`step` per time stamp (``backend.run.runner`` loops
+    over it for files, image streams and the API alike).
 
     ``step(t, v, w, ids, pixels)`` takes the IMU sample stamped t and the stereo observations of
     the frame at t. It applies the velocity timing of ``conventions`` (the sample stamped k
     ("this") or k+1 ("next") drives the step k -> k+1: both are known once step k+1 arrives), the
-    repeated-frame policy (backend.timing), records dead reckoning alongside, and collects the run
-    statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
+    repeated-frame policy (``backend.run.timing``), records dead reckoning alongside, and collects the
+    run statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
     ``tracker`` names what made the tracks (``Sequence.tracker``; "" unknown) for
-    ``track_drift = "auto"`` (:func:`decide_track_drift`).
+    ``drift.track_drift = "auto"`` (:func:`~vislam.backend.run.drift.decide_track_drift`).
     """
 
     def __init__(
@@ -155,14 +108,14 @@ class OnlineRun:
         camera: StereoCamera,
         conventions: ConventionDecision,
         noise: NoiseDecision,
-        config: FilterConfig,
+        config: Config,
         expected_landmarks: int | None = None,
         observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
         tracker: str = "",
     ) -> None:
         config.validate()
-        if noise.gyro_bias != config.estimate_gyro_bias:
-            config = dataclasses.replace(config, estimate_gyro_bias=noise.gyro_bias)
+        if noise.gyro_bias != config.estimator.estimate_gyro_bias:
+            config = config.with_values({"estimator.estimate_gyro_bias": noise.gyro_bias})
         config, track_drift = decide_track_drift(config, tracker)
         self.config = config
         self.conventions = conventions
@@ -216,7 +169,7 @@ class OnlineRun:
         return step_stats
 
     def _observe(self, ids: np.ndarray, pixels: np.ndarray) -> Optional[StepStats]:
-        """Use a frame's observations as the repeated-frame policy says (backend.timing)."""
+        """Use a frame's observations as the repeated-frame policy says (``backend.run.timing``)."""
         stats = self.stats
         stats.observations += ids.size
         repeated = self._prev_frame is not None and repeats_previous(ids, pixels, *self._prev_frame)
@@ -224,9 +177,9 @@ class OnlineRun:
             stats.repeated_frames += 1
         else:
             self._prev_frame = (ids, pixels)
-        policy = self.config.repeated_frames
-        if repeated and policy != "use":
-            if policy == "cut":
+        policy = self.config.conventions.repeated_frames
+        if repeated and policy != RepeatedFrames.USE:
+            if policy == RepeatedFrames.CUT:
                 self.ekf.finish()  # no track bridges a stalled camera
             return None
         step_stats = self.ekf.update(ids, pixels)
@@ -240,7 +193,7 @@ class OnlineRun:
         self._nis_sum += step_stats.nis_sum
         return step_stats
 
-    def result(self, setup_seconds: float = 0.0) -> RunResult:
+    def result(self, setup_seconds: float = 0.0, load_seconds: float = 0.0) -> RunResult:
         """Marginalize the active landmarks into the map; the run's trajectory, map and statistics."""
         if not self._t:
             raise InputError("no steps: nothing to estimate")
@@ -250,6 +203,7 @@ class OnlineRun:
         stats.steps = len(self._t)
         stats.wall_seconds = self._wall + time.perf_counter() - t0
         stats.setup_seconds = setup_seconds
+        stats.load_seconds = load_seconds
         stats.sequence_seconds = self._t[-1] - self._t[0]
         stats.active_landmarks_mean = self._active_sum / stats.steps
         stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
@@ -275,35 +229,3 @@ class OnlineRun:
             imu_noise=self.noise,
             config=self.config,
         )
-
-
-def run_sequence(
-    seq: Sequence,
-    config: FilterConfig,
-    progress: Optional[Callable[[int], None]] = None,
-    decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
-    observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
-) -> RunResult:
-    """Run the filter over every step and every observation of ``seq`` (a loop over :class:`OnlineRun`).
-
-    ``progress(k)`` is called after each step; ``observer(k, ekf, step_stats)`` too, with the
-    filter itself (step_stats is None where the step's observations were not used);
-    ``decisions`` skips :func:`prepare`.
-    """
-    config.validate()
-    if seq.num_steps < 2:
-        raise InputError(f"{seq.source}: key 'time_stamps': need at least 2 steps, got {seq.num_steps}")
-    with threadpool_limits(limits=config.blas_threads):
-        kernels.warm_up()  # the convention test calls the triangulation kernel: load them apart from setup
-        t_setup = time.perf_counter()
-        conventions, noise = decisions if decisions is not None else prepare(seq, config)
-        setup_seconds = time.perf_counter() - t_setup
-        run = OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config,
-                        expected_landmarks=seq.num_features, observer=observer, tracker=seq.tracker)
-        for k in range(seq.num_steps):
-            run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
-            if progress:
-                progress(k)
-        result = run.result(setup_seconds)
-    result.stats.observations_dropped_input = dict(seq.dropped)
-    return result

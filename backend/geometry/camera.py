@@ -1,9 +1,21 @@
 """Rectified stereo pinhole camera model (ECE276A visual-inertial SLAM notes).
 
 A point ``p_in_cam`` (optical frame: x right, y down, z forward) with homogeneous
-``q = [p_in_cam; 1]`` is observed as ``z = [uL, vL, uR, vR] = Ks @ pi(q)``,
-``pi(q) = q / q[2]``. Every function is vectorized over leading axes: (n, 3) points
-give (n, 4) pixels, and a single (3,) point gives (4,).
+``q = [p_in_cam; 1]`` is observed as
+
+    z = [uL, vL, uR, vR] = Ks pi(q),   pi(q) = q / q_3,
+    Ks = [[fx, 0, cx, 0], [0, fy, cy, 0], [fx, 0, cx, -fx b], [0, fy, cy, 0]]                  (S1)
+
+and triangulated from its pixels with d = uL - uR as
+
+    depth = fx b / d,   x = (uL - cx) depth / fx,   y = ((vL + vR)/2 - cy) depth / fy.         (S2)
+
+Depth from disparity is biased, E[fx b / d] ~ (fx b / d)(1 + 2 sigma^2 / d^2) > fx b / d, so a new
+point starts at the expected triangulation under the pixel noise, by the unscented transform
+(Julier & Uhlmann 1997: sigma points z +- sqrt(3) sigma e_i, weights -1/3 and 1/6).            (S3)
+
+Every function is vectorized over leading axes: (n, 3) points give (n, 4) pixels, and a single
+(3,) point gives (4,).
 """
 
 from __future__ import annotations
@@ -11,7 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+
+from ..compiled import jit, warms_up
 
 
 def pi(q: np.ndarray) -> np.ndarray:
@@ -37,10 +50,10 @@ def _homogeneous(p: np.ndarray) -> np.ndarray:
     return np.concatenate([p, np.ones(p.shape[:-1] + (1,))], axis=-1)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _triangulate_rows(z, fx, fy, cx, cy, baseline, sigma):
-    """Compiled core of :meth:`StereoCamera.triangulate_with_jacobian` for z (n,4): the point
-    (the unscented mean when sigma > 0) (n,3) and d triangulate / d z at the pixels (n,3,4)."""
+@jit
+def triangulate_rows(z, fx, fy, cx, cy, baseline, sigma):
+    """(S2), or (S3) when sigma > 0, for pixels z (n,4): the points (n,3) and d triangulate / d z at
+    the pixels (n,3,4); the compiled core of :meth:`StereoCamera.triangulate_with_jacobian`."""
     n = z.shape[0]
     points = np.empty((n, 3))
     J = np.zeros((n, 3, 4))
@@ -122,19 +135,6 @@ class StereoCamera:
         """Pixels z = Ks pi([p; 1]); (..., 3) -> (..., 4) = [uL, vL, uR, vR]."""
         return pi(_homogeneous(p_in_cam)) @ self.Ks.T
 
-    def projection_jacobian(self, p_in_cam: np.ndarray) -> np.ndarray:
-        """dz/dp = Ks dpi/dq([p; 1]) P^T with P^T = [I3; 0], in closed form; (..., 3) -> (..., 4, 3):
-        rows uL: [fx, 0, -fx x/z]/z, vL and vR: [0, fy, -fy y/z]/z, uR: [fx, 0, -fx (x - b)/z]/z."""
-        p = np.asarray(p_in_cam, dtype=float)
-        x, y, inv_z = p[..., 0], p[..., 1], 1.0 / p[..., 2]
-        J = np.zeros(p.shape[:-1] + (4, 3))
-        J[..., 0, 0] = J[..., 2, 0] = self.K[0, 0] * inv_z
-        J[..., 1, 1] = J[..., 3, 1] = self.K[1, 1] * inv_z
-        J[..., 0, 2] = -self.K[0, 0] * x * inv_z * inv_z
-        J[..., 2, 2] = -self.K[0, 0] * (x - self.baseline) * inv_z * inv_z
-        J[..., 1, 2] = J[..., 3, 2] = -self.K[1, 1] * y * inv_z * inv_z
-        return J
-
     def triangulate(self, z: np.ndarray) -> np.ndarray:
         """Point from pixels: depth = fx b / (uL - uR), x = (uL - cx) depth / fx,
         y = ((vL + vR)/2 - cy) depth / fy; (..., 4) -> (..., 3).
@@ -143,31 +143,20 @@ class StereoCamera:
         """
         return self.triangulate_with_jacobian(z)[0]
 
-    def triangulate_mean(self, z: np.ndarray, pixel_sigma: float) -> np.ndarray:
-        """E[triangulate(z + n)], n ~ N(0, pixel_sigma^2 I4), by the unscented transform (Julier &
-        Uhlmann 1997: 2N+1 = 9 sigma points z +- sqrt(3) sigma e_i, weights -1/3 and 1/6), exact to
-        second order; (..., 4) -> (..., 3).
-
-        Depth from disparity is biased, E[f b / d] ~ (f b / d) (1 + 2 sigma^2 / d^2) > f b / d, so the
-        point at the measured pixels sits too near. Where a sigma point would halve the disparity
-        (d <= 2 sqrt(3) sigma) the expansion is meaningless and the plain triangulation is returned.
-        The point is linear in vL and vR, so their four sigma points sum to 4 x the centre and
-        only the four shifts of uL and uR are evaluated: mean = centre / 3 + (sum of those) / 6.
-        """
-        return self.triangulate_with_jacobian(z, pixel_sigma)[0]
-
     def triangulate_with_jacobian(self, z: np.ndarray, pixel_sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """(:meth:`triangulate_mean` with ``pixel_sigma``, or :meth:`triangulate` with 0, and
-        :meth:`triangulation_jacobian`) in one compiled pass; (..., 4) -> ((..., 3), (..., 3, 4))."""
+        """(S2) (:meth:`triangulate`), or with ``pixel_sigma`` > 0 the expected triangulation under that
+        pixel noise (S3), and d triangulate / d z, in one compiled pass; (..., 4) -> ((..., 3), (..., 3, 4)).
+
+        With d = uL - uR and p = (x, y, depth): dp/duL = ([b, 0, 0] - p) / d, dp/duR = p / d,
+        dy/dvL = dy/dvR = depth / (2 fy). Sigma points of (S3) that would halve the disparity
+        (d <= 2 sqrt(3) sigma) make the expansion meaningless: there the plain triangulation is
+        returned. The point is linear in vL and vR, so their four sigma points sum to 4 x the centre
+        and only the four shifts of uL and uR are evaluated: mean = centre / 3 + (sum of those) / 6."""
         z = np.asarray(z, dtype=float)
         rows = np.ascontiguousarray(z.reshape(-1, 4))
-        points, J = _triangulate_rows(rows, self.fx, self.fy, self.cx, self.cy, self.baseline, float(pixel_sigma))
+        points, J = triangulate_rows(rows, self.fx, self.fy, self.cx, self.cy, self.baseline, float(pixel_sigma))
         return points.reshape(z.shape[:-1] + (3,)), J.reshape(z.shape[:-1] + (3, 4))
 
-    def triangulation_jacobian(self, z: np.ndarray) -> np.ndarray:
-        """d triangulate / d z; (..., 4) -> (..., 3, 4).
-
-        With d = uL - uR and p = (x, y, depth): dp/duL = ([b, 0, 0] - p) / d,
-        dp/duR = p / d, dy/dvL = dy/dvR = depth / (2 fy).
-        """
-        return self.triangulate_with_jacobian(z)[1]
+@warms_up
+def _warm_up() -> None:
+    triangulate_rows(np.array([[600.0, 180.0, 560.0, 180.0]] * 2), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0)

@@ -1,8 +1,7 @@
 """BLAS/LAPACK for the compiled kernels: potrf, trsm, syrk, gemm called from numba code, no Python between.
 
-At the filter's sizes (D ~ 200 states, ~140 measurement rows) the dense algebra of a step takes
-~0.4 ms, and each call through scipy's Python wrappers added 5-20 us of argument checking plus the
-Python glue around it. Here the same routines are scipy's own (``scipy.linalg.cython_blas`` /
+Each call through scipy's Python wrappers adds 5-20 us of argument checking plus the Python glue
+around it, comparable to the routine itself at the filter's sizes. Here the same routines are scipy's own (``scipy.linalg.cython_blas`` /
 ``cython_lapack``, the BLAS numpy and scipy ship), declared to numba as external symbols, so a
 kernel calls them directly and stays cacheable: the symbol names, not the process-specific
 addresses, are compiled in, and :func:`_register` binds them in every process before a cached
@@ -18,8 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 from llvmlite import binding as _llvm
-from numba import njit, types
+from numba import types
 from numba.extending import get_cython_function_address
+
+from ..compiled import jit, warms_up
 
 _BLAS = ("dsyrk", "dtrsm", "dgemm")
 _LAPACK = ("dpotrf",)
@@ -40,11 +41,10 @@ _dtrsm = types.ExternalFunction("vislam_dtrsm", types.void(_p, _p, _p, _p, _p, _
 _dgemm = types.ExternalFunction("vislam_dgemm", types.void(_p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p))
 _dpotrf = types.ExternalFunction("vislam_dpotrf", types.void(_p, _p, _p, _p, _p))
 
-_jit = njit(cache=True, nogil=True, error_model="numpy")
 _U, _L, _N, _T = ord("U"), ord("L"), ord("N"), ord("T")
 
 
-@_jit
+@jit
 def cholesky_upper_inplace(S):
     """S <- U with S = U^T U, on the upper triangle of the C-ordered square S (the lower triangle
     is left as it was); U^T is the lower Cholesky factor L (S = L L^T). LAPACK potrf on the
@@ -59,7 +59,7 @@ def cholesky_upper_inplace(S):
     return ints[2]
 
 
-@_jit
+@jit
 def solve_lower_inplace(U, B):
     """B <- L^-1 B for L = U^T (U from :func:`cholesky_upper_inplace`) and a C-ordered (n, k) B:
     BLAS trsm on the right of the Fortran view, B^T <- B^T L^-T."""
@@ -74,7 +74,7 @@ def solve_lower_inplace(U, B):
            one.ctypes, U.ctypes, ints[2:].ctypes, B.ctypes, ints[3:].ctypes)
 
 
-@_jit
+@jit
 def downdate_lower(P, A):
     """P <- P - A^T A on the lower triangle of the C-ordered symmetric (D, D) P (the upper triangle is
     left as it was), for a C-ordered (m, D) A: BLAS syrk on the Fortran views (P^T's upper triangle
@@ -90,7 +90,7 @@ def downdate_lower(P, A):
            ints[2:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
 
 
-@_jit
+@jit
 def add_product_lower(P, Z, X):
     """P <- P + Z X^T for C-ordered (D, D) P and (D, w) Z, X whose product is symmetric (the
     prediction's F P F^T + G Q G^T - P): BLAS gemm straight into P, no temporary; only the lower
@@ -107,15 +107,11 @@ def add_product_lower(P, Z, X):
            X.ctypes, ld[0:].ctypes, Z.ctypes, ld[1:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
 
 
-def block_nis(blocks: np.ndarray, residual: np.ndarray) -> np.ndarray:
-    """r_i^T B_i^-1 r_i for (k,d,d) blocks and (k,d) residuals; inf where a block is singular."""
-    try:
-        return np.einsum("ki,ki->k", residual, np.linalg.solve(blocks, residual[:, :, None])[:, :, 0])
-    except np.linalg.LinAlgError:
-        out = np.full(residual.shape[0], np.inf)
-        for i in range(residual.shape[0]):
-            try:
-                out[i] = residual[i] @ np.linalg.solve(blocks[i], residual[i])
-            except np.linalg.LinAlgError:
-                pass
-        return out
+@warms_up
+def _warm_up() -> None:
+    P = np.eye(3)
+    A = np.ones((2, 3))
+    cholesky_upper_inplace(P.copy())
+    solve_lower_inplace(np.eye(3), A.copy())
+    downdate_lower(P.copy(), A)
+    add_product_lower(P.copy(), A.T.copy(), A.T.copy())

@@ -2,14 +2,14 @@
 
 * ATE: the estimate is aligned to the ground truth with Umeyama's method (SE(3) by default,
   Sim(3) on request) using all time-matched positions; ATE is the translation error
-  ``|p_gt_i - p_est_aligned_i|`` per matched pose, summarised as RMSE / mean / median / max.
+  ``|p_gt_i - p_est_aligned_i|`` per matched pose, summarised as RMSE / mean / median / max.   (M1)
 * RPE: for pose pairs ``(i, j)`` a fixed distance apart, the error of the relative motion
   ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; translation RMSE (metres) and rotation-angle RMSE
   (degrees). Pairs are all pairs whose ground-truth path distance is ``delta`` metres (10 %
   tolerance), or ``delta`` frames apart. If the ground truth path is shorter than ``delta``
   (or, in frames, has too few poses) the delta falls back to ``min(10, N-1)`` frames, and
   ``rpe_delta`` / ``rpe_unit`` report what was used. RPE uses the aligned estimate (only
-  the Sim(3) scale matters for it).
+  the Sim(3) scale matters for it).                                                              (M2)
 
 evo is imported inside the functions (it is slow to import). The caller's arrays are never
 modified (evo aligns in place, so it works on copies).
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from backend.errors import InputError
+from ..errors import InputError
 
 __all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose", "alignment_scale"]
 

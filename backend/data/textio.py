@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 from typing import Iterator
 
-from backend.errors import InputError
+from ..errors import InputError
 
 
 def read_lines(path, missing: str = "file does not exist") -> list[str]:

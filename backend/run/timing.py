@@ -1,14 +1,12 @@
 """Repeated frames: steps whose pixels repeat the previous step's exactly.
 
-Real feature files hold an image when no new one arrived: 153 steps of ece276a_03.npz and 91 of
-ece276a_0027.npz repeat the previous step's pixels exactly. Measured on ece276a_0027 against
-ground truth: around such a repeat the features of steps k and k+2 move by one step of true
-motion, not two, while the image stream shows no accumulated lag elsewhere (a stop of the car
-starts and ends at the same steps in images and ground truth). No simple timing model fits both,
-so the filter offers policies (``FilterConfig.repeated_frames``):
+Real feature files hold an image when no new one arrived, so some steps repeat the previous
+step's pixels exactly while the IMU moves on. Around such a repeat the features of steps k and k+2
+move by one step of true motion, not two, yet no lag accumulates elsewhere, so no simple timing
+model fits; the filter offers policies (``conventions.repeated_frames``; BENCHMARKS.md compares
+them on the real drives):
 
-- ``use`` (default; best measured on the shared files): every step at its stamp, as the course
-  formulation does;
+- ``use`` (default): every step at its stamp, as the course formulation does;
 - ``skip``: a repeated step's observations are not used;
 - ``cut``: a repeated step ends every track (its landmarks go to the map) and the IMU alone bridges
   the stall: right for the translation, but each cut loses heading continuity.
@@ -17,9 +15,9 @@ so the filter offers policies (``FilterConfig.repeated_frames``):
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from backend.sequence import Sequence
+from ..compiled import jit, warms_up
+from ..data.sequence import Sequence
 
 
 def repeats_previous(ids: np.ndarray, pixels: np.ndarray, prev_ids: np.ndarray, prev_pixels: np.ndarray) -> bool:
@@ -33,7 +31,7 @@ def repeats_previous(ids: np.ndarray, pixels: np.ndarray, prev_ids: np.ndarray, 
     return bool(i_now.size) and np.array_equal(pixels[i_now], prev_pixels[i_prev])
 
 
-@njit(cache=True, nogil=True)
+@jit
 def _repeats_sorted(ids, pixels, prev_ids, prev_pixels):
     """:func:`repeats_previous` by one merge of two increasing id lists (the sequence's order): 1 or 0,
     or -1 when either list is not increasing (the caller falls back to a set intersection)."""
@@ -68,3 +66,10 @@ def repeated_steps(seq: Sequence) -> np.ndarray:
         else:
             prev_ids, prev_px = ids, px
     return repeated
+
+
+@warms_up
+def _warm_up() -> None:
+    ids = np.arange(2, dtype=np.int64)
+    pixels = np.ones((2, 4))
+    _repeats_sorted(ids, pixels, ids, pixels)

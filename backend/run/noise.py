@@ -1,4 +1,5 @@
-"""IMU velocities: which sample drives a step, dead reckoning, and white-noise estimation."""
+"""The IMU noise: white noise per axis estimated from the velocities themselves, and the decision
+of what the filter uses (configured, estimated, or raised to a floor) with the gyro-bias decision."""
 
 from __future__ import annotations
 
@@ -6,53 +7,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from backend import se3
-
-VELOCITY_INDEX_OFFSET = {"this": 0, "next": 1}
-
-
-def step_velocities(linear_velocity: np.ndarray, angular_velocity: np.ndarray, velocity_index: str):
-    """Body twist driving each step k -> k+1: the sample stamped k ("this") or k+1 ("next").
-
-    Returns (v (N-1,3), w (N-1,3)).
-    """
-    offset = VELOCITY_INDEX_OFFSET[velocity_index]
-    n = linear_velocity.shape[0]
-    return linear_velocity[offset : offset + n - 1], angular_velocity[offset : offset + n - 1]
-
-
-def dead_reckoning(
-    time_stamps: np.ndarray,
-    linear_velocity: np.ndarray,
-    angular_velocity: np.ndarray,
-    velocity_index: str = "this",
-    gyro_bias: np.ndarray | None = None,
-    world_T_imu0: np.ndarray | None = None,
-) -> np.ndarray:
-    """world_T_imu (N,4,4) by T_{k+1} = T_k exp(tau_k u_k^) (the prediction mean, no correction)."""
-    v, w = step_velocities(linear_velocity, angular_velocity, velocity_index)
-    if gyro_bias is not None:
-        w = w - gyro_bias
-    tau = np.diff(time_stamps)
-    twists = np.concatenate([v, w], axis=1) * tau[:, None]
-    return compose_steps(se3.exp_se3_batch(twists), world_T_imu0)
-
-
-def compose_steps(steps: np.ndarray, world_T_imu0: np.ndarray | None = None) -> np.ndarray:
-    """Poses (N+1,4,4) T_0 = world_T_imu0 (identity by default), T_{k+1} = T_k steps[k]."""
-    poses = np.empty((steps.shape[0] + 1, 4, 4))
-    poses[0] = np.eye(4) if world_T_imu0 is None else world_T_imu0
-    for k in range(steps.shape[0]):
-        np.matmul(poses[k], steps[k], out=poses[k + 1])
-    return poses
-
+from ..config import Config
 
 def estimate_white_noise(signal: np.ndarray) -> np.ndarray:
     """Per-axis sigma of white noise on a smooth signal (N,3), from its second differences.
 
     For x_k = s_k + n_k with smooth s and white n of std sigma, the second difference
     x_{k+1} - 2 x_k + x_{k-1} has std sqrt(6) sigma; a robust scale (1.4826 MAD) keeps real
-    manoeuvres from inflating the estimate.
+    manoeuvres from inflating the estimate:
+
+        sigma = 1.4826 MAD(x_{k+1} - 2 x_k + x_{k-1}) / sqrt(6)                                (N1)
     """
     if signal.shape[0] < 5:
         return np.zeros(signal.shape[1])
@@ -119,12 +83,11 @@ def decide_imu_noise(
     sigma = max(sigma_white, floor). The floor stands for the error a velocity signal carries
     without showing it in its step-to-step roughness (scale, misalignment, the GPS/INS solution
     it came from): clean-looking velocities are not believed beyond it, while a file whose white
-    noise already exceeds it keeps its estimate (BENCHMARKS.md, finding 13).
+    noise already exceeds it keeps its estimate.
 
     The gyro bias is estimated (if configured) only where vision can tell it from track errors:
     with fewer than ``gyro_bias_min_observations`` stereo observations per step on average, a
-    handful of far points' slow track drift reads as a rotation rate and the bias state absorbs it
-    (ece276a2019_0042: 3.4 per step, yaw bias pulled to -0.0035 rad/s on a clean gyro).
+    handful of far points' slow track drift reads as a rotation rate and the bias state absorbs it.
     """
     lin_est = ang_est = None
     if linear_sigma is None:
@@ -147,3 +110,13 @@ def decide_imu_noise(
         reason = (f"{observations_per_step:.1f} observations per step < gyro_bias_min_observations = "
                   f"{gyro_bias_min_observations:g}")
     return NoiseDecision(lin, ang, lin_est, ang_est, source, bias, reason)
+
+
+def decide_noise(config: Config, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
+                 observations_per_step: float) -> NoiseDecision:
+    """:func:`decide_imu_noise` with the settings of ``config`` (``noise``, ``estimator``)."""
+    noise, est = config.noise, config.estimator
+    return decide_imu_noise(linear_velocity, angular_velocity, noise.linear_velocity_sigma,
+                            noise.angular_velocity_sigma, noise.linear_velocity_sigma_floor,
+                            noise.angular_velocity_sigma_floor, est.estimate_gyro_bias, observations_per_step,
+                            est.gyro_bias_min_observations)

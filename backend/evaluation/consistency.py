@@ -7,45 +7,56 @@ Kirubarajan 2001, ch. 5.4). Over R independent runs on the same scene:
   filter (T = mu exp(xi^)), P = the 6x6 pose block of the covariance. For a consistent filter it
   is chi2(6), so the average over R runs times R is chi2(6R): the two-sided 95 % band of the
   average is [chi2.ppf(0.025, 6R) / R, chi2.ppf(0.975, 6R) / R]. About 95 % of the steps should
-  lie in it (the first ``skip`` steps, where the pose is still at its near-zero prior, are left out).
+  lie in it (the first ``skip`` steps, where the pose is still at its near-zero prior, are left out). (E1)
 * landmark NEES: e^T C^-1 e (3 dof) for every mapped landmark of every run, with the band of the
   average of that many chi2(3) values. Landmarks of one run share the pose errors they were seen
-  with, so they are not independent: the band is then too narrow and only a guide.
+  with, so they are not independent: the band is then too narrow and only a guide.            (E2)
 * NIS: the EKF's r_i^T S_ii^-1 r_i per used stereo observation (4 dof) with the band of the
   average over all used observations. The observations that pass the chi-square gate (and the
-  1-point RANSAC) are a truncated sample, so a consistent filter gives a little less than 4.
+  1-point RANSAC) are a truncated sample, so a consistent filter gives a little less than 4.    (E3)
 
-Runs differ only in their noise: the trajectory and the landmarks come from
-``scene_config.seed``; the pixel noise, track cuts, outliers and IMU noise of run i from the
-noise seed ``seed0 + i`` (synth draws each from its own random stream of a seed, see
-:func:`scene_with_noise`). The gyro bias of run i is drawn from the filter's own prior
-(:func:`run_one`), since a constant bias shared by every run is not a sample of the assumed error.
+The scenes come from a *scene factory*: ``factory(noise_seed, gyro_bias=None)`` returns a scene
+with ``sequence``, ``world_T_imu_true`` (N,4,4) and ``landmark_positions`` (K,3) by track id, whose
+geometry is the factory's and whose noise (pixels, track cuts, outliers, IMU) is that of the
+noise seed (``synth.scene.SceneFactory`` is one). Run i uses the noise seed ``seed0 + i``; its
+gyro bias is drawn from the filter's own prior (:func:`run_one`), since a constant bias shared by
+every run is not a sample of the assumed error.
 
 The runner takes any ``concurrent.futures.Executor``-like object (``submit`` returning futures
 with ``result()``); by default a process pool over every core. :func:`run_one` is a top-level
-function of picklable arguments, so any process-based executor can run it.
-
-synth is imported inside the functions that need it (backend does not depend on synth otherwise).
+function, so any process-based executor can run it with a picklable factory.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
-import dataclasses
 import os
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Protocol
 
 import numpy as np
 from scipy.special import chdtri  # chdtri(k, 1 - p) = chi2.ppf(p, k), without importing scipy.stats
 from threadpoolctl import threadpool_limits
 
-from backend import se3
-from backend.linalg import block_nis
-from backend.config import FilterConfig
-from backend.errors import ConfigError
+from ..config import Config, Mode
+from ..data.sequence import Sequence
+from ..errors import ConfigError
+from ..geometry import se3
+from ..run.runner import run_sequence
+
+
+class Scene(Protocol):
+    """What a Monte Carlo run needs of a scene."""
+
+    sequence: Sequence
+    world_T_imu_true: np.ndarray  # (N,4,4)
+    landmark_positions: np.ndarray  # (K,3), row = track id
+
+
+#: ``factory(noise_seed, gyro_bias (3,) or None) -> Scene`` (module docstring)
+SceneFactory = Callable[[int, Optional[np.ndarray]], Scene]
 
 #: Steps left out of the band statistics (the pose starts at its near-zero prior covariance).
 SKIP_STEPS = 10
@@ -77,7 +88,16 @@ def landmark_nees(positions: np.ndarray, covariances: np.ndarray, true_positions
     C = np.asarray(covariances, dtype=float)
     if e.shape[0] == 0:
         return np.zeros(0)
-    return block_nis(C, e)
+    try:
+        return np.einsum("ki,ki->k", e, np.linalg.solve(C, e[:, :, None])[:, :, 0])
+    except np.linalg.LinAlgError:  # some covariance singular: those get inf
+        out = np.full(e.shape[0], np.inf)
+        for i in range(e.shape[0]):
+            try:
+                out[i] = e[i] @ np.linalg.solve(C[i], e[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
 def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
@@ -89,20 +109,6 @@ def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) ->
 
 
 # ---------------------------------------------------------------------------------------- one run
-
-
-def scene_with_noise(scene_config, noise_seed: int):
-    """The scene of ``scene_config`` with the noise of ``noise_seed``.
-
-    Trajectory and landmark points come from ``scene_config.seed``; pixel noise, track cuts,
-    outliers and IMU noise (gyro-bias walk included) from ``noise_seed``, each from the stream
-    synth.make_scene uses. So ``scene_with_noise(c, c.seed)`` equals ``make_scene(c)`` array for
-    array, and runs with different noise seeds share the geometry (the set of tracks differs,
-    since the track cuts and the visibility of noisy pixels are part of the noise).
-    """
-    from synth.scene import make_scene
-
-    return make_scene(scene_config, noise_seed=noise_seed)
 
 
 @dataclass
@@ -119,7 +125,7 @@ class RunTrace:
     ate_estimate: float
     ate_dead_reckoning: float
     observations_gated: int = 0
-    conventions: str = ""  # decided by backend.pipeline.prepare, e.g. "flip=no,velocity=this"
+    conventions: str = ""  # decided by backend.run.runner.decide, e.g. "flip=no,velocity=this"
     health_messages: list = field(default_factory=list)
     wall_seconds: float = 0.0
 
@@ -138,33 +144,28 @@ def _position_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
-def run_one(
-    scene_config, filter_config: FilterConfig, noise_seed: Optional[int] = None, sample_gyro_bias: bool = True
-) -> RunTrace:
-    """One run: build the scene (noise from ``noise_seed``, default ``scene_config.seed``, i.e.
-    exactly ``make_scene(scene_config)``), run backend.pipeline.run_sequence over it and record
-    the NEES and NIS through its observer hook.
+def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
+            sample_gyro_bias: bool = True) -> RunTrace:
+    """One run: build the scene of ``noise_seed``, run the filter over it
+    (``backend.run.runner.run_sequence``) and record the NEES and NIS through its observer hook.
 
     ``sample_gyro_bias``: the scene's constant gyro bias is replaced by a draw from the filter's
     prior N(0, gyro_bias_sigma0^2 I) (stream ``GYRO_BIAS_STREAM`` of the noise seed), so that the
     bias error is a sample of what the filter assumes.
 
-    BLAS threads follow ``filter_config.blas_threads`` (1) and the filter's health warnings are
-    kept in the trace instead of being printed (safe under a thread pool too: see
-    :func:`monte_carlo`).
+    BLAS threads follow ``execution.blas_threads`` (1) and the filter's health warnings are kept in
+    the trace instead of being printed (safe under a thread pool too: see :func:`monte_carlo`).
     """
-    from backend.pipeline import run_sequence
-
     t0 = time.perf_counter()
-    seed = scene_config.seed if noise_seed is None else int(noise_seed)
+    seed = int(noise_seed)
     config = filter_config.validate()
-    if sample_gyro_bias and config.estimate_gyro_bias:
+    bias = None
+    if sample_gyro_bias and config.estimator.estimate_gyro_bias:
         # the initial error is drawn from the filter's prior, as a consistency test requires
-        bias = np.random.default_rng([seed, GYRO_BIAS_STREAM]).normal(0.0, config.gyro_bias_sigma0, 3)
-        scene_config = dataclasses.replace(scene_config, gyro_bias=tuple(float(b) for b in bias))
+        bias = np.random.default_rng([seed, GYRO_BIAS_STREAM]).normal(0.0, config.noise.gyro_bias_sigma0, 3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        scene = scene_with_noise(scene_config, seed)
+        scene = scene_factory(seed, bias)
         truth = scene.world_T_imu_true
         n = scene.sequence.num_steps
         nees = np.empty(n)
@@ -334,10 +335,6 @@ def summarize(traces: list[RunTrace], skip: int = SKIP_STEPS) -> ConsistencyResu
     )
 
 
-def _scene_dict(scene_config) -> dict[str, Any]:
-    return {f.name: getattr(scene_config, f.name) for f in dataclasses.fields(scene_config) if f.name != "calibration"}
-
-
 def _finished(futures: list):
     """The futures as they finish (concurrent.futures ones), else in submission order."""
     if all(isinstance(f, concurrent.futures.Future) for f in futures):
@@ -346,8 +343,8 @@ def _finished(futures: list):
 
 
 def monte_carlo(
-    scene_config,
-    filter_config: FilterConfig,
+    scene_factory: SceneFactory,
+    filter_config: Config,
     runs: int,
     seed0: int = 0,
     executor: Optional[concurrent.futures.Executor] = None,
@@ -355,7 +352,7 @@ def monte_carlo(
     skip: int = SKIP_STEPS,
 ) -> ConsistencyResult:
     """``runs`` runs of :func:`run_one` with the noise seeds ``seed0 .. seed0 + runs - 1`` (the geometry
-    stays that of ``scene_config.seed``), summarized.
+    stays the factory's), summarized.
 
     ``executor``: any object with the ``concurrent.futures.Executor`` interface (``submit``); it is
     used as is and not shut down. Default: a ``ProcessPoolExecutor`` over ``os.cpu_count()``
@@ -368,8 +365,9 @@ def monte_carlo(
     """
     if runs < 1:
         raise ConfigError(f"monte carlo: runs must be >= 1, got {runs!r}")
-    if filter_config.validate().mode != "slam":
-        raise ConfigError(f"monte carlo consistency needs mode 'slam' (the pose covariance), got {filter_config.mode!r}")
+    if filter_config.validate().estimator.mode != Mode.SLAM:
+        raise ConfigError("monte carlo consistency needs estimator.mode 'slam' (the pose covariance), got "
+                          f"{filter_config.estimator.mode.value!r}")
     seeds = [int(seed0) + i for i in range(int(runs))]
     own = executor is None
     if own:
@@ -380,7 +378,7 @@ def monte_carlo(
     try:
         with threadpool_limits(limits=1), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            futures = [executor.submit(run_one, scene_config, filter_config, s) for s in seeds]
+            futures = [executor.submit(run_one, scene_factory, filter_config, s) for s in seeds]
             seed_of = {id(f): s for f, s in zip(futures, seeds)}
             try:
                 for fut in _finished(futures):
@@ -401,6 +399,6 @@ def monte_carlo(
     traces.sort(key=lambda t: t.noise_seed)
     result = summarize(traces, skip)
     result.wall_seconds = time.perf_counter() - t0
-    result.scene = _scene_dict(scene_config)
+    result.scene = scene_factory.as_dict() if hasattr(scene_factory, "as_dict") else {}
     result.filter = filter_config.as_dict()
     return result

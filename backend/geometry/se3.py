@@ -1,4 +1,4 @@
-"""Closed-form SO(3)/SE(3) Lie-group maths (pure numpy, float64).
+"""Closed-form SO(3)/SE(3) Lie-group maths (pure functions, float64).
 
 Conventions (Barfoot, "State Estimation for Robotics", 2017, ch. 7):
 a twist is ``xi = [rho, theta]`` (translation first, rotation second) and
@@ -9,6 +9,10 @@ Every closed form switches to its Taylor series (to t^8) for rotation angles bel
 ``_SMALL_ANGLE`` = 0.1: there the series is exact to ~1e-16 relative, and above it the
 closed-form coefficients are accurate to ~1e-11 relative or better (the least accurate
 ones multiply O(t^4) terms, so the matrices stay at machine precision).
+
+The functions marked *jitable* are written in the subset of numpy that numba compiles
+(``numba.extending.register_jitable``): Python calls them as they are, and the filter's compiled
+kernels call the very same functions, so each operation is stated once.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba.extending import overload, register_jitable
 
 _SMALL_ANGLE = 0.1
 _NEAR_PI = 1e-2  # log_so3 reads the axis from the symmetric part when pi - angle < this
@@ -23,8 +28,9 @@ _I3 = np.eye(3)
 _I3.setflags(write=False)
 
 
+@register_jitable
 def _coefficients(angle: float) -> tuple[float, float, float, float, float, float]:
-    """Scalar coefficients of the SO(3)/SE(3) series at rotation angle ``angle``.
+    """Scalar coefficients (jitable) of the SO(3)/SE(3) series at rotation angle ``angle``.
 
     Returns (a, b, c, d, e, f):
       a = sin t / t,  b = (1 - cos t) / t^2,  c = (t - sin t) / t^3   (eqs. 7.14, 7.37)
@@ -56,19 +62,56 @@ def _coefficients(angle: float) -> tuple[float, float, float, float, float, floa
     )
 
 
-# ---------------------------------------------------------------- hat / vee
+# ---------------------------------------------------------------- small products
 
 
+def small_matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B for the small matrices here (3x3, 6x6; B may be a vector). Python calls numpy's
+    product; compiled code gets the loop nest below instead of a BLAS call per 3x3 product."""
+    return A @ B
+
+
+@overload(small_matmul)
+def _small_matmul_compiled(A, B):
+    if B.ndim == 1:
+        def product(A, B):
+            out = np.zeros(A.shape[0])
+            for i in range(A.shape[0]):
+                for k in range(A.shape[1]):
+                    out[i] += A[i, k] * B[k]
+            return out
+    else:
+        def product(A, B):
+            out = np.zeros((A.shape[0], B.shape[1]))
+            for i in range(A.shape[0]):
+                for k in range(A.shape[1]):
+                    a = A[i, k]
+                    for j in range(B.shape[1]):
+                        out[i, j] += a * B[k, j]
+            return out
+    return product
+
+
+# ---------------------------------------------------------------- skew matrices
+
+
+@register_jitable
+def _norm3(w: np.ndarray) -> float:
+    """Euclidean length of a 3-vector (jitable)."""
+    return np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+
+
+@register_jitable
 def hat3(w: np.ndarray) -> np.ndarray:
-    """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3)."""
-    w = np.asarray(w, dtype=float)
-    if w.shape == (3,):  # the common single vector, without the batch machinery
-        x, y, z = w.tolist()
-        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3) (jitable)."""
+    w = np.asarray(w, dtype=np.float64)
     W = np.zeros(w.shape[:-1] + (3, 3))
-    W[..., 0, 1], W[..., 0, 2] = -w[..., 2], w[..., 1]
-    W[..., 1, 0], W[..., 1, 2] = w[..., 2], -w[..., 0]
-    W[..., 2, 0], W[..., 2, 1] = -w[..., 1], w[..., 0]
+    W[..., 0, 1] = -w[..., 2]
+    W[..., 0, 2] = w[..., 1]
+    W[..., 1, 0] = w[..., 2]
+    W[..., 1, 2] = -w[..., 0]
+    W[..., 2, 0] = -w[..., 1]
+    W[..., 2, 1] = w[..., 0]
     return W
 
 
@@ -78,39 +121,7 @@ def vee3(W: np.ndarray) -> np.ndarray:
     return np.stack([W[..., 2, 1], W[..., 0, 2], W[..., 1, 0]], axis=-1)
 
 
-def hat(xi: np.ndarray) -> np.ndarray:
-    """Twist to se(3): [[theta^, rho], [0, 0]] (Barfoot eq. 7.28); (6,) -> (4, 4)."""
-    xi = np.asarray(xi, dtype=float)
-    X = np.zeros((4, 4))
-    X[:3, :3] = hat3(xi[3:])
-    X[:3, 3] = xi[:3]
-    return X
-
-
-def vee(X: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`hat`; (4, 4) -> (6,) = [rho, theta]."""
-    X = np.asarray(X, dtype=float)
-    return np.concatenate([X[:3, 3], vee3(X[:3, :3])])
-
-
-def curly_hat(xi: np.ndarray) -> np.ndarray:
-    """Adjoint of se(3), xi^curly = [[theta^, rho^], [0, theta^]] (Barfoot eq. 7.32)."""
-    xi = np.asarray(xi, dtype=float)
-    C = np.zeros((6, 6))
-    C[:3, :3] = C[3:, 3:] = hat3(xi[3:])
-    C[:3, 3:] = hat3(xi[:3])
-    return C
-
-
 # ---------------------------------------------------------------- SO(3)
-
-
-def exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: R = I + (sin t/t) w^ + ((1-cos t)/t^2) w^ w^ (Barfoot eq. 7.14)."""
-    w = np.asarray(w, dtype=float)
-    a, b, *_ = _coefficients(math.hypot(*w.tolist()))
-    W = hat3(w)
-    return _I3 + a * W + b * (W @ W)
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:
@@ -136,22 +147,15 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     return angle * axis
 
 
+@register_jitable
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
-    """J_l(w) = I + ((1-cos t)/t^2) w^ + ((t - sin t)/t^3) w^ w^ (Barfoot eq. 7.37)."""
-    w = np.asarray(w, dtype=float)
-    _, b, c, *_ = _coefficients(math.hypot(*w.tolist()))
-    W = hat3(w)
-    return _I3 + b * W + c * (W @ W)
-
-
-def right_jacobian_so3(w: np.ndarray) -> np.ndarray:
-    """J_r(w) = J_l(-w) (Barfoot eq. 7.87)."""
-    return left_jacobian_so3(-np.asarray(w, dtype=float))
+    """J_l(w) = I + ((1-cos t)/t^2) w^ + ((t - sin t)/t^3) w^ w^ (Barfoot eq. 7.37) (jitable)."""
+    return exp_so3_and_left_jacobian(w)[1]
 
 
 def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """J_l(w)^-1 = I - w^/2 + (1/t^2 - (1+cos t)/(2 t sin t)) w^ w^ (Barfoot eq. 7.45)."""
-    _, _, _, d, *_ = _coefficients(math.hypot(*w.tolist()))
+    _, _, _, d, *_ = _coefficients(_norm3(w))
     W = hat3(w)
     return _I3 - 0.5 * W + d * (W @ W)
 
@@ -159,23 +163,32 @@ def _inv_left_jacobian_so3(w: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- SE(3)
 
 
+@register_jitable
 def exp_so3_and_left_jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(exp(w^), J_l(w)) from one set of coefficients (Barfoot eqs. 7.14, 7.37)."""
-    w = np.asarray(w, dtype=float)
-    a, b, c, *_ = _coefficients(math.hypot(*w.tolist()))
+    """(exp(w^), J_l(w)) from one set of coefficients (Barfoot eqs. 7.14, 7.37) (jitable)."""
+    w = np.asarray(w, dtype=np.float64)
+    a, b, c, _, _, _ = _coefficients(_norm3(w))
     W = hat3(w)
-    WW = W @ W
+    WW = small_matmul(W, W)
     return _I3 + a * W + b * WW, _I3 + b * W + c * WW
 
 
-def exp_se3(xi: np.ndarray) -> np.ndarray:
-    """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)."""
-    xi = np.asarray(xi, dtype=float)
+@register_jitable
+def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(exp(xi^), J_l(theta)): exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)
+    and the SO(3) left Jacobian it was built with (jitable)."""
+    xi = np.asarray(xi, dtype=np.float64)
     R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
     T[:3, :3] = R
-    T[:3, 3] = J @ xi[:3]
-    return T
+    T[:3, 3] = small_matmul(J, np.ascontiguousarray(xi[:3]))
+    return T, J
+
+
+@register_jitable
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39) (jitable)."""
+    return exp_se3_and_left_jacobian(xi)[0]
 
 
 def exp_se3_batch(xi: np.ndarray) -> np.ndarray:
@@ -213,56 +226,60 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     return np.concatenate([_inv_left_jacobian_so3(theta) @ T[:3, 3], theta])
 
 
+@register_jitable
 def adjoint(T: np.ndarray) -> np.ndarray:
-    """Ad(T) = [[R, p^ R], [0, R]] (Barfoot eq. 7.48)."""
-    T = np.asarray(T, dtype=float)
-    R = T[:3, :3]
+    """Ad(T) = [[R, p^ R], [0, R]] (Barfoot eq. 7.48) (jitable)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = np.ascontiguousarray(T[:3, :3])
     A = np.zeros((6, 6))
-    A[:3, :3] = A[3:, 3:] = R
-    A[:3, 3:] = hat3(T[:3, 3]) @ R
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[:3, 3:] = small_matmul(hat3(T[:3, 3]), R)
     return A
 
 
-def exp_curly(xi: np.ndarray) -> np.ndarray:
-    """exp(xi^curly) = Ad(exp(xi^)) (Barfoot eq. 7.50)."""
-    return adjoint(exp_se3(xi))
-
-
+@register_jitable
 def _q_matrix(xi: np.ndarray) -> np.ndarray:
-    """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86)."""
+    """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86) (jitable)."""
     P, W = hat3(xi[:3]), hat3(xi[3:])
-    _, _, c, _, e, f = _coefficients(math.hypot(*xi[3:].tolist()))
-    WP, PW, WW = W @ P, P @ W, W @ W
-    WPW = WP @ W
+    _, _, c, _, e, f = _coefficients(_norm3(xi[3:]))
+    WP, PW, WW = small_matmul(W, P), small_matmul(P, W), small_matmul(W, W)
+    WPW = small_matmul(WP, W)
     return (
         0.5 * P
         + c * (WP + PW + WPW)
-        + e * (WW @ P + PW @ W - 3.0 * WPW)
-        + f * (WPW @ W + WW @ PW)
+        + e * (small_matmul(WW, P) + small_matmul(PW, W) - 3.0 * WPW)
+        + f * (small_matmul(WPW, W) + small_matmul(WW, PW))
     )
 
 
+@register_jitable
 def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
-    """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85)."""
-    xi = np.asarray(xi, dtype=float)
+    """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85) (jitable)."""
+    xi = np.asarray(xi, dtype=np.float64)
     J = np.zeros((6, 6))
-    J[:3, :3] = J[3:, 3:] = left_jacobian_so3(xi[3:])
+    Jl = left_jacobian_so3(xi[3:])
+    J[:3, :3] = Jl
+    J[3:, 3:] = Jl
     J[:3, 3:] = _q_matrix(xi)
     return J
 
 
+@register_jitable
 def right_jacobian_se3(xi: np.ndarray) -> np.ndarray:
-    """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87)."""
-    return left_jacobian_se3(-np.asarray(xi, dtype=float))
+    """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87) (jitable)."""
+    return left_jacobian_se3(-np.asarray(xi, dtype=np.float64))
 
 
+@register_jitable
 def inverse(T: np.ndarray) -> np.ndarray:
-    """Rigid inverse [[R^T, -R^T p], [0, 1]]; (..., 4, 4) -> (..., 4, 4)."""
-    T = np.asarray(T, dtype=float)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -(Rt @ T[..., :3, 3:4])[..., 0]
+    """Rigid inverse [[R^T, -R^T p], [0, 1]]; (..., 4, 4) -> (..., 4, 4) (jitable)."""
+    T = np.asarray(T, dtype=np.float64)
+    out = np.zeros(T.shape)
+    for i in range(3):
+        for j in range(3):
+            out[..., i, j] = T[..., j, i]
+        out[..., i, 3] = -(T[..., 0, i] * T[..., 0, 3] + T[..., 1, i] * T[..., 1, 3] + T[..., 2, i] * T[..., 2, 3])
     out[..., 3, 3] = 1.0
     return out
 

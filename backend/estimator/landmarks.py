@@ -1,15 +1,15 @@
-"""Landmark parametrizations, both written as one homogeneous form.
+"""Landmark parametrizations of the body error model, both written as one homogeneous form.
 
 A landmark is 3 state parameters theta, a fixed anchor frame A (4x4) and the homogeneous point
 
-    w_world = A (e + B theta)          (w_world ~ [m; 1] up to scale)
+    w_world = A (e + B theta)          (w_world ~ [m; 1] up to scale)                       (L1)
 
 - ``xyz``: A = I, e = e4, B = [e1 e2 e3]: theta is the world position m.
 - ``inverse-depth`` (anchored, Civera, Davison & Montiel, IEEE T-RO 2008): A = world_T_cam of
   the camera that first saw the point, e = e3, B = [e1 e2 e4]: theta = (alpha, beta, rho) with
   the point (alpha, beta, 1) / rho in that camera. From a stereo observation,
 
-      alpha = (uL - cx) / fx,   beta = ((vL + vR)/2 - cy) / fy,   rho = (uL - uR) / (fx b),
+      alpha = (uL - cx) / fx,   beta = ((vL + vR)/2 - cy) / fy,   rho = (uL - uR) / (fx b),       (L2)
 
   *linear* in the pixels, so the initial Gaussian is exact; points far away (rho -> 0) stay well
   behaved and still constrain rotation, where xyz's depth is a long non-Gaussian tail.
@@ -19,17 +19,20 @@ z = Ks pi(q) (pi divides by q3, so the scale of w cancels), and with s = mu^-1 w
 
     dz/dtheta = Ks dpi/dq cam_T_imu mu^-1 A B,      dz/dxi = -Ks dpi/dq cam_T_imu s^odot
 
-(right perturbation mu exp(xi^), s^odot = [[s4 I, -s_1:3^], [0, 0]]).
+(right perturbation mu exp(xi^), s^odot = [[s4 I, -s_1:3^], [0, 0]]; B2 of ``backend.estimator.body``).
+An xyz landmark starts at m = world_T_imu imu_T_cam triangulate(z) (S2, S3 of
+``backend.geometry.camera``) with dm/dz = world_R_cam d triangulate/dz and dm/dxi = [R, -R p_imu^];
+an inverse-depth one at (L2), whose anchor moves with the pose error: dtheta/dxi = dg/dw
+cam_T_imu (h imu_T_cam^T)^odot for the anchored point h.                                    (L3)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from backend import se3
-from backend.camera import StereoCamera
+from ..geometry import se3
+from ..geometry.camera import StereoCamera
 
-PARAMETRIZATIONS = ("inverse-depth", "xyz")
 _E = {"xyz": np.array([0.0, 0.0, 0.0, 1.0]), "inverse-depth": np.array([0.0, 0.0, 1.0, 0.0])}
 _B = {
     "xyz": np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]]),
@@ -55,9 +58,9 @@ def initialize(
 
     Returns theta (n,3), anchors (n,4,4), J_z (n,3,4) = dtheta/dz and J_xi (n,3,6) = dtheta/dxi
     for a right perturbation world_T_imu exp(xi^) of the pose they were seen from (the body error
-    model; the invariant filter's own, (I4), is in ``backend.kernels.initialize_invariant``).
+    model; the invariant model's own, (I4), is ``backend.estimator.invariant.initialize``).
     For ``xyz`` with ``pixel_sigma``, the point is the expected triangulation under that pixel noise
-    (:meth:`StereoCamera.triangulate_mean`), not the triangulation of the measured pixels.
+    (S3 of ``backend.geometry.camera``), not the triangulation of the measured pixels.
     """
     n = pixels.shape[0]
     if kind == "xyz":

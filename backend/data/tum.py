@@ -1,0 +1,102 @@
+"""TUM trajectory text: ``t tx ty tz qx qy qz qw`` a line (what evo and the TUM benchmark read)."""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import se3
+from .files import atomic_write
+from .textio import content_lines, finite_numbers, read_lines
+
+__all__ = ["read_tum", "write_tum"]
+
+
+
+def _check_poses(world_T_imu: Any, what: str = "world_T_imu") -> np.ndarray:
+    poses = np.asarray(world_T_imu, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{what} must have shape (N, 4, 4), got {poses.shape}")
+    return poses
+
+
+def write_tum(
+    path: str | os.PathLike,
+    time_stamps: Any,
+    world_T_imu: Any,
+    header: str | None = None,
+) -> None:
+    """Write a trajectory in TUM format: ``t tx ty tz qx qy qz qw`` per line.
+
+    Time is written with ``%.6f``, translation and the unit quaternion (scalar last, sign
+    chosen so that ``qw >= 0``) with ``%.9f``. ``header`` (may span several lines) is
+    written first as ``#`` comment lines.
+    """
+    t = np.asarray(time_stamps, dtype=float)
+    poses = _check_poses(world_T_imu)
+    if t.ndim != 1 or t.shape[0] != poses.shape[0]:
+        raise ValueError(
+            f"time_stamps must have shape ({poses.shape[0]},) to match the poses, got {t.shape}"
+        )
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(poses))):
+        bad = np.flatnonzero(~(np.isfinite(t) & np.isfinite(poses).all(axis=(1, 2))))
+        raise ValueError(f"non-finite time stamp or pose at index {int(bad[0])}")
+
+    lines: list[str] = []
+    if header:
+        for line in header.splitlines():
+            lines.append(line if line.startswith("#") else f"# {line}")
+    if len(poses):
+        quat = se3.quaternion_from_rotation(poses[:, :3, :3])  # x, y, z, w with w >= 0
+        trans = poses[:, :3, 3]
+        for ti, p, q in zip(t, trans, quat):
+            lines.append(
+                f"{ti:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+                f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+            )
+    text = "\n".join(lines) + ("\n" if lines else "")
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file; return ``(time_stamps (N,), world_T_imu (N, 4, 4))``.
+
+    Blank lines and lines starting with ``#`` are skipped; quaternions are normalised.
+    Raises :class:`InputError` with a one-line ``<file>:<line>: <problem>`` message for a
+    line without 8 columns, a non-numeric or non-finite value, a zero-norm quaternion or a
+    time stamp not greater than the previous one, and for a file without any pose.
+    """
+    stamps: list[float] = []
+    rows: list[list[float]] = []
+    for lineno, line in content_lines(read_lines(path)):
+        tokens = line.split()
+        if len(tokens) != 8:
+            raise InputError(
+                f"{path}:{lineno}: expected 8 columns (t tx ty tz qx qy qz qw), "
+                f"found {len(tokens)}"
+            )
+        values = finite_numbers(tokens, f"{path}:{lineno}")
+        norm = math.sqrt(sum(v * v for v in values[4:]))
+        if norm < 1e-12:
+            raise InputError(f"{path}:{lineno}: quaternion has zero norm")
+        if stamps and values[0] <= stamps[-1]:
+            raise InputError(
+                f"{path}:{lineno}: time stamp {tokens[0]} is not greater than the "
+                f"previous one ({stamps[-1]:.9g})"
+            )
+        stamps.append(values[0])
+        rows.append(values)
+
+    if not rows:
+        raise InputError(f"{path}: no poses found (empty trajectory file)")
+    data = np.asarray(rows, dtype=float)
+    quat = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
+    poses[:, :3, 3] = data[:, 1:4]
+    return data[:, 0].copy(), poses

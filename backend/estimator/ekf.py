@@ -1,0 +1,324 @@
+"""The visual-inertial EKF on SE(3): one object, stepped one time step at a time (the online API).
+
+Each step is ``predict(dt, v, w)`` then ``update(ids, pixels)``:
+
+- predict: the mean by (P1) and the covariance by the error model (I2, or B1), with the IMU's
+  white noise and the gyro bias' random walk; world-xyz landmarks of drifting tracks take a
+  random walk of ``drift.landmark_random_walk`` (m/sqrt s: P_mm += q^2 tau I);
+- update: the step's observations go to their landmarks (``backend.estimator.tracks``); tracks
+  that ended leave the state for the map (A2) and, with drifting tracks, old landmarks are
+  re-anchored (R1); the observations of landmarks in the state update pose and landmarks jointly
+  (U1-U5, ``backend.estimator.update``) with the error model's innovation and correction; new
+  tracks start landmarks from their stereo pair (A1 with I4, or B4); the health is watched (H1,
+  H2).
+
+State layout, error models and every equation: ``backend.estimator.layout``, ``.model``,
+``.invariant``, ``.body``, ``.covariance``, ``.update``, ``.tracks``; ``docs/design.md`` maps each
+equation to the function that runs it and the test that checks it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import chdtri  # chi-square quantile without scipy.stats (40 MB, 0.6 s to import)
+
+from ..compiled import warm_up, warm_up_seconds
+from ..config import Choice, Config, ErrorModel as ErrorModelKind, Mode
+from ..errors import FilterError
+from ..geometry.camera import StereoCamera
+from .body import BodyModel
+from .covariance import repair_if_indefinite
+from .health import HealthMonitor
+from .invariant import InvariantModel
+from .layout import BIAS, CORE, POSE
+from .model import ErrorModel
+from .propagation import ImuNoise
+from .state import FilterState
+from .tracks import admit_landmarks, plan_update
+from .update import select_and_update_inplace
+
+__all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
+
+_NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
+
+
+@dataclass
+class StepStats:
+    """What one call of :meth:`VisualInertialEKF.update` did."""
+
+    observed: int = 0  # observations handed in
+    used: int = 0  # observations of tracked landmarks used in the joint update
+    gated: int = 0  # observations rejected by the Mahalanobis gate
+    initialized: int = 0  # new landmarks added to the state
+    deferred: int = 0  # new features not initialized (disparity too small or too far): retried later
+    marginalized: int = 0  # landmarks moved from the state to the map
+    reanchored: int = 0  # landmarks re-triangulated from their current observation (drifting tracks, R1)
+    dropped: int = 0  # landmarks removed as repeatedly gated
+    nis_sum: float = 0.0  # sum over used observations of their NIS (expectation 4 each, U4)
+    active: int = 0  # landmarks in the state after the step
+
+
+def check_full_state_size(num_landmarks: int, max_state_mib: float) -> None:
+    """Refuse a full state whose dense covariance would not fit in ``max_state_mib``."""
+    dim = CORE + 3 * num_landmarks
+    mib = 8.0 * dim * dim / 2**20
+    if mib > max_state_mib:
+        raise FilterError(
+            f"--full-state with {num_landmarks} landmarks needs a {dim}x{dim} covariance "
+            f"({mib:.0f} MiB > max_state_mib = {max_state_mib:.0f}); run without --full-state"
+        )
+
+
+def make_error_model(config: Config, camera: StereoCamera, imu_T_cam: np.ndarray) -> ErrorModel:
+    """The error model the configuration names (``estimator.error_model``)."""
+    est = config.estimator
+    args = (camera, imu_T_cam, config.landmarks.parametrization, est.mode == Mode.SLAM, est.estimate_gyro_bias)
+    if est.error_model == ErrorModelKind.INVARIANT:
+        return InvariantModel(*args)
+    return BodyModel(*args, first_estimate_jacobians=est.first_estimate_jacobians)
+
+
+class LandmarkMap:
+    """Landmarks that left the state: world positions and covariances, appended in batches."""
+
+    def __init__(self) -> None:
+        self._ids: list[np.ndarray] = []
+        self._positions: list[np.ndarray] = []
+        self._covariances: list[np.ndarray] = []
+
+    def add(self, ids: np.ndarray, positions: np.ndarray, covariances: np.ndarray) -> None:
+        self._ids.append(ids)
+        self._positions.append(positions)
+        self._covariances.append(covariances)
+
+    def best(self, more: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        """(ids (K,), positions (K,3), covariances (K,3,3)) by id, with ``more`` (the active landmarks);
+        a track estimated more than once (re-anchored) keeps the estimate of smallest covariance trace."""
+        ids, pos, cov = list(self._ids), list(self._positions), list(self._covariances)
+        if more is not None:
+            ids.append(more[0])
+            pos.append(more[1])
+            cov.append(more[2])
+        ids_all = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
+        pos_all = np.concatenate(pos) if pos else np.zeros((0, 3))
+        cov_all = np.concatenate(cov) if cov else np.zeros((0, 3, 3))
+        trace = np.trace(cov_all, axis1=1, axis2=2)
+        order = np.lexsort((trace, ids_all))  # by id, then most certain first
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = ids_all[order][1:] != ids_all[order][:-1]
+        best = order[first]
+        return ids_all[best], pos_all[best], cov_all[best]
+
+
+class VisualInertialEKF:
+    """Stereo visual-inertial EKF on SE(3) with a bounded landmark state (online API).
+
+    Parameters
+    ----------
+    camera : StereoCamera
+        The rectified stereo pair.
+    imu_T_cam : array, shape (4, 4)
+        Maps camera-frame points into the IMU frame.
+    config : Config
+        The options (the tables ``estimator``, ``noise``, ``update``, ``landmarks``, ``drift``,
+        ``health`` are read).
+    imu_noise : ImuNoise
+        White noise of the velocity measurements per axis.
+    world_T_imu : array, shape (4, 4), optional
+        The first pose (default: the identity, the world frame).
+    expected_landmarks : int, optional
+        With ``estimator.full_state``: refuse at once when that many would not fit.
+
+    Use: ``predict(dt, v, w)`` then ``update(ids, pixels)`` once per time step.
+    """
+
+    def __init__(
+        self,
+        camera: StereoCamera,
+        imu_T_cam: np.ndarray,
+        config: Config,
+        imu_noise: ImuNoise,
+        world_T_imu: np.ndarray | None = None,
+        expected_landmarks: int | None = None,
+    ) -> None:
+        warm_up()  # compile or load the kernels now (once per process), not in the first step
+        self.kernel_seconds = warm_up_seconds()
+        self.camera = camera
+        self.config = config.validate()
+        est, noise, drift = config.estimator, config.noise, config.drift
+        if est.full_state and expected_landmarks is not None:
+            check_full_state_size(expected_landmarks, est.max_state_mib)
+        self.imu_noise = imu_noise
+        self.estimate_pose = est.mode == Mode.SLAM
+        self.use_vision = est.mode != Mode.DEAD_RECKONING
+        self.model = make_error_model(config, camera, imu_T_cam)
+        self.state = FilterState(
+            mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
+            theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
+            anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
+        )
+        if self.estimate_pose:
+            self.state.P[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
+            if est.estimate_gyro_bias:
+                self.state.P[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+        self._pixel_var = noise.pixel_sigma**2
+        # drifting tracks: the point a track follows is not quite static (world xyz landmarks only)
+        drifting = drift.track_drift != Choice.NO
+        xyz = config.landmarks.parametrization == "xyz"
+        self._landmark_walk = drift.landmark_random_walk**2 if drifting and xyz else 0.0
+        self._gate = float(chdtri(4, 1.0 - config.update.gate_probability))  # chi2(4) quantile (U4)
+        self._reanchor = (drifting and not est.full_state
+                          and (drift.reanchor_observations > 0 or drift.reanchor_far_observations > 0))
+        self._near_limit = drift.reanchor_observations or _NEVER
+        self._far_limit = drift.reanchor_far_observations or _NEVER
+        self.map = LandmarkMap()
+        self.health = HealthMonitor(config.health.nis_window, config.health.nis_warn_factor)
+        self.step_index = 0
+        self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
+
+    # ------------------------------------------------------------------ public state
+    @property
+    def world_T_imu(self) -> np.ndarray:
+        """The pose estimate, shape (4, 4)."""
+        return self.state.mu
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        """The gyro bias estimate, shape (3,), rad/s."""
+        return self.state.gyro_bias
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """6x6 covariance of the right perturbation world_T_imu = mu exp(xi^), whatever the error model."""
+        return self.model.pose_covariance(self.state)
+
+    @property
+    def num_active(self) -> int:
+        """Landmarks in the state."""
+        return self.state.num_landmarks
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> None:
+        """Move the estimate by the IMU velocities over ``dt`` seconds: (P1) and the error model's
+        covariance prediction (I2 or B1)."""
+        self.step_index += 1
+        u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.state.gyro_bias])
+        noise = self.imu_noise
+        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
+        self.model.predict(self.state, dt * u, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
+                           self._landmark_walk * dt)
+
+    # ------------------------------------------------------------------ update
+    def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
+        """Use the stereo observations ``pixels`` (n,4) = [uL vL uR vR] of the tracks ``ids`` (n,)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        pixels = np.asarray(pixels, dtype=float).reshape(-1, 4)
+        stats = StepStats(observed=ids.size)
+        if not self.use_vision:
+            return stats
+        t0 = time.perf_counter()
+        st = self.state
+        # where each observation goes; ended tracks and expired landmarks (re-anchoring) leave
+        slots, leaving, ended, restart, stats.reanchored = plan_update(
+            ids, *st.index, st.obs_count, st.obs_limit, self._reanchor, self.config.estimator.full_state)
+        stats.marginalized = int(ended.sum())
+        if leaving.any():
+            remap = self._remove(leaving, to_map=True, ended=ended)
+            slots = np.where(slots >= 0, remap[slots], -1)
+        known = slots >= 0
+        t1 = time.perf_counter()
+        if known.any():
+            self._joint_update(slots[known], pixels[known], stats)
+        t2 = time.perf_counter()
+        new = ~known
+        if new.any():
+            self._initialize(ids[new], pixels[new], stats, restart[new] if stats.reanchored else None)
+        self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
+        stats.active = st.num_landmarks
+        if stats.used or stats.gated:
+            self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)
+        if self.step_index % 100 == 0:
+            self._check_covariance()
+        return stats
+
+    def _joint_update(self, slots: np.ndarray, pixels: np.ndarray, stats: StepStats) -> None:
+        """Gate, 1-point RANSAC, rescue and the joint update (U1-U5) in one compiled call, then the
+        error model's correction; landmarks gated too often in a row are dropped."""
+        st = self.state
+        inn = self.model.innovation(st, slots, pixels, self._pixel_var)
+        upd = self.config.update
+        status, dx, use = select_and_update_inplace(
+            st.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, self._gate,
+            upd.ransac_threshold_px, self._pixel_var, st.outlier_run, upd.persistent_outlier_steps, st.gated_run)
+        if status:  # numerically degenerate step: the prior is kept
+            self.health.report(f"step {self.step_index}: update skipped (innovation covariance not positive "
+                               f"definite, potrf info {status})")
+        elif use.any():
+            self.model.correct(st, dx)
+        stats.used = int(use.sum())
+        stats.gated = int(slots.size - stats.used)
+        stats.nis_sum = float(inn.nis[use].sum())
+        bad = st.gated_run >= upd.max_consecutive_gated
+        if bad.any():
+            stats.dropped = int(bad.sum())
+            self._remove(bad, to_map=False)
+
+    # ------------------------------------------------------------------ landmarks
+    def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats,
+                    restart: np.ndarray | None = None) -> None:
+        """Start landmarks from the stereo pixels of new tracks (A1 with I4 or B4) where disparity and
+        depth allow; ``restart`` (n,) marks observations of re-anchored tracks (None: none)."""
+        lm, cam = self.config.landmarks, self.camera
+        ok, counts, limits = admit_landmarks(
+            ids, pixels, np.zeros(ids.size, dtype=bool) if restart is None else restart, lm.min_disparity,
+            np.inf if lm.max_depth is None else lm.max_depth, cam.fx * cam.baseline, self._reanchor,
+            self.config.drift.reanchor_far_disparity, self._near_limit, self._far_limit)
+        stats.deferred = ids.size - ok.size
+        if not ok.size:
+            return
+        if ok.size < ids.size:
+            ids, pixels = ids[ok], pixels[ok]
+        sigma = self.config.noise.pixel_sigma if lm.unbiased_triangulation else 0.0
+        P, theta, anchors = self.model.initialize(self.state, pixels, sigma, self._pixel_var)
+        self.state.add_landmarks(P, ids, theta, counts, limits, anchors)
+        stats.initialized = ids.size
+
+    def _remove(self, mask: np.ndarray, to_map: bool, ended: np.ndarray | None = None) -> np.ndarray:
+        """Marginalize the landmarks in ``mask`` (A2), to the map if ``to_map`` (points at infinity are
+        left out); returns the new slot of each old one (-1: removed)."""
+        if to_map:
+            slots = np.flatnonzero(mask)
+            pos, cov, finite = self.model.world_landmarks(self.state, slots)
+            if not finite.all():  # points at infinity (inverse depth <= 0) have no position
+                slots, pos, cov = slots[finite], pos[finite], cov[finite]
+            self.map.add(self.state.ids[slots], pos, cov)
+        return self.state.remove_landmarks(mask, ended)
+
+    def finish(self) -> None:
+        """Marginalize every active landmark into the map (end of the sequence)."""
+        if self.state.num_landmarks:
+            self._remove(np.ones(self.state.num_landmarks, dtype=bool), to_map=True)
+
+    def landmark_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids (K,), positions (K,3), covariances (K,3,3)) of mapped and active landmarks, by id.
+
+        A landmark estimated more than once (its track was re-anchored) keeps the estimate with the
+        smallest covariance trace.
+        """
+        active = None
+        if self.state.num_landmarks:
+            pos, cov, finite = self.model.world_landmarks(self.state, np.arange(self.state.num_landmarks))
+            active = (self.state.ids[finite], pos[finite], cov[finite])
+        return self.map.best(active)
+
+    # ------------------------------------------------------------------ health
+    def _check_covariance(self) -> None:
+        """(H2): say so (once per episode) when P is not positive definite, and repair it."""
+        estimated = self.state.estimated(self.estimate_pose, self.config.estimator.estimate_gyro_bias)
+        worst = repair_if_indefinite(self.state.P, estimated)
+        if worst is not None:
+            self.health.report(f"step {self.step_index}: covariance lost positive definiteness (min eigenvalue "
+                               f"{worst:.3g}); eigenvalues clipped")

@@ -1,0 +1,67 @@
+"""The filter's health: is it consistent with its own noise model, and is P still a covariance?
+
+The normalized innovation squared of a used observation is chi2(4) for a consistent filter, so
+its mean per observation over the last ``nis_window`` steps should be near 4 (a little less: the
+gate truncates it). An episode of trouble starts when that mean leaves [4/f, 4 f]
+(f = ``nis_warn_factor``) or more than half the observations are gated, and ends when it is back
+inside [4/sqrt f, 4 sqrt f] with at most 40 % gated (hysteresis: no flapping at the edge).     (H1)
+
+P must stay positive definite over the states the filter estimates; it is checked every 100
+steps, and where it is not its eigenvalues are clipped and the episode is reported.            (H2)
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+
+
+@dataclass
+class HealthMonitor:
+    """Watches the NIS (H1) and collects one message per episode of trouble (H1, H2)."""
+
+    window: int
+    warn_factor: float
+    messages: list[str] = field(default_factory=list)
+    _nis: deque = field(default_factory=deque)
+    _count: deque = field(default_factory=deque)
+    _gated: deque = field(default_factory=deque)
+    _total_count: int = 0  # sums of _count and _gated (integers: exact)
+    _total_gated: int = 0
+    _inconsistent: bool = False
+
+    def add_nis(self, step: int, nis_sum: float, count: int, gated: int = 0) -> None:
+        """One step's NIS sum over ``count`` used observations, and how many were gated.
+
+        The NIS of used observations is truncated by the gate, so a far too small pixel_sigma
+        shows as a high gated share rather than a high NIS: both are watched.
+        """
+        self._nis.append(nis_sum)
+        self._count.append(count)
+        self._gated.append(gated)
+        self._total_count += count
+        self._total_gated += gated
+        if len(self._nis) > self.window:
+            self._nis.popleft()
+            self._total_count -= self._count.popleft()
+            self._total_gated -= self._gated.popleft()
+        total = self._total_count
+        if len(self._nis) < self.window or total < 20:
+            return
+        mean = sum(self._nis) / total  # summed afresh: no rounding drift over a long run
+        gated_share = self._total_gated / (total + self._total_gated)
+        bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor or gated_share > 0.5
+        if bad and not self._inconsistent:
+            self.report(
+                f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} (expected about 4) "
+                f"and {100 * gated_share:.0f} % gated over the last {self.window} steps; tune pixel_sigma or the IMU noise"
+            )
+            self._inconsistent = True
+        elif self._inconsistent:  # the episode ends well inside the band (hysteresis: no flapping at its edge)
+            f = self.warn_factor**0.5
+            self._inconsistent = not (4.0 / f <= mean <= 4.0 * f and gated_share <= 0.4)
+
+    def report(self, message: str) -> None:
+        self.messages.append(message)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)

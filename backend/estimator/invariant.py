@@ -1,0 +1,324 @@
+"""The right-invariant error model of the pose and the world-xyz landmarks (the default).
+
+Barrau & Bonnabel, "An EKF-SLAM algorithm with consistency properties" (arXiv 1510.06263, 2015)
+and "The invariant extended Kalman filter as a stable observer" (IEEE TAC 2017). Pose and
+landmarks together are one element of SE_{K+1}(3),
+
+    X = (R, p, m_1 .. m_K),   X1 X2 = (R1 R2, R1 p2 + p1, R1 m2_i + m1_i),
+
+and the error is E = X X_hat^-1 = exp(xi) with xi = (rho, phi, zeta_1 .. zeta_K):
+
+    R = exp(phi^) R_hat,  p = exp(phi^) p_hat + J_l(phi) rho,  m_i = exp(phi^) m_hat_i + J_l(phi) zeta_i   (I1)
+
+so to first order  dp = rho + phi x p_hat,  dm_i = zeta_i + phi x m_hat_i  (a world-frame error
+that moves the landmarks with the pose's rotation). With body-frame velocity inputs the error
+does not depend on the estimate:
+
+- Prediction  T_{k+1} = T_k exp(tau (u - b - n)^),  landmarks static:
+
+      xi_{k+1} = xi_k + G (J_r(tau u_hat) tau (-[0; db] - n)),   G = Ad_X(X_hat_{k+1}) on pose vectors   (I2)
+
+  where Ad_X of a pose vector (rho, phi) is  (R rho + p^ R phi, R phi; m_i^ R phi for each i).
+  The pose-pose Jacobian is the identity: the error is autonomous; noise and bias enter through G.
+  (:func:`predict_step`, :func:`predict_covariance_inplace`)
+- Observation  s = T^-1 m = T_hat^-1 E^-1 m ~ T_hat^-1 (m_hat + zeta - rho):
+
+      dz/drho = -M,   dz/dphi = 0,   dz/dzeta = M,   M = Ks dpi/dq cam_T_imu T_hat^-1 [I; 0]        (I3)
+
+  No rotation column: a rotation of the whole world is unobservable for every estimate, which is
+  why this filter needs no first-estimate Jacobians. (:func:`observe`, :func:`innovation`)
+- Landmark initialization  m = T g(z):  zeta = rho + R_hat imu_R_cam dg/dz dz  (no phi column).   (I4)
+  (:func:`initialize`, with A1 of ``backend.estimator.covariance``)
+- Correction  X_hat <- exp(dx) X_hat, i.e. (I1) with (rho, phi, zeta) = dx.                       (I5)
+  (:func:`retract_inplace`)
+- World covariance of a landmark:  dm = zeta - m_hat^ phi  (:func:`world_covariances`).          (I6)
+- Body-frame (right) pose error  xi_body = Ad(T_hat^-1) (rho, phi)  (:func:`body_pose_covariance`). (I7)
+
+The prediction, the innovation, the initialization and the correction are each one compiled call.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..compiled import jit, warms_up
+from ..geometry import se3
+from ..geometry.camera import triangulate_rows
+from .covariance import augment
+from .layout import CORE, POSE, SQRT_HALF
+from .linalg import add_product_lower
+from .model import ErrorModel
+from .covariance import mirror_lower_inplace
+from .update import Innovation, innovation_covariance
+
+
+# ---------------------------------------------------------------- prediction (I2)
+@jit
+def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_var):
+    """(I2) P <- F P F^T + G Q G^T  with  F = I + g e_b^T,  g = -tau G_omega.
+
+    G (D,6) maps a body-twist error to the error state: pose rows ``G_pose`` (6,6), landmark rows
+    m_i^ R_phi (3,6) for the world points ``points`` (K,3); q (6,) = the twist noise sigmas times
+    tau. With C = P[:, b] and P_bb = P[b, b], F P F^T = P + g C^T + C g^T + g P_bb g^T, so
+    P += Z X^T with X = [g, C, G diag(q)] and Z = [g P_bb + C, g, G diag(q)] (D x 12): one BLAS
+    product, added on the lower triangle and mirrored. ``bias``: the gyro bias is in the state
+    (else F = I and X = G diag(q)); it takes a random walk of variance ``bias_walk_var`` a step.
+    """
+    D = P.shape[0]
+    K = points.shape[0]
+    w = 12 if bias else 6
+    X = np.zeros((D, w))
+    Z = np.zeros((D, w))
+    G = X[:, w - 6:]
+    G[:6] = G_pose
+    for i in range(K):
+        W = se3.hat3(points[i])
+        r = CORE + 3 * i
+        for a in range(3):  # rows of m_i^ R_phi
+            for c in range(6):
+                G[r + a, c] = W[a, 0] * R_phi[0, c] + W[a, 1] * R_phi[1, c] + W[a, 2] * R_phi[2, c]
+    if bias:
+        for i in range(D):
+            for c in range(3):
+                X[i, c] = -dt * G[i, 3 + c]  # g
+                X[i, 3 + c] = P[i, 6 + c]  # C
+        for i in range(D):
+            for b in range(3):
+                s = X[i, 3 + b]
+                for a in range(3):
+                    s += X[i, a] * P[6 + a, 6 + b]
+                Z[i, b] = s
+                Z[i, 3 + b] = X[i, b]
+    for i in range(D):
+        for c in range(6):
+            G[i, c] *= q[c]
+            Z[i, w - 6 + c] = G[i, c]
+    add_product_lower(P, Z, X)
+    mirror_lower_inplace(P)
+    if bias:
+        for c in range(3):
+            P[6 + c, 6 + c] += bias_walk_var
+
+
+@jit
+def predict_step(world_T_imu, P, points, twist, q, dt, bias, bias_walk_var, landmark_walk_var):
+    """One prediction: mu <- mu exp(tau u^) (P1 of ``backend.estimator.propagation``), the landmark
+    random walk (P_mm += ``landmark_walk_var`` I) and (I2) by :func:`predict_covariance_inplace` with
+    G_pose = Ad(mu_next) J_r(twist) and R_phi = R_next J_r[3:6] (its rotation rows).
+    Returns mu_next; P is changed in place."""
+    step = se3.exp_se3(twist)
+    mu = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            mu[i, j] = world_T_imu[i, 0] * step[0, j] + world_T_imu[i, 1] * step[1, j] \
+                + world_T_imu[i, 2] * step[2, j] + world_T_imu[i, 3] * step[3, j]
+    if landmark_walk_var != 0.0:
+        for i in range(CORE, P.shape[0]):
+            P[i, i] += landmark_walk_var
+    G_pose = se3.small_matmul(se3.adjoint(mu), se3.right_jacobian_se3(twist))
+    predict_covariance_inplace(P, G_pose, np.ascontiguousarray(G_pose[3:6]), points, q, dt, bias, bias_walk_var)
+    return mu
+
+
+# ---------------------------------------------------------------- observation (I3, U1)
+@jit
+def observe(points, cam_T_world, fx, fy, cx, cy, baseline, pixels):
+    """(I3) in the 3-row form (U1) for world points (k,3) seen at ``pixels`` (k,4) = [uL vL uR vR].
+
+    q = cam_T_world m (depth z), z_hat = Ks pi(q); M = dz/dm = dpi-rows @ cam_R_world;
+    rows [uL, (vL + vR)/sqrt 2, uR]: H_m = M rows, H_x = [-M, 0] (no rotation column).
+    Returns residual (k,3), off_row (k,) = (r_vL - r_vR)/sqrt 2, H_x (3k,6), H_m (k,3,3) and
+    in_front (k,) = z > 0.1 (the others get placeholder rows and are gated out by the caller).
+    """
+    k = points.shape[0]
+    residual = np.empty((k, 3))
+    off_row = np.empty(k)
+    H_x = np.zeros((3 * k, 6))
+    H_m = np.empty((k, 3, 3))
+    in_front = np.empty(k, dtype=np.bool_)
+    R = cam_T_world[:3, :3]
+    fxb = fx * baseline
+    for i in range(k):
+        qx = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + cam_T_world[0, 3]
+        qy = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + cam_T_world[1, 3]
+        qz = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + cam_T_world[2, 3]
+        in_front[i] = qz > 0.1
+        if not in_front[i]:
+            qz = 1.0
+        iz = 1.0 / qz
+        uL = fx * qx * iz + cx
+        v = fy * qy * iz + cy
+        uR = uL - fxb * iz
+        residual[i, 0] = pixels[i, 0] - uL
+        residual[i, 1] = ((pixels[i, 1] - v) + (pixels[i, 3] - v)) * SQRT_HALF
+        residual[i, 2] = pixels[i, 2] - uR
+        off_row[i] = (pixels[i, 1] - pixels[i, 3]) * SQRT_HALF
+        # d(pixel row)/d(q_cam) for uL, v (times sqrt 2 for the summed row), uR
+        dq = np.empty((3, 3))
+        dq[0, 0], dq[0, 1], dq[0, 2] = fx * iz, 0.0, -fx * qx * iz * iz
+        s2 = 2.0 * SQRT_HALF
+        dq[1, 0], dq[1, 1], dq[1, 2] = 0.0, s2 * fy * iz, -s2 * fy * qy * iz * iz
+        dq[2, 0], dq[2, 1], dq[2, 2] = fx * iz, 0.0, -fx * (qx - baseline) * iz * iz
+        for a in range(3):
+            for b in range(3):
+                s = dq[a, 0] * R[0, b] + dq[a, 1] * R[1, b] + dq[a, 2] * R[2, b]
+                H_m[i, a, b] = s
+                H_x[3 * i + a, b] = -s
+    return residual, off_row, H_x, H_m, in_front
+
+
+@jit
+def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline, pixels, pixel_var, pose):
+    """The prior innovation in one call: :func:`observe` of the landmarks ``slots`` (world points
+    theta[slots]) from cam_T_world = cam_T_imu world_T_imu^-1, then the products H P and S of
+    ``backend.estimator.update``; H_x = 0 when ``pose`` is False (poses held fixed). Returns
+    (residual, off_row, H_x (3k,6), H_m, H P, S, NIS, in_front)."""
+    cam_T_world = se3.small_matmul(cam_T_imu, se3.inverse(world_T_imu))
+    points = np.empty((slots.size, 3))
+    for i in range(slots.size):
+        points[i] = theta[slots[i]]
+    residual, off_row, H_x, H_m, in_front = observe(points, cam_T_world, fx, fy, cx, cy, baseline, pixels)
+    if not pose:
+        H_x[:] = 0.0
+    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row)
+    return residual, off_row, H_x, H_m, HP, S, nis, in_front
+
+
+# ---------------------------------------------------------------- initialization (I4)
+@jit
+def initialize(P, pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigma, pixel_var, pose):
+    """New world-xyz landmarks from stereo pixels (n,4), in one call: m = world_T_imu imu_T_cam
+    triangulate(z) (the unscented mean for sigma > 0, S3 of ``backend.geometry.camera``),
+    J_z = world_R_cam d triangulate/dz and (I4) J_xi = [I 0] (zero when ``pose`` is False: poses
+    held fixed), then (A1). Returns (the augmented P, m (n,3))."""
+    n = pixels.shape[0]
+    p_cam, dp_dz = triangulate_rows(pixels, fx, fy, cx, cy, baseline, sigma)
+    world_T_cam = world_T_imu @ imu_T_cam
+    points = np.empty((n, 3))
+    J_z = np.empty((n, 3, 4))
+    J_xi = np.zeros((3 * n, 6))
+    for i in range(n):
+        for a in range(3):
+            points[i, a] = (world_T_cam[a, 0] * p_cam[i, 0] + world_T_cam[a, 1] * p_cam[i, 1]
+                            + world_T_cam[a, 2] * p_cam[i, 2] + world_T_cam[a, 3])
+            for t in range(4):
+                J_z[i, a, t] = (world_T_cam[a, 0] * dp_dz[i, 0, t] + world_T_cam[a, 1] * dp_dz[i, 1, t]
+                                + world_T_cam[a, 2] * dp_dz[i, 2, t])
+            if pose:
+                J_xi[3 * i + a, a] = 1.0
+    return augment(P, J_xi, J_z, pixel_var), points
+
+
+# ---------------------------------------------------------------- correction (I5)
+@jit
+def retract_inplace(world_T_imu, points, dx):
+    """(I5) exp(dx) X_hat: returns the new pose exp(dx_pose^) world_T_imu and moves the world points
+    (K,3) in place, m <- R_d m + J_l zeta (the state dx = [rho, phi, bias (3), zeta_1 .. zeta_K])."""
+    E, J = se3.exp_se3_and_left_jacobian(dx[:6])
+    pose = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            pose[i, j] = E[i, 0] * world_T_imu[0, j] + E[i, 1] * world_T_imu[1, j] + E[i, 2] * world_T_imu[2, j] \
+                + E[i, 3] * world_T_imu[3, j]
+    for k in range(points.shape[0]):
+        z = dx[CORE + 3 * k:CORE + 3 * k + 3]
+        x0, x1, x2 = points[k, 0], points[k, 1], points[k, 2]
+        for i in range(3):
+            points[k, i] = (E[i, 0] * x0 + E[i, 1] * x1 + E[i, 2] * x2
+                            + J[i, 0] * z[0] + J[i, 1] * z[1] + J[i, 2] * z[2])
+    return pose
+
+
+# ---------------------------------------------------------------- covariances in the world and body frames
+@jit
+def world_covariances(P, slots, points):
+    """(I6) covariances (k,3,3) of the world positions ``points`` (k,3) of the landmarks ``slots``:
+    dm = zeta - m^ phi, so Cov(m) = A P_phiphi A^T + A P_phi,zeta + (A P_phi,zeta)^T + P_zeta
+    with A = -m^ (symmetrized)."""
+    k = slots.size
+    out = np.empty((k, 3, 3))
+    for i in range(k):
+        s = CORE + 3 * slots[i]
+        for a in range(3):
+            for b in range(3):
+                out[i, a, b] = P[s + a, s + b]
+        A = se3.hat3(-points[i])
+        AP = np.zeros((3, 3))  # A P_phiphi
+        AX = np.zeros((3, 3))  # A P_phi,zeta
+        for a in range(3):
+            for b in range(3):
+                for t in range(3):
+                    AP[a, b] += A[a, t] * P[3 + t, 3 + b]
+                    AX[a, b] += A[a, t] * P[3 + t, s + b]
+        for a in range(3):
+            for b in range(3):
+                v = out[i, a, b] + AX[a, b] + AX[b, a]
+                for t in range(3):
+                    v += AP[a, t] * A[b, t]
+                out[i, a, b] = v
+        for a in range(3):
+            for b in range(a):
+                v = 0.5 * (out[i, a, b] + out[i, b, a])
+                out[i, a, b] = v
+                out[i, b, a] = v
+    return out
+
+
+def body_pose_covariance(world_T_imu: np.ndarray, P_pose: np.ndarray) -> np.ndarray:
+    """(I7): the 6x6 covariance of the right perturbation world_T_imu = mu exp(xi^)."""
+    A = se3.adjoint(se3.inverse(world_T_imu))
+    out = A @ P_pose @ A.T
+    return 0.5 * (out + out.T)
+
+
+# ---------------------------------------------------------------- the model
+class InvariantModel(ErrorModel):
+    """The right-invariant error (module docstring); world-xyz landmarks only."""
+
+    def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
+        if not self.estimate_pose:
+            self.predict_mean_only(state, se3.exp_se3(twist), landmark_walk_var)
+            return
+        state.mu = predict_step(state.mu, state.P, state.theta, twist, q, dt, self.estimate_bias, bias_walk_var,
+                                landmark_walk_var)
+
+    def innovation(self, state, slots, pixels, pixel_var) -> Innovation:
+        cam = self.camera
+        residual, off_row, H_x, H_m, HP, S, nis, in_front = innovation(
+            state.P, state.theta, slots, state.mu, self.cam_T_imu, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
+            pixels, pixel_var, self.estimate_pose)
+        return Innovation(residual, off_row, H_x, H_m, HP, S, nis, in_front)
+
+    def initialize(self, state, pixels, sigma, pixel_var):
+        cam = self.camera
+        P, theta = initialize(state.P, pixels, state.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
+                              sigma, pixel_var, self.estimate_pose)
+        return P, theta, None
+
+    def correct(self, state, dx) -> None:
+        state.mu = retract_inplace(state.mu, state.theta, dx)
+        state.gyro_bias = state.gyro_bias + dx[6:9]
+
+    def world_landmarks(self, state, slots):
+        theta = state.theta[slots]  # world positions: every one finite
+        return theta, world_covariances(state.P, slots, theta), np.ones(slots.size, dtype=bool)
+
+    def pose_covariance(self, state) -> np.ndarray:
+        return body_pose_covariance(state.mu, state.P[POSE, POSE])
+
+
+@warms_up
+def _warm_up() -> None:
+    D, k = CORE + 6, 2
+    P = np.eye(D)
+    slots = np.arange(k, dtype=np.int64)
+    points = np.ones((k, 3))
+    twist = np.full(6, 0.01)
+    predict_covariance_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)
+    pose = predict_step(np.eye(4), P.copy(), points, twist, np.ones(6), 0.1, True, 1e-8, 1e-6)
+    retract_inplace(pose, points.copy(), np.full(D, 1e-3))
+    pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
+    observe(points + 5.0, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels)
+    innovation(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True)
+    initialize(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)
+    world_covariances(P, slots, points)

@@ -1,0 +1,83 @@
+"""The error model: how the filter parametrizes the error of its estimate (one class per model).
+
+The filter's mean is the pose mu = world_T_imu, the gyro bias and the landmark parameters; its
+covariance P is over an error state whose meaning the model defines, and with it the
+prediction of P, the observation Jacobians, the Jacobians of a new landmark, the correction of
+the mean by an update dx, and the covariances reported in the world and body frames:
+
+- :class:`~vislam.backend.estimator.invariant.InvariantModel`: the right-invariant error of pose
+  and world-xyz landmarks (I1-I7; the default);
+- :class:`~vislam.backend.estimator.body.BodyModel`: the course's right perturbation
+  mu exp(xi^) (B1-B4), for xyz or inverse-depth landmarks.
+
+When the poses are held fixed (mapping) only the mean moves in the prediction, by (P1), and
+the landmarks take their random walk; that part is common to both models.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import numpy as np
+
+from ..config import Parametrization
+from ..geometry import se3
+from ..geometry.camera import StereoCamera
+from .layout import CORE
+from .state import FilterState
+from .update import Innovation
+
+
+class ErrorModel(abc.ABC):
+    """One parametrization of the filter's error (module docstring).
+
+    ``estimate_pose``: the pose is part of the state (slam), else held fixed (mapping);
+    ``estimate_bias``: the gyro bias is.
+    """
+
+    def __init__(self, camera: StereoCamera, imu_T_cam: np.ndarray, parametrization: Parametrization,
+                 estimate_pose: bool, estimate_bias: bool) -> None:
+        self.camera = camera
+        self.imu_T_cam = np.array(imu_T_cam, dtype=float)
+        self.cam_T_imu = se3.inverse(self.imu_T_cam)
+        self.parametrization = Parametrization(parametrization)
+        self.estimate_pose = estimate_pose
+        self.estimate_bias = estimate_bias
+
+    #: per-landmark arrays of FilterState this model reads besides ``theta``
+    per_landmark: tuple[str, ...] = ()
+
+    @abc.abstractmethod
+    def predict(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float, bias_walk_var: float,
+                landmark_walk_var: float) -> None:
+        """Move the mean by the body twist ``twist`` (6,) = tau u and P by the model's prediction, with
+        twist noise sigmas times tau ``q`` (6,), the bias walk's and the landmarks' variances per step."""
+
+    @abc.abstractmethod
+    def innovation(self, state: FilterState, slots: np.ndarray, pixels: np.ndarray, pixel_var: float) -> Innovation:
+        """The prior innovation (3-row form, U1) of the observations ``pixels`` (k,4) of landmarks ``slots``."""
+
+    @abc.abstractmethod
+    def initialize(self, state: FilterState, pixels: np.ndarray, sigma: float, pixel_var: float):
+        """New landmarks from stereo pixels (n,4): (the augmented P (A1), theta (n,3), anchors (n,4,4) or None).
+        ``sigma`` > 0: start xyz points at the expected triangulation under that pixel noise (S3)."""
+
+    @abc.abstractmethod
+    def correct(self, state: FilterState, dx: np.ndarray) -> None:
+        """Apply the update dx (D,) of the error state to the mean."""
+
+    @abc.abstractmethod
+    def world_landmarks(self, state: FilterState, slots: np.ndarray):
+        """(positions (k,3), covariances (k,3,3), finite (k,) bool) of landmarks ``slots`` in the world frame."""
+
+    @abc.abstractmethod
+    def pose_covariance(self, state: FilterState) -> np.ndarray:
+        """6x6 covariance of the right perturbation world_T_imu = mu exp(xi^)."""
+
+    def predict_mean_only(self, state: FilterState, step: np.ndarray, landmark_walk_var: float) -> None:
+        """(P1) mu <- mu step for step = exp(tau u^), and the landmarks' random walk
+        (``landmark_walk_var`` added to their variances); P of the pose untouched."""
+        state.mu = state.mu @ step
+        if landmark_walk_var and state.num_landmarks:
+            diag = np.arange(CORE, state.P.shape[0])
+            state.P[diag, diag] += landmark_walk_var

@@ -1,0 +1,127 @@
+"""The filter's state: its mean, its covariance, and the bookkeeping of the landmarks in it.
+
+The mean is the pose ``mu`` = world_T_imu (4,4), the gyro bias (3,) and the parameters ``theta``
+(n,3) of the n landmarks in the state, in slot order; ``P`` (D,D), D = 9 + 3n, is the covariance
+of the error state (``backend.estimator.layout``; its meaning is the error model's). Per landmark
+the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, the steps in a row
+it was not used, the observations since it was anchored and how many it may have (R1 of
+``backend.estimator.tracks``), and the steps in a row the RANSAC rejected its track; and, where
+the error model reads them, ``theta_first`` (the first estimates, for FEJ) and ``anchors``
+(inverse depth). Adding and removing landmarks keeps all of them in the same slot order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .covariance import gather_landmarks
+from .layout import BIAS, CORE
+from .tracks import plan_removal
+
+TRACK_ROWS = ID, GATED, COUNT, LIMIT, OUTLIER = range(5)  # rows of FilterState.track
+_NONE = np.zeros(0, dtype=bool)  # an empty mask: no track ended
+
+
+@dataclass
+class FilterState:
+    """Mean, covariance and landmark bookkeeping of the filter (module docstring)."""
+
+    mu: np.ndarray = field(default_factory=lambda: np.eye(4))  # world_T_imu
+    gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    P: np.ndarray = field(default_factory=lambda: np.zeros((CORE, CORE)))
+    theta: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # landmark parameters, slot order
+    track: np.ndarray = field(default_factory=lambda: np.zeros((len(TRACK_ROWS), 0), dtype=np.int64))
+    theta_first: np.ndarray | None = None  # (n,3) first estimates (FEJ), where the model reads them
+    anchors: np.ndarray | None = None  # (n,4,4) anchor frames (inverse depth), where the model reads them
+    #: RANSAC rejection runs of tracks that left the state but may go on (track id -> count, nonzero)
+    outlier_stash: dict = field(default_factory=dict)
+    _ids_sorted: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # for slots_of
+    _ids_order: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    # the rows of track, as views (kernels change the counts in place)
+    @property
+    def ids(self) -> np.ndarray:
+        """Track id (the feature column) of each landmark."""
+        return self.track[ID]
+
+    @property
+    def gated_run(self) -> np.ndarray:
+        """Steps in a row each landmark was not used (gated or rejected)."""
+        return self.track[GATED]
+
+    @property
+    def obs_count(self) -> np.ndarray:
+        """Observations since each landmark was anchored (R1)."""
+        return self.track[COUNT]
+
+    @property
+    def obs_limit(self) -> np.ndarray:
+        """... after which it is re-anchored (R1)."""
+        return self.track[LIMIT]
+
+    @property
+    def outlier_run(self) -> np.ndarray:
+        """Steps in a row the RANSAC rejected each landmark's track (U5)."""
+        return self.track[OUTLIER]
+
+    @property
+    def num_landmarks(self) -> int:
+        return self.track.shape[1]
+
+    @property
+    def index(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the landmark ids sorted, their slots): the look-up of ``tracks.slots_of`` and ``tracks.plan_update``."""
+        return self._ids_sorted, self._ids_order
+
+    def estimated(self, pose: bool, bias: bool) -> np.ndarray:
+        """(D,) mask of the states the filter estimates (the pose and the bias may be held fixed)."""
+        mask = np.ones(self.P.shape[0], dtype=bool)
+        if not pose:
+            mask[:CORE] = False
+        elif not bias:
+            mask[BIAS] = False
+        return mask
+
+    def _reindex(self) -> None:
+        self._ids_order = np.argsort(self.ids, kind="stable")
+        self._ids_sorted = self.ids[self._ids_order]
+
+    # ---------------------------------------------------------------- adding and removing landmarks
+    def add_landmarks(self, P: np.ndarray, ids: np.ndarray, theta: np.ndarray, counts: np.ndarray,
+                      limits: np.ndarray, anchors: np.ndarray | None = None) -> None:
+        """Append landmarks ``ids`` with parameters ``theta`` (n,3) after P was augmented to ``P`` (A1);
+        their observation counts and limits (R1, R2); a track's RANSAC rejection run comes back from
+        the stash."""
+        n = ids.size
+        stash = self.outlier_stash
+        runs = (np.array([stash.pop(i, 0) for i in ids.tolist()], dtype=np.int64) if stash
+                else np.zeros(n, dtype=np.int64))
+        rows = np.empty((len(TRACK_ROWS), n), dtype=np.int64)
+        rows[ID], rows[GATED], rows[COUNT], rows[LIMIT], rows[OUTLIER] = ids, 0, counts, limits, runs
+        self.P = P
+        self.track = np.concatenate([self.track, rows], axis=1)
+        self.theta = np.concatenate([self.theta, theta])
+        if self.theta_first is not None:
+            self.theta_first = np.concatenate([self.theta_first, theta])
+        if self.anchors is not None:
+            self.anchors = np.concatenate([self.anchors, anchors])
+        self._reindex()
+
+    def remove_landmarks(self, mask: np.ndarray, ended: np.ndarray | None = None) -> np.ndarray:
+        """Marginalize the landmarks in ``mask`` (A2: their rows and columns of P dropped); returns the
+        new slot of each old one (-1: removed). The RANSAC rejection runs of tracks that may go on
+        (not ``ended``; None: none ended) are stashed by track id."""
+        _, keep, remap, counted = plan_removal(mask, _NONE if ended is None else ended, self.outlier_run)
+        if counted.size:
+            self.outlier_stash.update(zip(self.ids[counted].tolist(), self.outlier_run[counted].tolist()))
+        self.P = gather_landmarks(self.P, keep)  # C-ordered, one pass
+        self.track = np.take(self.track, keep, axis=1)  # C-ordered (a[:, idx] is not): contiguous rows
+        self.theta = self.theta[keep]
+        if self.theta_first is not None:
+            self.theta_first = self.theta_first[keep]
+        if self.anchors is not None:
+            self.anchors = self.anchors[keep]
+        self._reindex()
+        return remap

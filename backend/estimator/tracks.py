@@ -1,0 +1,134 @@
+"""Which landmarks are in the state, and for how long: the bookkeeping of each step (compiled).
+
+Each landmark in the state carries a row of counts (``backend.estimator.state``): its track id
+(the feature column of the data), the steps in a row it was not used, the observations since it
+was anchored and how many it may have, and the steps in a row the RANSAC rejected its track.
+A step's observations go to the landmarks of their track ids (:func:`plan_update`); a track not
+seen any more ends, and its landmark is marginalized into the map (A2 of
+``backend.estimator.covariance``, exact for a Gaussian); an observation of a new track starts a
+landmark when its disparity and depth allow (:func:`admit_landmarks`).
+
+Re-anchoring (drifting tracks). Feature tracks of some front ends drift with their age: the
+image motion of an old track falls short of the true motion, which biases both the scale and the
+rotation a long-lived landmark tells the filter. With ``drift.track_drift`` a landmark lives for
+at most ``reanchor_observations`` observations (``reanchor_far_observations`` when it was
+anchored with a disparity below ``reanchor_far_disparity``: distant points drift little and hold
+the rotation):                                                                               (R1)
+
+    count > limit  =>  marginalize the landmark (A2), start a new one from the track's current
+                       stereo pair (A1), which is used once, for the initialization.
+
+Marginalization is exact and the new landmark's cross covariance comes from the augmentation, so
+nothing is counted twice (tested equal to cutting the track into separate tracks). The first
+segment of each track is shortened so that landmarks born together are not all re-anchored at
+once:                                                                                        (R2)
+
+    count_0 = 1 + (id mod limit)     (a track's first landmark; 1 for a re-anchored one)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..compiled import jit, warms_up
+
+
+@jit
+def slots_of(ids, ids_sorted, ids_order):
+    """State slots of ``ids`` (-1 where not in the state), for the state's ids sorted (``ids_sorted``)
+    and their slots (``ids_order``)."""
+    n = ids_sorted.size
+    slots = np.full(ids.size, -1, dtype=np.int64)
+    for j in range(ids.size):
+        pos = np.searchsorted(ids_sorted, ids[j])
+        if pos < n and ids_sorted[pos] == ids[j]:
+            slots[j] = ids_order[pos]
+    return slots
+
+
+@jit
+def plan_update(ids, ids_sorted, ids_order, obs_count, obs_limit, reanchor, full_state):
+    """Where a step's observations go (``VisualInertialEKF.update``), for the state's landmark ids sorted
+    (``ids_sorted``, at slots ``ids_order``). Returns the slot of each observation's landmark (-1:
+    new); the landmarks that leave before the joint update: the tracks not seen (``ended``, unless
+    ``full_state``) and with ``reanchor`` those seen beyond their ``obs_limit`` observations
+    (counted in ``obs_count`` in place); the observations that restart such a track; their number."""
+    slots = slots_of(ids, ids_sorted, ids_order)
+    ended = np.zeros(ids_sorted.size, dtype=np.bool_)
+    if not full_state:
+        ended[:] = True
+    restart = np.zeros(ids.size, dtype=np.bool_)
+    for j in range(ids.size):
+        if slots[j] >= 0:
+            ended[slots[j]] = False
+    leaving = ended.copy()
+    expired = 0
+    for j in range(ids.size):
+        s = slots[j]
+        if reanchor and s >= 0:
+            obs_count[s] += 1
+            if obs_count[s] > obs_limit[s]:
+                leaving[s] = True
+                restart[j] = True
+                expired += 1
+    return slots, leaving, ended, restart, expired
+
+
+@jit
+def admit_landmarks(ids, pixels, restart, min_disparity, max_depth, fx_baseline, reanchor, far_disparity,
+                    near_limit, far_limit):
+    """Which new features start landmarks: disparity > ``min_disparity`` and depth fx b / d <=
+    ``max_depth`` (the others wait for a later observation). Returns their indices, and for each
+    the observations it lives for before re-anchoring (``far_limit`` when anchored below
+    ``far_disparity``: distant points drift little) and the count of its anchoring observation:
+    1, or with ``reanchor`` 1 + id mod limit on a track's first landmark (not ``restart``), so that
+    landmarks born together are not all re-anchored at once (R2)."""
+    ok = np.empty(ids.size, dtype=np.int64)
+    n = 0
+    for j in range(ids.size):
+        d = pixels[j, 0] - pixels[j, 2]
+        if d > min_disparity and fx_baseline / d <= max_depth:
+            ok[n] = j
+            n += 1
+    ok = ok[:n]
+    counts = np.ones(n, dtype=np.int64)
+    limits = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        j = ok[i]
+        limits[i] = far_limit if pixels[j, 0] - pixels[j, 2] < far_disparity else near_limit
+        if reanchor and not restart[j] and limits[i] < np.iinfo(np.int64).max:
+            counts[i] += ids[j] % limits[i]
+    return ok, counts, limits
+
+
+@jit
+def plan_removal(mask, ended, outlier_run):
+    """Index arrays of a marginalization of the landmark slots ``mask``: the removed slots, the kept
+    ones, the new slot of each old one (-1: removed), and the removed ones whose tracks go on (not
+    ``ended``, an empty array meaning none ended) with a RANSAC rejection run to keep."""
+    n = mask.size
+    removed = np.flatnonzero(mask)
+    keep = np.flatnonzero(~mask)
+    remap = np.full(n, -1, dtype=np.int64)
+    for i in range(keep.size):
+        remap[keep[i]] = i
+    counted = np.empty(removed.size, dtype=np.int64)
+    c = 0
+    for s in removed:
+        if outlier_run[s] > 0 and not (ended.size and ended[s]):
+            counted[c] = s
+            c += 1
+    return removed, keep, remap, counted[:c]
+
+
+@warms_up
+def _warm_up() -> None:
+    ids = np.arange(2, dtype=np.int64)
+    counts = np.ones(2, dtype=np.int64)
+    plan_update(ids, ids, ids, counts, counts.copy(), True, False)
+    slots_of(ids, ids, ids)
+    pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * 2)
+    admit_landmarks(ids, pixels, np.zeros(2, dtype=np.bool_), 1.0, np.inf, 350.0, True, 6.0, 3, 25)
+    mask = np.array([True, False])
+    plan_removal(mask, mask, counts)
+    plan_removal(mask, np.zeros(0, dtype=np.bool_), counts)

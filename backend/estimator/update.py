@@ -1,0 +1,423 @@
+"""The joint update of pose and landmarks with a step's stereo observations (compiled).
+
+Given the prior innovation of the k observations of landmarks in the state (residual r, H P and
+S = H P H^T + R from the error model, ``backend.estimator.invariant`` or ``.body``):
+
+Three rows per observation. The pixel noise is white (sigma^2 I) and on rectified pairs the rows
+of H for vL and vR are equal, so the orthogonal change of rows
+
+    [uL, vL, uR, vR] -> [uL, (vL + vR)/sqrt 2, uR | (vL - vR)/sqrt 2]                           (U1)
+
+leaves the noise sigma^2 I and puts all the state information in the first three rows; the last
+has H = 0 and only adds d^2 / sigma^2 to the NIS. The update from 3 rows is identical to the one
+from 4 (the NIS, gate and RANSAC errors are computed over all 4), at (3/4)^2 of the dense work.
+Each 3-row block of H touches 6 pose and 3 landmark columns of P.
+
+Gate. Observation i is used only if in front of the camera and
+
+    NIS_i = r_i^T S_ii^-1 r_i + d_i^2 / sigma^2 <= chi2_4^-1(gate_probability)                  (U4)
+
+1-point RANSAC (Civera et al., J. Field Robotics 2010), every gated observation a hypothesis: the
+update with observation j alone changes every residual by H dx_j = (S - R)_{:,j} S_jj^-1 r_j, so
+all hypotheses cost products with the S already formed; the one whose updated 4-pixel errors
+are within ``ransac_threshold_px`` for the most observations wins.                           (U5)
+
+Joint update, with S = L L^T over the rows of the inliers (Cholesky),
+
+    A = L^-1 H P,   w = L^-1 r,   dx = A^T w,   P <- P - A^T A                                 (U2)
+
+the symmetric form of P - K S K^T (equal to the Joseph form for the optimal gain K), one triangle
+by BLAS syrk and mirrored, so P stays exactly symmetric.
+
+Rescue. The observations RANSAC rejected are tested again against the inliers' update: with
+X = L^-1 S_ir, residual r_r - X^T w and covariance S_rr - X^T X (U4 on those); the ones that pass
+join the update, whose factor over [inliers; rescued] is [[L, 0], [X_ok^T, L_o]] with
+L_o L_o^T = S_oo - X_ok^T X_ok, so S is factored once.                                          (U3)
+
+:func:`select_and_update_inplace` does U4, U5, U3 and U2 in one call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..compiled import jit, warms_up
+from .layout import CORE, SQRT_HALF
+from .linalg import cholesky_upper_inplace, downdate_lower, solve_lower_inplace
+from .covariance import mirror_lower_inplace
+
+
+def three_rows(a: np.ndarray) -> np.ndarray:
+    """(U1): rows [uL, vL, uR, vR] (axis 1 of a (k,4,...) array) -> [uL, (vL + vR)/sqrt 2, uR]."""
+    out = a[:, :3].copy()
+    out[:, 1] = (a[:, 1] + a[:, 3]) * SQRT_HALF
+    return out
+
+
+@dataclass
+class Innovation:
+    """The prior innovation of one step's observations of landmarks in the state, 3-row form (U1)."""
+
+    residual: np.ndarray  # (k,3) r = z - h(x)
+    off_row: np.ndarray  # (k,) residual of (vL - vR)/sqrt 2: no state in it
+    H_x: np.ndarray  # (3k,6) d h / d pose
+    H_m: np.ndarray  # (k,3,3) d h / d landmark
+    HP: np.ndarray  # (3k,D) H P
+    S: np.ndarray  # (3k,3k) H P H^T + R
+    nis: np.ndarray  # (k,) (U4), 4 dof
+    in_front: np.ndarray  # (k,) bool
+
+
+@jit
+def _nis3(S, r0, r1, r2):
+    """r^T S^-1 r for a symmetric 3x3 S (Cholesky); inf when S is not positive definite."""
+    l00 = S[0, 0]
+    if not l00 > 0.0:
+        return np.inf
+    l00 = np.sqrt(l00)
+    l10 = S[1, 0] / l00
+    l20 = S[2, 0] / l00
+    d1 = S[1, 1] - l10 * l10
+    if not d1 > 0.0:
+        return np.inf
+    l11 = np.sqrt(d1)
+    l21 = (S[2, 1] - l20 * l10) / l11
+    d2 = S[2, 2] - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return np.inf
+    l22 = np.sqrt(d2)
+    w0 = r0 / l00
+    w1 = (r1 - l10 * w0) / l11
+    w2 = (r2 - l20 * w0 - l21 * w1) / l22
+    return w0 * w0 + w1 * w1 + w2 * w2
+
+
+@jit
+def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row):
+    """H P (3k,D), S = H P H^T + R (3k,3k) and the NIS (k,) of each observation (4 dof: its
+    3-row block plus off_row^2 / sigma^2, U1), for H given as H_x (3k,6) on the pose and
+    H_m (k,3,3) on landmark ``slots`` (each 3-row block touches 6 + 3 columns of P)."""
+    D = P.shape[0]
+    k = slots.size
+    m = 3 * k
+    HP = np.zeros((m, D))
+    for i in range(k):
+        base = CORE + 3 * slots[i]
+        for a in range(3):
+            r = 3 * i + a
+            out = HP[r]
+            for j in range(6):
+                h = H_x[r, j]
+                if h != 0.0:
+                    row = P[j]
+                    for c in range(D):
+                        out[c] += h * row[c]
+            for t in range(3):
+                h = H_m[i, a, t]
+                row = P[base + t]
+                for c in range(D):
+                    out[c] += h * row[c]
+    S = np.empty((m, m))
+    for r in range(m):  # lower triangle (r2 <= r), mirrored: S exactly symmetric
+        hp = HP[r]
+        for r2 in range(r + 1):
+            i2 = r2 // 3
+            b = r2 - 3 * i2
+            base = CORE + 3 * slots[i2]
+            s = 0.0
+            for j in range(6):
+                s += hp[j] * H_x[r2, j]
+            for t in range(3):
+                s += hp[base + t] * H_m[i2, b, t]
+            S[r, r2] = s
+            S[r2, r] = s
+    for r in range(m):
+        S[r, r] += pixel_var
+    nis = np.empty(k)
+    for i in range(k):
+        o = 3 * i
+        nis[i] = _nis3(S[o:o + 3, o:o + 3], residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
+    return HP, S, nis
+
+
+@jit
+def _solve3(S, r):
+    """S^-1 r for a 3x3 S by Cramer's rule (S is a gated, regular innovation block)."""
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 0], S[1, 1], S[1, 2]
+    g, h, i = S[2, 0], S[2, 1], S[2, 2]
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    inv = np.empty((3, 3))
+    inv[0, 0], inv[1, 0], inv[2, 0] = A / det, B / det, C / det
+    inv[0, 1], inv[1, 1], inv[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
+    inv[0, 2], inv[1, 2], inv[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
+    out = np.empty(3)
+    for t in range(3):
+        out[t] = inv[t, 0] * r[0] + inv[t, 1] * r[1] + inv[t, 2] * r[2]
+    return out
+
+
+@jit
+def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
+    """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every candidate a hypothesis.
+
+    Hypothesis j: the EKF update with observation j alone, dx_j = P H_j^T S_jj^-1 r_j. It changes
+    every residual by H dx_j = (S - R)_{:,j} S_jj^-1 r_j, so all hypotheses cost products with the
+    S already formed. An observation supports j when its updated 4-pixel error (the 3 rows and the
+    row difference, which no hypothesis changes) is within ``threshold``; the hypothesis with the
+    most support wins (ties: the smaller summed error), and its supporters are returned as a mask
+    over all observations. A moving car ahead, tracked by several features that agree with each
+    other but not with the scene, loses.
+    """
+    k = candidates.size
+    idx = np.flatnonzero(candidates)
+    m = idx.size
+    a = np.empty((m, 3))
+    for jj in range(m):
+        o = 3 * idx[jj]
+        a[jj] = _solve3(S[o:o + 3, o:o + 3], residual[idx[jj]])
+    err = np.empty((m, m))
+    for ii in range(m):
+        oi = 3 * idx[ii]
+        off2 = off_row[idx[ii]] ** 2
+        for jj in range(m):
+            oj = 3 * idx[jj]
+            s = off2
+            for t in range(3):
+                ch = S[oi + t, oj] * a[jj, 0] + S[oi + t, oj + 1] * a[jj, 1] + S[oi + t, oj + 2] * a[jj, 2]
+                if ii == jj:
+                    ch -= pixel_var * a[jj, t]
+                d = residual[idx[ii], t] - ch
+                s += d * d
+            err[ii, jj] = np.sqrt(s)
+    best = 0
+    best_score = -np.inf
+    for jj in range(m):
+        support = 0
+        total = 0.0
+        for ii in range(m):
+            e = err[ii, jj]
+            if e <= threshold:
+                support += 1
+            total += min(e, 1e6)
+        score = support - 1e-6 * total / (m * 1e3)
+        if score > best_score:
+            best_score = score
+            best = jj
+    out = np.zeros(k, dtype=np.bool_)
+    for ii in range(m):
+        if err[ii, best] <= threshold:
+            out[idx[ii]] = True
+    return out
+
+
+@jit
+def _rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
+    """(U3) the chi-square test of the ``rest_idx`` observations after the update with the inliers:
+    residual r_r - X^T w and covariance S_rr - X^T X (diagonal 3x3 blocks only), with X = L^-1 S_ir
+    (3 m_i, 3 m_r) and w = L^-1 r_i. Returns a mask over ``rest_idx``."""
+    mr = rest_idx.size
+    ok = np.zeros(mr, dtype=np.bool_)
+    n = X.shape[0]
+    Sb = np.empty((3, 3))
+    for jj in range(mr):
+        o = 3 * rest_idx[jj]
+        c = 3 * jj
+        r = np.empty(3)
+        for a in range(3):
+            s = 0.0
+            for t in range(n):
+                s += X[t, c + a] * w[t]
+            r[a] = residual[rest_idx[jj], a] - s
+            for b in range(3):
+                s = 0.0
+                for t in range(n):
+                    s += X[t, c + a] * X[t, c + b]
+                Sb[a, b] = S[o + a, o + b] - s
+        ok[jj] = _nis3(Sb, r[0], r[1], r[2]) + off_row[rest_idx[jj]] ** 2 / pixel_var <= gate
+    return ok
+
+
+@jit
+def _gather_rows(M, rows):
+    """M[rows] as a new C-ordered array."""
+    out = np.empty((rows.size, M.shape[1]))
+    for a in range(rows.size):
+        out[a] = M[rows[a]]
+    return out
+
+
+@jit
+def _block_rows(obs):
+    """Rows of the 3-row blocks (U1) of observations ``obs``."""
+    rows = np.empty(3 * obs.size, dtype=np.int64)
+    for i in range(obs.size):
+        for a in range(3):
+            rows[3 * i + a] = 3 * obs[i] + a
+    return rows
+
+
+@jit
+def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, gate):
+    """The joint update (U2) with the ``inlier`` observations and those of ``rest`` that pass the
+    rescue test after it (U3), given the prior H P (3k,D), S = H P H^T + R (3k,3k) and residuals
+    (k,3) of all k observations. P is changed in place, exactly symmetric.
+
+    With L L^T = S_ii over the inliers' rows and w = L^-1 r_i, the rest are tested (``_rescue_test``)
+    on r_r - X^T w and S_rr - X^T X, X = L^-1 S_ir; the factor of S over [inliers; rescued] is the
+    block [[L, 0], [X_ok^T, L_o]] with L_o L_o^T = S_oo - X_ok^T X_ok, so S is factored once. Then
+
+        A = L^-1 H P,   w = L^-1 r,   P <- P - A^T A  (syrk, lower triangle, mirrored),   dx = A^T w.
+
+    Returns (status, dx (D,), used mask (k,)): status is 0, or LAPACK potrf's info > 0 when an
+    innovation covariance is not positive definite, in which case P is left unchanged.
+    """
+    k = inlier.size
+    D = P.shape[0]
+    dx = np.zeros(D)
+    used = np.zeros(k, dtype=np.bool_)
+    obs_i = np.flatnonzero(inlier)
+    rows_i = _block_rows(obs_i)
+    mi = rows_i.size
+    U = np.empty((mi, mi))  # upper triangle: L^T
+    for a in range(mi):
+        for b in range(a, mi):
+            U[a, b] = S[rows_i[a], rows_i[b]]
+    info = cholesky_upper_inplace(U)
+    if info != 0:
+        return info, dx, used
+    w = np.empty((mi, 1))
+    for a in range(mi):
+        w[a, 0] = residual[rows_i[a] // 3, rows_i[a] % 3]
+    solve_lower_inplace(U, w)
+    obs_r = np.flatnonzero(rest)
+    obs_ok = obs_r[:0]
+    X = np.empty((mi, 0))
+    ok = np.zeros(0, dtype=np.bool_)
+    if obs_r.size:
+        rows_r = _block_rows(obs_r)
+        X = np.empty((mi, rows_r.size))
+        for a in range(mi):
+            for b in range(rows_r.size):
+                X[a, b] = S[rows_i[a], rows_r[b]]
+        solve_lower_inplace(U, X)
+        ok = _rescue_test(X, w[:, 0], S, obs_r, residual, off_row, pixel_var, gate)
+        obs_ok = obs_r[ok]
+    if obs_ok.size:
+        rows_o = _block_rows(obs_ok)
+        cols = _block_rows(np.flatnonzero(ok))
+        mo = rows_o.size
+        m = mi + mo
+        J = np.zeros((m, m))  # upper triangle: [[L, 0], [X_ok^T, L_o]]^T
+        for a in range(mi):
+            for b in range(a, mi):
+                J[a, b] = U[a, b]
+            for b in range(mo):
+                J[a, mi + b] = X[a, cols[b]]
+        Uo = np.empty((mo, mo))
+        for a in range(mo):
+            for b in range(a, mo):
+                s = S[rows_o[a], rows_o[b]]
+                for t in range(mi):
+                    s -= X[t, cols[a]] * X[t, cols[b]]
+                Uo[a, b] = s
+        info = cholesky_upper_inplace(Uo)
+        if info != 0:
+            return info, dx, used
+        wo = np.empty((mo, 1))
+        for a in range(mo):
+            s = residual[rows_o[a] // 3, rows_o[a] % 3]
+            for t in range(mi):
+                s -= X[t, cols[a]] * w[t, 0]
+            wo[a, 0] = s
+        solve_lower_inplace(Uo, wo)
+        for a in range(mo):
+            for b in range(a, mo):
+                J[mi + a, mi + b] = Uo[a, b]
+        rows = np.concatenate((rows_i, rows_o))
+        w = np.concatenate((w, wo))
+        U = J
+    else:
+        rows = rows_i
+    A = _gather_rows(HP, rows)
+    solve_lower_inplace(U, A)
+    downdate_lower(P, A)
+    mirror_lower_inplace(P)
+    for a in range(rows.size):
+        wa = w[a, 0]
+        row = A[a]
+        for c in range(D):
+            dx[c] += row[c] * wa
+    used[obs_i] = True
+    used[obs_ok] = True
+    return 0, dx, used
+
+
+@jit
+def count_rejections_inplace(outlier_run, slots, rejected, limit):
+    """Steps in a row the RANSAC rejected each track: ``outlier_run`` (per landmark slot) counts one
+    more where ``rejected`` and restarts at 0 for the other observations of ``slots``; True where the
+    count reaches ``limit``: such a track (a car ahead, followed by several features that agree with
+    each other and not with the scene) is not rescued. The filter keeps the counts of a track that
+    leaves the state and goes on (re-anchoring) by its id (``FilterState.stash_outlier_runs``)."""
+    out = np.zeros(slots.size, dtype=np.bool_)
+    for j in range(slots.size):
+        s = slots[j]
+        outlier_run[s] = outlier_run[s] + 1 if rejected[j] else 0
+        out[j] = rejected[j] and outlier_run[s] >= limit
+    return out
+
+
+@jit
+def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots, gate, ransac_threshold, pixel_var,
+                              outlier_run, persistent_steps, gated_run):
+    """One step's selection and joint update (``VisualInertialEKF.update``) in one call: the
+    chi-square gate on ``nis``; with ``ransac_threshold`` > 0 and 3 candidates or more the 1-point
+    RANSAC (:func:`one_point_ransac`), whose rejected observations are not offered to the rescue once
+    ``outlier_run`` reaches ``persistent_steps`` (0: not counted); then :func:`joint_update_inplace`. Finally
+    ``gated_run`` (per slot) is reset for the used observations and counts one more for the others.
+    (:func:`count_rejections_inplace` counts the RANSAC's rejections.)
+    Returns (status, dx, used) as :func:`joint_update_inplace`; on status != 0 nothing is used."""
+    k = slots.size
+    use = np.empty(k, dtype=np.bool_)
+    for j in range(k):
+        use[j] = in_front[j] and nis[j] <= gate
+    rest = np.zeros(k, dtype=np.bool_)
+    if ransac_threshold > 0 and use.sum() >= 3:
+        inlier = one_point_ransac(S, residual, off_row, use, pixel_var, ransac_threshold)
+        for j in range(k):
+            rest[j] = use[j] and not inlier[j]
+        if persistent_steps:
+            rest &= ~count_rejections_inplace(outlier_run, slots, rest, persistent_steps)
+        use = inlier
+    status = 0
+    dx = np.zeros(P.shape[0])
+    if use.any():
+        status, dx, use = joint_update_inplace(P, HP, S, residual, off_row, use, rest, pixel_var, gate)
+        if status:
+            use[:] = False
+    for j in range(k):
+        gated_run[slots[j]] = 0 if use[j] else gated_run[slots[j]] + 1
+    return status, dx, use
+
+
+@warms_up
+def _warm_up() -> None:
+    D, k = CORE + 6, 2
+    P = np.eye(D)
+    slots = np.arange(k, dtype=np.int64)
+    H_x = np.ones((3 * k, 6))
+    H_m = np.ones((k, 3, 3))
+    residual = np.ones((k, 3))
+    off_row = np.zeros(k)
+    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row)
+    one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
+    inlier = np.array([True, False])
+    joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
+    counts = np.zeros(k, dtype=np.int64)
+    count_rejections_inplace(counts, slots, inlier, 3)
+    select_and_update_inplace(P.copy(), HP, S, residual, off_row, nis, np.ones(k, dtype=np.bool_), slots, 9.0, 2.0,
+                              1.0, counts, 10, counts.copy())

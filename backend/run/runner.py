@@ -1,0 +1,186 @@
+"""The run: the filter over a whole input, in one loop for feature files, image streams and the API.
+
+A run decides what the data does not say reliably, then steps the filter once per time stamp:
+
+1. the data conventions (``backend.run.conventions``: the extrinsic's flip, the velocity
+   timing) and the IMU noise (``backend.run.noise``), recorded with their numbers; for a file
+   from the whole file (:func:`decide`), for a stream from its first frames (:func:`decide_online`);
+2. the track drift (``backend.run.drift``), from what made the tracks;
+3. :class:`~vislam.backend.run.online.OnlineRun` over every step (:func:`run_stream`).
+
+:func:`run_sequence` is that for a loaded :class:`~vislam.backend.data.sequence.Sequence`.
+What a run says (its decisions, that kernels are compiling) goes to ``say``; the compiled
+kernels are loaded (or compiled, once after an install) before any timing starts.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from typing import Callable, Iterable, Iterator, Optional, Sequence as Seq
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from ..compiled import warm_up
+from ..config import Config
+from ..data.sequence import Sequence
+from ..errors import InputError
+from ..estimator.ekf import StepStats, VisualInertialEKF
+from ..geometry.camera import StereoCamera
+from .conventions import ConventionDecision, decide_conventions
+from .noise import NoiseDecision, decide_noise
+from .online import OnlineRun, RunResult
+
+__all__ = ["run_sequence", "run_stream", "decide", "decide_online", "decisive", "Step"]
+
+#: One time stamp of a stream: (t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4))
+Step = tuple
+Observer = Callable[[int, VisualInertialEKF, Optional[StepStats]], None]
+COMPILING = "vislam: compiling the filter's kernels (once after an install or an update, up to a minute) ..."
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def decide(seq: Sequence, config: Config) -> tuple[ConventionDecision, NoiseDecision]:
+    """The extrinsic, the velocity timing and the IMU noise for a whole sequence."""
+    c = config.conventions
+    conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
+    noise = decide_noise(config, seq.linear_velocity, seq.angular_velocity,
+                         seq.num_observations / max(seq.num_steps, 1))
+    return conventions, noise
+
+
+def decisive(errors_px: dict, margin: float = 1.1) -> bool:
+    """True when the convention test has nothing to choose (one variant) or its best variant fits at
+    least ``margin`` times better than every other."""
+    finite = sorted(v for v in errors_px.values() if np.isfinite(v))
+    return len(errors_px) <= 1 or (len(finite) >= 2 and finite[1] >= margin * finite[0])
+
+
+def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.ndarray, config: Config,
+                  imu_velocities: tuple[np.ndarray, np.ndarray], num_steps: int | None = None, tracker: str = ""):
+    """The decisions of :func:`decide` from the first steps of a stream, read from ``steps`` as needed.
+
+    The convention test runs from 20 steps on, every 10, until it is :func:`decisive` or
+    ``conventions.online_steps`` steps (or the ``num_steps`` of the stream, or all it has) are in.
+    The white noise comes from ``imu_velocities``, (linear (N,3), angular (N,3)) of the whole
+    stream. Returns ((conventions, noise), the steps read, the seconds the decisions took).
+    """
+    limit = config.conventions.online_steps if num_steps is None else min(config.conventions.online_steps, num_steps)
+    read: list[Step] = []
+    seconds = 0.0
+    for step in steps:
+        read.append(step)
+        k = len(read)
+        last = k >= limit
+        if not last and (k < 20 or k % 10):
+            continue
+        t0 = time.perf_counter()
+        warm = _as_sequence(read, camera, imu_T_cam, tracker)
+        c = config.conventions
+        conventions = decide_conventions(warm, c.imu_flip, c.velocity_index, c.horizon)
+        seconds += time.perf_counter() - t0
+        if last or decisive(conventions.errors_px):
+            break
+    else:
+        if not read:
+            raise InputError("no steps: nothing to estimate")
+        t0 = time.perf_counter()
+        warm = _as_sequence(read, camera, imu_T_cam, tracker)
+        c = config.conventions
+        conventions = decide_conventions(warm, c.imu_flip, c.velocity_index, c.horizon)
+        seconds += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    noise = decide_noise(config, *imu_velocities, warm.num_observations / warm.num_steps)
+    seconds += time.perf_counter() - t0
+    return (conventions, noise), read, seconds
+
+
+def _as_sequence(steps: Seq[Step], camera: StereoCamera, imu_T_cam: np.ndarray, tracker: str) -> Sequence:
+    t, v, w, ids, pixels = zip(*steps)
+    return Sequence.from_steps(t, v, w, list(ids), list(pixels), camera.K, camera.baseline, imu_T_cam,
+                               source="<stream>", tracker=tracker)
+
+
+def run_stream(
+    steps: Iterable[Step],
+    camera: StereoCamera,
+    imu_T_cam: np.ndarray,
+    config: Config,
+    *,
+    decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
+    imu_velocities: tuple[np.ndarray, np.ndarray] | None = None,
+    num_steps: int | None = None,
+    tracker: str = "",
+    expected_landmarks: int | None = None,
+    setup_seconds: float = 0.0,
+    load_seconds: float = 0.0,
+    progress: Optional[Callable[[int], None]] = None,
+    observer: Optional[Observer] = None,
+    say: Callable[[str], None] = _quiet,
+) -> RunResult:
+    """The filter over every step of ``steps`` (:data:`Step` s) with the ``decisions`` given, or
+    decided from the stream's first steps (:func:`decide_online`, which needs ``imu_velocities``).
+
+    ``num_steps``: the stream's length, when known; ``tracker``: what made the tracks (``drift``);
+    ``expected_landmarks``: for the full-state size check; ``setup_seconds`` / ``load_seconds``:
+    time spent before (deciding, loading), counted in the real-time factor. ``progress(k)`` and
+    ``observer(k, ekf, step_stats)`` are called after each step k (step_stats is None where the
+    step's observations were not used); ``say`` receives the run's decisions, a line each.
+    """
+    config.validate()
+    with threadpool_limits(limits=config.execution.blas_threads):
+        warm_up(notice=lambda: say(COMPILING))  # before the convention test calls a kernel; reported apart
+        steps = iter(steps)
+        if decisions is None:
+            if imu_velocities is None:
+                raise ValueError("run_stream: decisions or imu_velocities are needed")
+            decisions, read, seconds = decide_online(steps, camera, imu_T_cam, config, imu_velocities, num_steps,
+                                                     tracker)
+            setup_seconds += seconds
+            steps = itertools.chain(read, steps)
+            say(f"conventions from the first {len(read)} steps: " + decisions[0].describe())
+        else:
+            say(decisions[0].describe())
+        say(decisions[1].describe())
+        run = OnlineRun(camera, *decisions, config, expected_landmarks=expected_landmarks, observer=observer,
+                        tracker=tracker)
+        say(run.stats.track_drift)
+        for k, step in enumerate(steps):
+            run.step(*step)
+            if progress is not None:
+                progress(k)
+        return run.result(setup_seconds, load_seconds)
+
+
+def run_sequence(
+    seq: Sequence,
+    config: Config | None = None,
+    *,
+    decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
+    load_seconds: float = 0.0,
+    progress: Optional[Callable[[int], None]] = None,
+    observer: Optional[Observer] = None,
+    say: Callable[[str], None] = _quiet,
+) -> RunResult:
+    """Run the filter over every step and every observation of ``seq``: :func:`decide` on the whole
+    sequence (unless ``decisions`` are given), then :func:`run_stream` over its steps."""
+    config = (config if config is not None else Config()).validate()
+    if seq.num_steps < 2:
+        raise InputError(f"{seq.source}: key 'time_stamps': need at least 2 steps, got {seq.num_steps}")
+    setup = 0.0
+    if decisions is None:
+        with threadpool_limits(limits=config.execution.blas_threads):
+            warm_up(notice=lambda: say(COMPILING))  # the convention test calls a kernel: load them apart from setup
+            t0 = time.perf_counter()
+            decisions = decide(seq, config)
+            setup = time.perf_counter() - t0
+    result = run_stream(seq.steps(), StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, config, decisions=decisions,
+                        num_steps=seq.num_steps, tracker=seq.tracker, expected_landmarks=seq.num_features,
+                        setup_seconds=setup, load_seconds=load_seconds, progress=progress, observer=observer,
+                        say=say)
+    result.stats.observations_dropped_input = dict(seq.dropped)
+    return result

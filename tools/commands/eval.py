@@ -1,0 +1,45 @@
+"""``vislam eval``: ATE and RPE of a TUM trajectory against ground truth (evo), with plots."""
+
+from __future__ import annotations
+
+import argparse
+
+from .. import outputs
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth (evo)")
+    p.add_argument("estimate")
+    p.add_argument("ground_truth")
+    p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
+    p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
+    p.add_argument("--json", help="write the numbers as JSON")
+    p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned) and ate_over_time.png")
+    p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from ...backend.data.tum import read_tum
+    from ...backend.evaluation.metrics import aligned_poses, trajectory_errors
+    from ..plots import plot_trajectories_topdown
+    from ..report import write_error_plot
+
+    est_t, est = read_tum(args.estimate)
+    gt_t, gt = read_tum(args.ground_truth)
+    errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
+    d = errors.as_dict()
+    print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
+          f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
+          f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
+    if args.json:
+        outputs.write_json(args.json, d)
+    if args.out:
+        out = outputs.prepare_output_dir(args.out, args.force)
+        _, est_aligned, ref = aligned_poses(est_t, est, gt_t, gt, sim3=args.sim3)
+        plot_trajectories_topdown(out / "trajectories.png", {"estimate (aligned)": est_aligned, "ground truth": ref},
+                                  title=f"{args.estimate} vs {args.ground_truth}")
+        write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
+        outputs.write_json(out / "eval.json", d)
+        print(f"outputs in {out}/ (eval.json, trajectories.png, ate_over_time.png)")
+    return 0
