@@ -240,7 +240,7 @@ def ate_per_pose(
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Translation error (metres) of every matched pose after alignment, as ``(M,)``; in
     the order of ``associate(...)``. With ``return_stamps`` returns ``(t (M,), errors)``,
-    ready for :func:`tools.plots.plot_error_over_time`."""
+    ready for ``vislam.tools.plots.plot_errors_over_time``."""
     est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
     errors = np.array(_ape(est_aligned, ref).error, dtype=float)
     if return_stamps:
