@@ -17,5 +17,9 @@ class ConfigError(VislamError):
     """A configuration key or value is unknown or invalid."""
 
 
+class OutputError(VislamError):
+    """A path to write to is unusable (not a regular file, not writable, no space): names it."""
+
+
 class FilterError(VislamError):
     """The estimator cannot go on (e.g. the full state would not fit in memory)."""

@@ -26,7 +26,7 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
-__all__ = ["OptionTable", "OptionSet", "read_toml", "parse_assignment"]
+__all__ = ["OptionTable", "OptionSet", "read_toml", "parse_assignment", "printable_name"]
 
 T = TypeVar("T", bound="OptionTable")
 S = TypeVar("S", bound="OptionSet")
@@ -37,11 +37,27 @@ def read_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         with open(path, "rb") as handle:
-            return tomllib.load(handle)
+            return tomllib.loads(handle.read().decode("utf-8-sig"))  # a leading byte-order mark is skipped
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, not a config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); a config file is TOML") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+
+
+def printable_name(name: str) -> str:
+    """A key or table name as it may appear in a one-line message (line breaks and other control
+    characters escaped)."""
+    return name if name.isprintable() else repr(name)[1:-1]
+
+
+#: The range of an integer option (larger ones cannot be a count or a size)
+_INT_LIMIT = 2**63 - 1
 
 
 def parse_assignment(item: str) -> tuple[str, str]:
@@ -88,14 +104,14 @@ def _coerce(kind: type, optional: bool, value: Any, key: str) -> Any:
             raise ConfigError(f"config key '{key}': expected true or false, got {value!r}")
         elif kind is int:
             try:
-                return int(text)
+                value = int(text)
             except ValueError:
-                raise ConfigError(f"config key '{key}': expected an integer, got {value!r}") from None
+                raise ConfigError(f"config key '{key}': expected an integer, got {_short(value)}") from None
         elif kind is float:
             try:
                 return float(text)
             except ValueError:
-                raise ConfigError(f"config key '{key}': expected a number, got {value!r}") from None
+                raise ConfigError(f"config key '{key}': expected a number, got {_short(value)}") from None
     if value is None and optional:
         return None
     if isinstance(kind, type) and issubclass(kind, enum.Enum):
@@ -105,20 +121,33 @@ def _coerce(kind: type, optional: bool, value: Any, key: str) -> Any:
             choices = ", ".join(str(m.value) for m in kind)
             raise ConfigError(f"config key '{key}': must be one of {choices}, got {value!r}") from None
     if kind is bool:
+        if type(value) is int and value in (0, 1):  # as `--set KEY=0` / `=1` accept
+            return bool(value)
         if not isinstance(value, bool):
             raise ConfigError(f"config key '{key}': expected true or false, got {value!r}")
         return value
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
+            raise ConfigError(f"config key '{key}': expected an integer, got {_short(value)}")
+        if abs(value) > _INT_LIMIT:
+            raise ConfigError(f"config key '{key}': integer out of range (|value| > 2**63 - 1), got {_short(value)}")
         return value
     if kind is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
-        return float(value)
+            raise ConfigError(f"config key '{key}': expected a number, got {_short(value)}")
+        try:
+            return float(value)
+        except OverflowError:
+            raise ConfigError(f"config key '{key}': number out of range, got {_short(value)}") from None
     if not isinstance(value, str):
         raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
     return value
+
+
+def _short(value: Any) -> str:
+    """``repr(value)`` cut to 60 characters, for a one-line message."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _toml_value(value: Any) -> str:
@@ -191,7 +220,7 @@ class OptionTable:
         types = _field_types(cls)
         for key, value in values.items():
             if key not in types:
-                raise ConfigError(f"unknown config key '{cls.TABLE}.{key}' (the [{cls.TABLE}] table has: "
+                raise ConfigError(f"unknown config key '{cls.TABLE}.{printable_name(key)}' (the [{cls.TABLE}] table has: "
                                   f"{', '.join(cls.keys())})")
             setattr(out, key, _coerce(*types[key], value, f"{cls.TABLE}.{key}"))
         return out.validate()
@@ -269,10 +298,14 @@ class OptionSet:
     @classmethod
     def _refuse(cls, key: str, where: str = "") -> typing.NoReturn:
         new = cls.moved(key) or cls.moved(key.rpartition(".")[2])
+        if new == key:  # a quoted "table.key" at the top of a TOML file: one name, not a table
+            table, _, leaf = key.partition(".")
+            raise ConfigError(f"{where}config key '{printable_name(key)}' is one quoted name; write it in its "
+                              f"table: [{table}] {leaf} = ... (or unquoted {key} = ...)")
         if new is not None:
-            raise ConfigError(f"{where}config key '{key}' is now '{new}' (options are grouped in tables: "
+            raise ConfigError(f"{where}config key '{printable_name(key)}' is now '{new}' (options are grouped in tables: "
                               f"{', '.join(cls.table_types())})")
-        raise ConfigError(f"{where}unknown config key '{key}' (expected TABLE.KEY with a table of "
+        raise ConfigError(f"{where}unknown config key '{printable_name(key)}' (expected TABLE.KEY with a table of "
                           f"{', '.join(cls.table_types())})")
 
     @classmethod
@@ -281,16 +314,17 @@ class OptionSet:
         types, skip = cls.table_types(), set(foreign)
         grouped: dict[str, dict[str, Any]] = {}
         for key, value in values.items():
-            table, _, leaf = key.partition(".")
+            # a table of a TOML file is one name (["noise."] is not [noise]); --set's TABLE.KEY is split
+            table, _, leaf = (key, "", "") if isinstance(value, Mapping) else key.partition(".")
             if table in skip:
                 continue
             if table not in types:
                 if not leaf and isinstance(value, Mapping):  # an unknown table: name where its first moved key went
                     inner = next((k for k in value if cls.moved(k) is not None), None)
                     if inner is not None:
-                        raise ConfigError(f"table [{table}] is not used: its key '{inner}' is now '{cls.moved(inner)}' "
+                        raise ConfigError(f"table [{printable_name(table)}] is not used: its key '{inner}' is now '{cls.moved(inner)}' "
                                           f"(tables: {', '.join(types)})")
-                    raise ConfigError(f"unknown table [{table}] (tables: {', '.join(types)})")
+                    raise ConfigError(f"unknown table [{printable_name(table)}] (tables: {', '.join(types)})")
                 cls._refuse(key)
             if leaf:
                 grouped.setdefault(table, {})[leaf] = value

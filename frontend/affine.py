@@ -65,7 +65,9 @@ def _grid(size: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _sample(img: np.ndarray, A: np.ndarray, t: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """(n, k) float32 bilinear samples of ``img`` at ``A [gx gy] + t`` for each of n warps."""
+    """(n, k) float32 bilinear samples of ``img`` at ``A [gx gy] + t`` for each of n warps (n may be 0)."""
+    if t.shape[0] == 0:
+        return np.zeros((0, gx.size), np.float32)
     A = A.astype(np.float32, copy=False)
     t = t.astype(np.float32, copy=False)
     mx = A[:, 0, 0:1] * gx + A[:, 0, 1:2] * gy + t[:, 0:1]
@@ -85,6 +87,8 @@ def make_templates(img: np.ndarray, centres: np.ndarray, size: int, min_texture:
     image ``img``; also (n,) bool: the patch has texture in every direction (smallest eigenvalue
     of its normalized gradient matrix >= ``min_texture``)."""
     n = centres.shape[0]
+    if n == 0:
+        return Templates.empty(size), np.zeros(0, bool)
     big = size + 2
     gx, gy = _grid(big)
     eye = np.broadcast_to(np.eye(2, dtype=np.float32), (n, 2, 2))

@@ -131,3 +131,12 @@ class TrackerConfig(OptionTable):
     def per_cell_budget(self) -> int:
         """The effective per-cell budget (``cell_budget`` or its automatic value)."""
         return self.cell_budget or max(1, math.ceil(2 * self.target_tracks / self.cells))
+
+    @property
+    def min_image_side(self) -> int:
+        """Smallest image width and height (px) these options can track in: a Lucas-Kanade window
+        (``lk_window``) and a first patch (``affine_window``) must fit in the image, a point must
+        keep ``border_px`` from every edge in both images with a positive disparity between
+        them (``2 border_px + 2``), and ``cv2.cornerSubPix`` needs ``2 subpix_window + 5``."""
+        subpix = 2 * self.subpix_window + 5 if self.subpix_window else 1
+        return max(self.lk_window, self.affine_window, 2 * self.border_px + 2, subpix)

@@ -17,7 +17,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["TrackDrawer"]
+from ..backend.errors import InputError
+
+__all__ = ["TrackDrawer", "check_draw_dir"]
 
 
 def _colour(track_id: int) -> tuple[int, int, int]:
@@ -49,12 +51,33 @@ def write_png_atomic(path: Path, image: np.ndarray) -> None:
         raise
 
 
+def check_draw_dir(out_dir) -> Path:
+    """``out_dir`` as a Path if it is a writable directory or can be made one (its nearest existing
+    ancestor is a writable directory); InputError naming it otherwise. Creates nothing."""
+    out_dir = Path(out_dir)
+    for path in (out_dir, *out_dir.parents):
+        if path.exists():
+            if not path.is_dir():
+                what = "is not a directory" if path == out_dir else f"cannot be created: {path} is not a directory"
+                raise InputError(f"{out_dir}: {what} (--draw needs a directory for the frame pictures)")
+            if not os.access(path, os.W_OK | os.X_OK):
+                what = "is not writable" if path == out_dir else f"cannot be created: {path} is not writable"
+                raise InputError(f"{out_dir}: {what} (--draw needs a directory for the frame pictures)")
+            break
+    return out_dir
+
+
 class TrackDrawer:
-    """Draws frames into ``out_dir`` (created if missing); call :meth:`draw` once per frame, in order."""
+    """Draws frames into ``out_dir`` (created if missing; InputError naming it when that fails);
+    call :meth:`draw` once per frame, in order."""
 
     def __init__(self, out_dir, tail: int = 10) -> None:
-        self.out_dir = Path(out_dir)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = check_draw_dir(out_dir)
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"{self.out_dir}: cannot create the --draw directory: "
+                             f"{' '.join(str(exc.strerror or exc).split())}") from None
         self.tail = int(tail)
         self._history: dict[int, deque] = {}
 

@@ -3,8 +3,9 @@
 A directory holds ``image_0/NNNNNN.png`` (left), ``image_1/NNNNNN.png`` (right, the same file
 names), ``calib.txt`` with ``P0:`` and ``P1:`` rows (3x4 rectified projection matrices, 12 numbers
 row-major; other rows such as ``P2:`` or ``Tr:`` are ignored) and ``times.txt`` (seconds, one a
-frame). Both cameras share K (``P[:, :3]``); the left one is the reference (``P0[:, 3] = 0``) and
-the right one sits ``baseline = -P1[0,3] / P1[0,0]`` metres along its x axis.
+line: at least one a frame, the first n for n frames). Both cameras share K (``P[:, :3]``); the
+left one is the reference (``P0[:, 3] = 0``) and the right one sits
+``baseline = -P1[0,3] / P1[0,0]`` metres along its x axis.
 
 :func:`open_stereo_directory` checks the layout, calibration and time stamps and reads the first
 pair (image size); frames are then read lazily, one pair at a time. Every problem raises
@@ -67,21 +68,26 @@ def read_calibration(path: Path) -> tuple[np.ndarray, float]:
         raise InputError(f"{path}: P0[:, 3] must be 0 (the left camera is the reference), got {P0[:, 3].tolist()}")
     if np.abs(P1[1:, 3]).max() > _K_TOL * scale:
         raise InputError(f"{path}: P1[1:, 3] must be 0 (a horizontal rectified baseline), got {P1[1:, 3].tolist()}")
-    baseline = float(-P1[0, 3] / P1[0, 0])
-    if not baseline > 0:
-        raise InputError(f"{path}: baseline -P1[0,3]/P1[0,0] = {baseline:.6g} m must be > 0 (right camera to the right)")
+    with np.errstate(over="ignore"):
+        baseline = float(-P1[0, 3] / P1[0, 0])
+    if not (np.isfinite(baseline) and baseline > 0):
+        raise InputError(f"{path}: baseline -P1[0,3]/P1[0,0] = {baseline:.6g} m must be a finite number > 0 "
+                         "(right camera to the right)")
     return K, baseline
 
 
 def read_times(path: Path, n_frames: int) -> np.ndarray:
-    """(n_frames,) strictly increasing seconds from ``times.txt`` (one number a line)."""
+    """(n_frames,) strictly increasing seconds: the first ``n_frames`` stamps of ``times.txt`` (one
+    number a line; lines after them are not read, as with a longer IMU CSV)."""
     path = Path(path)
     values, numbers = [], []
     for number, text in content_lines(read_lines(path, "missing (need one time stamp a frame)")):
+        if len(values) == n_frames:
+            break
         values.extend(finite_numbers([text], f"{path}: line {number}", "time stamp"))
         numbers.append(number)
-    if len(values) != n_frames:
-        raise InputError(f"{path}: {len(values)} time stamps for {n_frames} frames (need one a frame)")
+    if len(values) < n_frames:
+        raise InputError(f"{path}: {len(values)} time stamps for {n_frames} frames (need at least one a frame)")
     t = np.array(values, dtype=np.float64)
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
@@ -165,6 +171,8 @@ def open_stereo_directory(path) -> StereoDirectory:
     right_names = _png_names(root / RIGHT_DIR)
     if not left_names:
         raise InputError(f"{root / LEFT_DIR}: empty sequence (no .png frames)")
+    if len(left_names) < 2:
+        raise InputError(f"{root / LEFT_DIR}: one frame ({left_names[0]}); a sequence needs at least 2 (one step of motion)")
     if len(left_names) != len(right_names):
         raise InputError(
             f"{root / RIGHT_DIR}: {len(right_names)} frames but {LEFT_DIR}/ has {len(left_names)} (need one right image per left image)"

@@ -3,9 +3,9 @@
 Two sources, chosen by :func:`read_imu` from the file name:
 
 * a CSV (``.csv``/``.txt``) with rows ``t,vx,vy,vz,wx,wy,wz`` (seconds, m/s, rad/s, IMU frame;
-  an optional header line; ``#`` comments and blank lines skipped). Frame i gets row i: the file
-  needs at least as many rows as there are frames and its first ``n_frames`` rows are used,
-  time stamps included. The CSV carries no extrinsic: it comes from ``--imu-T-cam FILE``
+  an optional header line without any number in it, so a damaged first row is refused rather than
+  skipped; ``#`` comments and blank lines skipped). Frame i gets row i: the file needs at least
+  as many rows as there are frames and its first ``n_frames`` rows are used, time stamps included. The CSV carries no extrinsic: it comes from ``--imu-T-cam FILE``
   (:func:`read_imu_T_cam`, a 4x4 text matrix mapping camera-frame points into the IMU frame);
 * a course ``.npz`` (either layout, read with :func:`~vislam.backend.data.npz.load_sequence`): frame i
   is step i, steps beyond the last frame are ignored; its time stamps, velocities and
@@ -25,7 +25,7 @@ import numpy as np
 
 from ..backend.errors import InputError
 from ..backend.data.npz import load_sequence
-from ..backend.data.sequence import check_rigid
+from ..backend.data.sequence import nearest_rigid
 from ..backend.data.textio import content_lines, read_lines
 
 __all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam"]
@@ -42,6 +42,7 @@ class ImuVelocities:
     imu_T_cam: np.ndarray | None  # (4,4) camera -> IMU, None when the source carries none
     layout: str = "2022"  # course layout to write the tracks in (that of an .npz source)
     source: str = ""
+    notes: tuple[str, ...] = ()  # what the readers accepted with a remark (a re-orthonormalized rotation)
 
     def __len__(self) -> int:
         return int(self.time_stamps.shape[0])
@@ -54,6 +55,11 @@ def _numbers(text: str) -> list[float] | None:
         return None
 
 
+def _is_header(text: str) -> bool:
+    """A line none of whose fields is a number (``t,vx,vy,vz,wx,wy,wz``)."""
+    return all(_numbers(field) is None for field in text.replace(",", " ").split())
+
+
 def read_imu_csv(path, n_frames: int) -> ImuVelocities:
     """The first ``n_frames`` rows ``t,vx,vy,vz,wx,wy,wz`` of a CSV (see the module docstring)."""
     path = Path(path)
@@ -61,7 +67,7 @@ def read_imu_csv(path, n_frames: int) -> ImuVelocities:
     first = True
     for number, text in content_lines(read_lines(path)):
         values = _numbers(text)
-        if values is None and first:
+        if values is None and first and _is_header(text):
             first = False
             continue  # the header
         first = False
@@ -104,12 +110,19 @@ def read_imu_npz(path, n_frames: int) -> ImuVelocities:
         imu_T_cam=np.array(seq.imu_T_cam, dtype=np.float64),
         layout=seq.layout,
         source=str(path),
+        notes=tuple(seq.notes),
     )
 
 
 def read_imu_T_cam(path) -> np.ndarray:
     """A rigid 4x4 transform (camera -> IMU) from a text file: 4 rows of 4 numbers (spaces or
-    commas; ``#`` comments allowed)."""
+    commas; ``#`` comments allowed). A rotation typed to a few decimals (within
+    ``ORTHO_ACCEPT`` of orthonormal) is replaced by the nearest rotation
+    (:func:`~vislam.backend.data.sequence.nearest_rigid`); :func:`read_imu` keeps the note."""
+    return _read_imu_T_cam(path)[0]
+
+
+def _read_imu_T_cam(path) -> tuple[np.ndarray, str | None]:
     path = Path(path)
     lines = read_lines(path)
     rows = []
@@ -124,8 +137,7 @@ def read_imu_T_cam(path) -> np.ndarray:
     if len(rows) != 4:
         raise InputError(f"{path}: expected a 4x4 matrix (4 rows), got {len(rows)} rows")
     T = np.array(rows, dtype=np.float64)
-    check_rigid(str(path), "imu_T_cam", T)
-    return T
+    return nearest_rigid(str(path), "imu_T_cam", T)
 
 
 def read_imu(path, n_frames: int, imu_T_cam_path=None) -> ImuVelocities:
@@ -139,9 +151,10 @@ def read_imu(path, n_frames: int, imu_T_cam_path=None) -> ImuVelocities:
     else:
         imu = read_imu_csv(path, n_frames)
     if imu_T_cam_path is not None:
+        T, note = _read_imu_T_cam(imu_T_cam_path)
         return ImuVelocities(
             imu.time_stamps, imu.linear_velocity, imu.angular_velocity,
-            read_imu_T_cam(imu_T_cam_path), imu.layout, imu.source,
+            T, imu.layout, imu.source, imu.notes + ((note,) if note else ()),
         )
     if imu.imu_T_cam is None:
         raise InputError(f"{path}: a CSV carries no camera extrinsic; give it with --imu-T-cam FILE (4x4 imu_T_cam)")

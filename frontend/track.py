@@ -21,12 +21,13 @@ import numpy as np
 from ..backend.errors import InputError
 from ..backend.data.sequence import VISLAM_TRACKER, Sequence
 from .config import TrackerConfig
-from .draw import TrackDrawer
+from .draw import TrackDrawer, check_draw_dir
 from .images import StereoDirectory, open_stereo_directory
 from .imu_input import ImuVelocities, read_imu
 from .tracker import StereoTracker
 
-__all__ = ["track_directory", "iter_tracks", "image_steps", "check_imu", "tracks_to_sequence", "opencv_threads"]
+__all__ = ["track_directory", "iter_tracks", "image_steps", "check_imu", "check_image_size", "tracks_to_sequence",
+           "opencv_threads"]
 
 
 @contextmanager
@@ -45,16 +46,39 @@ def _stereo(images_dir) -> StereoDirectory:
     return images_dir if isinstance(images_dir, StereoDirectory) else open_stereo_directory(images_dir)
 
 
+def check_image_size(stereo: StereoDirectory, config: TrackerConfig) -> None:
+    """InputError naming the directory and the size when its images are smaller than the
+    tracker can work in (:attr:`~frontend.config.TrackerConfig.min_image_side`)."""
+    w, h = stereo.image_size
+    need = config.min_image_side
+    if min(w, h) < need:
+        raise InputError(
+            f"{stereo.root}: images {w}x{h} px are too small to track: each side needs at least {need} px "
+            f"(tracker.lk_window {config.lk_window}, tracker.affine_window {config.affine_window}, "
+            f"tracker.border_px {config.border_px}, tracker.subpix_window {config.subpix_window})"
+        )
+
+
 def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
                 tracker: StereoTracker | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """Yield ``(frame index, ids (n,) int64 increasing, pixels (n,4) uL vL uR vR)`` per frame of a
-    KITTI-layout directory (path or :class:`~frontend.images.StereoDirectory`), frame by frame.
+    KITTI-layout directory (path or :class:`~frontend.images.StereoDirectory`), frame by frame; a
+    frame without trackable texture yields ids (0,) and pixels (0,4).
     ``draw_dir``: write a debug picture per frame there (:class:`~frontend.draw.TrackDrawer`);
-    ``tracker``: a tracker to use (its ``num_ids`` tells how many ids were issued)."""
+    ``tracker``: a tracker to use (its ``num_ids`` tells how many ids were issued).
+    The image size (:func:`check_image_size`) and ``draw_dir`` are checked on the call, before
+    the first frame is read; InputError if either is unusable."""
     stereo = _stereo(images_dir)
     config = config if config is not None else TrackerConfig()
+    check_image_size(stereo, config)
     tracker = tracker if tracker is not None else StereoTracker(config, stereo.K, stereo.baseline)
     drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
+    return _tracked_frames(stereo, config, tracker, drawer)
+
+
+def _tracked_frames(stereo: StereoDirectory, config: TrackerConfig, tracker: StereoTracker,
+                    drawer: TrackDrawer | None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """The frame loop of :func:`iter_tracks` (its inputs already checked)."""
     with opencv_threads(config.threads):
         for index, left, right in stereo.frames():
             ids, pixels = tracker.step(left, right)
@@ -66,9 +90,11 @@ def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
 def image_steps(stereo: StereoDirectory, imu: ImuVelocities, config: TrackerConfig | None = None,
                 draw_dir=None) -> Iterator[tuple]:
     """Yield ``(t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4))`` per frame:
-    the IMU sample of the frame (:func:`check_imu`) and its tracks, as soon as they exist."""
-    for index, ids, pixels in iter_tracks(stereo, config, draw_dir):
-        yield imu.time_stamps[index], imu.linear_velocity[index], imu.angular_velocity[index], ids, pixels
+    the IMU sample of the frame (:func:`check_imu`) and its tracks, as soon as they exist. The
+    image size and ``draw_dir`` are checked on the call (:func:`iter_tracks`)."""
+    frames = iter_tracks(stereo, config, draw_dir)
+    return ((imu.time_stamps[index], imu.linear_velocity[index], imu.angular_velocity[index], ids, pixels)
+            for index, ids, pixels in frames)
 
 
 def check_imu(imu, stereo: StereoDirectory, imu_T_cam_path=None) -> ImuVelocities:
@@ -107,11 +133,15 @@ def track_directory(
     an IMU CSV / course .npz; ``imu_T_cam_path`` (``--imu-T-cam``): a 4x4 text extrinsic, needed
     with a CSV, overriding an .npz's. ``progress``:
     optional callable(frame_index, n_frames). ``draw_dir``: write a debug picture per frame there
-    (:class:`~frontend.draw.TrackDrawer`). Raises InputError on unusable input.
+    (:class:`~frontend.draw.TrackDrawer`). Raises InputError on unusable input (images too small to
+    track, a ``draw_dir`` that cannot be a directory, the IMU) before the first frame is tracked.
     """
     stereo = _stereo(images_dir)
-    imu = check_imu(imu, stereo, imu_T_cam_path)
     config = config if config is not None else TrackerConfig()
+    check_image_size(stereo, config)
+    if draw_dir is not None:
+        check_draw_dir(draw_dir)
+    imu = check_imu(imu, stereo, imu_T_cam_path)
     tracker = StereoTracker(config, stereo.K, stereo.baseline)
     all_ids, all_pixels = [], []
     for index, ids, pixels in iter_tracks(stereo, config, draw_dir, tracker):

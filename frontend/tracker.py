@@ -64,6 +64,10 @@ __all__ = ["StereoTracker", "FrameStats"]
 
 _FUNDAMENTAL = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.FM_RANSAC}
 
+#: Block size (px, odd) of the block matcher that seeds new points' disparity; cv2.StereoBM
+#: refuses images not larger than it.
+_BM_BLOCK = 7
+
 
 @dataclass
 class FrameStats:
@@ -163,8 +167,10 @@ class StereoTracker:
         return self._frame
 
     def step(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Track one rectified pair (8-bit grey, same size every frame): returns the live tracks'
-        ids (n,) int64, increasing, and pixels (n,4) float64 ``uL vL uR vR``."""
+        """Track one rectified pair (8-bit grey, same size every frame, each side at least
+        ``config.min_image_side`` px, else ValueError): returns the live tracks' ids (n,) int64,
+        increasing, and pixels (n,4) float64 ``uL vL uR vR``; a frame without trackable texture
+        (all black, say) gives none, ids (0,) and pixels (0,4), and the next frame starts new tracks."""
         left, right = self._check_images(left, right)
         cfg = self.config
         refine = cfg.affine_window > 0
@@ -234,6 +240,9 @@ class StereoTracker:
         if left.shape != right.shape:
             raise ValueError(f"left {left.shape} and right {right.shape} images differ in size")
         size = (left.shape[1], left.shape[0])
+        if min(size) < self.config.min_image_side:
+            raise ValueError(f"images {size[0]}x{size[1]} are too small to track: each side needs at least "
+                             f"{self.config.min_image_side} px (TrackerConfig.min_image_side)")
         if self._size is None:
             self._size = size
         elif size != self._size:
@@ -442,7 +451,8 @@ class StereoTracker:
     def _coarse_disparity(self, left_half: np.ndarray, right: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Disparity (n,) at the full-size pixels ``p`` from block matching (``cv2.StereoBM``) of
         the pair shrunk ``stereo_seed_scale`` times (``cv2.pyrDown``); NaN where the matcher gives
-        none (no texture, not unique)."""
+        none (no texture, not unique) and everywhere when the shrunk pair is no larger than the
+        matcher's block."""
         cfg = self.config
         levels = int(np.log2(cfg.stereo_seed_scale))
         ls, rs = left_half, right
@@ -450,9 +460,11 @@ class StereoTracker:
             ls = cv2.pyrDown(ls)
         for _ in range(levels):
             rs = cv2.pyrDown(rs)
+        if min(ls.shape) <= _BM_BLOCK:
+            return np.full(p.shape[0], np.nan, np.float32)
         if self._block_matcher is None:
             blocks = max(1, int(np.ceil(cfg.stereo_max_disparity_px / cfg.stereo_seed_scale / 16)))
-            self._block_matcher = cv2.StereoBM_create(numDisparities=16 * blocks, blockSize=7)
+            self._block_matcher = cv2.StereoBM_create(numDisparities=16 * blocks, blockSize=_BM_BLOCK)
             self._block_matcher.setUniquenessRatio(5)
             self._block_matcher.setTextureThreshold(5)
         disparity = self._block_matcher.compute(ls, rs)  # int16, 1/16 px, < 0 where invalid

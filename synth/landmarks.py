@@ -13,9 +13,23 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..backend.errors import ConfigError
 from ._random import generator
 
-__all__ = ["path_frames", "street_landmarks", "aerial_landmarks", "LANDMARKS"]
+__all__ = ["path_frames", "street_landmarks", "aerial_landmarks", "LANDMARKS", "MAX_POINTS"]
+
+#: The most landmark points a scene may have (24 bytes each, and ~40 observations each in a
+#: 300-step street): checked on the expected count before any point is drawn
+MAX_POINTS = 2_000_000
+
+
+def _check_point_budget(expected: float, density: float) -> None:
+    """ConfigError, before allocating, when a scene would have more than MAX_POINTS points."""
+    if expected > MAX_POINTS:
+        raise ConfigError(
+            f"synthetic scene: landmark_density {density:g} gives about {expected:.3g} landmark points "
+            f"({expected * 24 / 2**30:.1f} GiB before projecting them, ~40 observations each); a scene may "
+            f"have at most {MAX_POINTS:,}: lower landmark_density or steps")
 
 
 def path_frames(world_T_imu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,6 +91,7 @@ def street_landmarks(
     s, positions, yaw = path_frames(world_T_imu)
     length = s[-1] + ahead
     facade_rate, road_rate, far_rate = (density * r for r in per_metre)
+    _check_point_budget((2 * facade_rate + road_rate + far_rate) * length, density)
     parts = []
     for side in (1.0, -1.0):
         ends = [0.0]
@@ -131,6 +146,7 @@ def aerial_landmarks(
     stations = np.arange(0.0, s[-1] + ahead + 0.5 * spacing, spacing)
     centres, _ = _along(stations, s, positions, yaw)
     per_ball = density * per_cubic_metre * 4.0 / 3.0 * np.pi * radius**3
+    _check_point_budget(per_ball * centres.shape[0], density)  # an upper bound (Voronoi cells cut it)
     counts = rng.poisson(per_ball, centres.shape[0])
     owner = np.repeat(np.arange(centres.shape[0]), counts)
     direction = rng.standard_normal((owner.shape[0], 3))

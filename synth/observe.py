@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..backend.errors import ConfigError
 from ..backend.geometry import se3
 from ..backend.geometry.camera import StereoCamera
 from ._random import generator
@@ -28,6 +29,7 @@ __all__ = [
     "KITTI_BASELINE",
     "KITTI_IMAGE_SIZE",
     "KITTI_IMU_T_CAM",
+    "check_observation_count",
     "Observations",
     "camera_from_world",
     "visible_pairs",
@@ -50,6 +52,11 @@ KITTI_IMU_T_CAM = np.array(
 
 #: Steps projected at a time (bounds the memory of the candidate pairs).
 _BLOCK_STEPS = 256
+#: The most (step, point) pairs in view a scene may have; each costs ~200 bytes while the
+#: observations are drawn, so this bounds that at ~4 GiB
+MAX_OBSERVATIONS = 20_000_000
+_BYTES_PER_OBSERVATION = 200
+_SAMPLE_POINTS = 20_000
 
 
 def _readonly(a) -> np.ndarray:
@@ -147,11 +154,15 @@ def visible_pairs(
     if points.shape[0] == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty.copy(), np.zeros((0, 4))
+    if points.shape[0] > _SAMPLE_POINTS:  # estimate the pairs from a sample before drawing them all
+        check_observation_count(world_T_imu, points, calibration, min_depth, max_depth)
     tree = cKDTree(points)
+    total = 0
     for first in range(0, centres.shape[0], _BLOCK_STEPS):
         block = slice(first, min(first + _BLOCK_STEPS, centres.shape[0]))
         lists = tree.query_ball_point(centres[block], radius, return_sorted=True)
         counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
+        _check_observation_budget(total + int(counts.sum()) // 4, block.stop, centres.shape[0])
         idx = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
         steps = np.repeat(np.arange(block.start, block.stop, dtype=np.int64), counts)
         T = cam_T_world[steps]
@@ -163,7 +174,35 @@ def visible_pairs(
         out_steps.append(steps[keep])
         out_points.append(idx[keep])
         out_pixels.append(pixels[keep])
+        total += out_steps[-1].shape[0]
+        _check_observation_budget(total, block.stop, centres.shape[0])
     return np.concatenate(out_steps), np.concatenate(out_points), np.concatenate(out_pixels)
+
+
+def check_observation_count(world_T_imu: np.ndarray, points: np.ndarray, calibration: Calibration,
+                            min_depth: float = 2.0, max_depth: float = 60.0) -> int:
+    """The number of (step, point) pairs in view, estimated from a sample of at most _SAMPLE_POINTS
+    points; ConfigError naming the memory when it exceeds MAX_OBSERVATIONS."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    num_steps = np.asarray(world_T_imu).shape[0]
+    if points.shape[0] <= _SAMPLE_POINTS:
+        sample, scale = points, 1.0
+    else:
+        sample = points[np.linspace(0, points.shape[0] - 1, _SAMPLE_POINTS).astype(np.int64)]
+        scale = points.shape[0] / _SAMPLE_POINTS
+    estimate = int(visible_pairs(world_T_imu, sample, calibration, min_depth, max_depth)[0].shape[0] * scale)
+    _check_observation_budget(estimate, num_steps, num_steps, estimated=True)
+    return estimate
+
+
+def _check_observation_budget(pairs: int, steps_done: int, num_steps: int, estimated: bool = False) -> None:
+    """ConfigError when the pairs in view (estimated, so far, or a block's candidates) exceed MAX_OBSERVATIONS."""
+    if pairs > MAX_OBSERVATIONS:
+        expected = pairs * num_steps / max(steps_done, 1)
+        so_far = "about" if estimated else f"over {MAX_OBSERVATIONS:,} after {steps_done} of {num_steps} steps,"
+        raise ConfigError(
+            f"synthetic scene: {so_far} {expected:.3g} observations in all ({expected * _BYTES_PER_OBSERVATION / 2**30:.1f} "
+            f"GiB to draw them), more than the {MAX_OBSERVATIONS:,} a scene may have: lower landmark_density or steps")
 
 
 def _random_pixels(rng: np.random.Generator, n: int, calibration: Calibration, min_depth: float) -> np.ndarray:

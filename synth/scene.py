@@ -22,10 +22,10 @@ from ..backend.data.tum import write_tum
 from ._random import generator
 from .imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
 from .landmarks import LANDMARKS
-from .observe import Calibration, kitti_calibration, observe
+from .observe import Calibration, check_observation_count, kitti_calibration, observe
 from .trajectories import TRAJECTORIES
 
-__all__ = ["SceneConfig", "SceneFactory", "Scene", "make_scene", "write_scene"]
+__all__ = ["SceneConfig", "SceneFactory", "Scene", "check_scene_size", "make_scene", "write_scene"]
 
 
 @dataclass(frozen=True)
@@ -136,6 +136,17 @@ class Scene:
     @property
     def image_size(self) -> tuple[int, int]:
         return self.config.calibration.image_size
+
+
+def check_scene_size(config: SceneConfig) -> int:
+    """The scene's number of observations, estimated from its trajectory, its points and a sample
+    of them, without drawing any; ConfigError naming the memory needed when the points or the
+    observations exceed their bounds (``synth.landmarks.MAX_POINTS``, ``synth.observe.MAX_OBSERVATIONS``).
+    What ``vislam synth`` and ``vislam mc`` check before any work."""
+    seed = int(config.seed)
+    traj = TRAJECTORIES[config.scenario](int(config.steps), config.dt, generator(seed, "trajectory"))
+    points = LANDMARKS[config.scenario](traj.world_T_imu, generator(seed, "landmarks"), density=config.landmark_density)
+    return check_observation_count(traj.world_T_imu, points, config.calibration, config.min_depth, config.max_depth)
 
 
 def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None) -> Scene:

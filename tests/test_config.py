@@ -268,7 +268,8 @@ def test_flat_keys_are_refused_naming_the_new_place(key, new):
         ("health.nis_window", 2.5),
         ("health.nis_window", True),
         ("health.nis_window", "seven"),
-        ("estimator.full_state", 1),
+        ("estimator.full_state", 2),
+        ("estimator.full_state", 1.0),
         ("estimator.full_state", "maybe"),
         ("estimator.mode", 3),
         ("noise.linear_velocity_sigma", "fast"),
@@ -278,6 +279,14 @@ def test_flat_keys_are_refused_naming_the_new_place(key, new):
 def test_wrong_type(key, value):
     with pytest.raises(ConfigError, match=f"'{key}'"):
         Config.from_values({key: value})
+
+
+def test_bool_as_0_or_1_in_file_as_on_the_command_line(tmp_path):
+    """`full_state = 0` in TOML means what `--set estimator.full_state=0` means."""
+    for text, expect in (("0", False), ("1", True), ("false", False)):
+        path = write(tmp_path, f"[estimator]\nfull_state = {text}\n")
+        assert Config.load(path).estimator.full_state is expect
+        assert Config.from_values({"estimator.full_state": text}).estimator.full_state is expect
 
 
 def test_wrong_type_in_file(tmp_path):

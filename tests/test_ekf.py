@@ -1016,3 +1016,193 @@ def test_make_error_model_follows_the_config(error_model, kind, mode, bias, fej)
 
 def test_default_error_model_is_invariant():
     assert type(make_error_model(Config(), CAMERA, IMU_T_CAM)) is InvariantModel
+
+
+# ------------------------------------------------------------------ health H3: vision that did (almost) nothing
+
+
+def test_vision_check_no_observations_says_dead_reckoning():
+    """H3: a run with no valid observation at all is dead reckoning alone (slam) / stereo triangulations (mapping)."""
+    from vislam.backend.estimator.health import vision_check
+
+    message = vision_check(0, 0, 0)
+    assert "no valid stereo observation" in message and "dead reckoning alone" in message
+    mapping = vision_check(0, 0, 0, slam=False)
+    assert "stereo triangulations alone" in mapping and "dead reckoning" not in mapping
+
+
+@pytest.mark.parametrize("gated", [0, 37])
+def test_vision_check_none_used(gated):
+    """H3: observations but none used (gated or not) names the counts and says dead reckoning; no division by zero."""
+    from vislam.backend.estimator.health import vision_check
+
+    message = vision_check(120, 0, gated)
+    assert f"none of the 120 observations was used ({gated} gated)" in message
+    assert "dead reckoning alone" in message and "pixel_sigma" in message
+    assert "stereo triangulations alone" in vision_check(120, 0, gated, slam=False)
+
+
+def test_vision_check_gated_share_threshold():
+    """H3: above MAX_GATED_SHARE (0.9) gated the run is close to dead reckoning; at or below it, no message."""
+    from vislam.backend.estimator.health import MAX_GATED_SHARE, vision_check
+
+    assert MAX_GATED_SHARE == 0.9
+    message = vision_check(1000, 5, 95)
+    assert "95.0 % of the observations were gated (only 5 used)" in message
+    assert "close to dead reckoning" in message
+    assert "mostly stereo triangulations" in vision_check(1000, 5, 95, slam=False)
+    assert vision_check(1000, 10, 90) is None  # exactly 90 %: not above
+    assert vision_check(1000, 9, 91) is not None
+    assert vision_check(1000, 500, 0) is None
+    assert vision_check(1000, 500, 0, slam=False) is None
+
+
+def test_health_all_gated_window_reports_inconsistent():
+    """H1: a full window whose every observation is gated (used = 0) reports 'filter inconsistent'
+    once, without dividing by zero; an incomplete window or fewer than 20 observations seen does not."""
+    from vislam.backend.estimator.health import HealthMonitor
+
+    monitor = HealthMonitor(window=3, warn_factor=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        monitor.add_nis(0, 0.0, 0, 10)
+        monitor.add_nis(1, 0.0, 0, 10)  # window not full yet
+    assert monitor.messages == []
+    with pytest.warns(RuntimeWarning, match="filter inconsistent"):
+        monitor.add_nis(2, 0.0, 0, 10)
+    assert len(monitor.messages) == 1
+    assert monitor.messages[0].startswith("step 2: filter inconsistent: no observation used and 100 % gated")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        monitor.add_nis(3, 0.0, 0, 10)  # the same episode: no second message
+    assert len(monitor.messages) == 1
+
+    few = HealthMonitor(window=3, warn_factor=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for step in range(5):
+            few.add_nis(step, 0.0, 0, 6)  # 18 seen per window: too few to judge
+    assert few.messages == []
+
+
+def test_health_gated_count_toward_the_minimum():
+    """H1: 5 used + 30 gated is enough to judge (the early return counts gated observations):
+    a NIS in band but 86 % gated is reported."""
+    from vislam.backend.estimator.health import HealthMonitor
+
+    monitor = HealthMonitor(window=1, warn_factor=3.0)
+    with pytest.warns(RuntimeWarning):
+        monitor.add_nis(0, 4.0 * 5, 5, 30)
+    assert monitor.messages == [("step 0: filter inconsistent: mean NIS per observation 4.00 (expected about 4) "
+                                 "and 86 % gated over the last 1 steps; tune pixel_sigma or the IMU noise")]
+
+
+def test_health_all_gated_episode_ends_and_recurs():
+    """H1: an all-gated episode ends once the window is consistent again, and a new all-gated
+    stretch is a second episode (the NaN mean of used = 0 does not stick)."""
+    from vislam.backend.estimator.health import HealthMonitor
+
+    monitor = HealthMonitor(window=2, warn_factor=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for step in range(3):
+            monitor.add_nis(step, 0.0, 0, 25)
+        assert monitor._inconsistent is True
+        for step in range(3, 6):
+            monitor.add_nis(step, 4.0 * 25, 25, 0)
+        assert monitor._inconsistent is False
+        for step in range(6, 9):
+            monitor.add_nis(step, 0.0, 0, 25)
+    assert [m.split(":")[0] for m in monitor.messages] == ["step 1", "step 7"]
+
+
+@pytest.fixture(scope="module")
+def h3_scene():
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    return make_scene(SceneConfig(steps=80))
+
+
+def _h3_messages(result) -> list[str]:
+    return [m for m in result.stats.health_messages if "dead reckoning" in m or "stereo triangulations" in m]
+
+
+def _run_warned(seq, values: dict):
+    """run_sequence with Config.from_values(values), the RuntimeWarnings recorded."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = run_sequence(seq, Config.from_values(values))
+    return result, [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+
+
+def test_h3_all_gated_slam_run_says_dead_reckoning(h3_scene):
+    """H3 end to end: pixel_sigma 1e-300 gates every observation; the slam run's health messages
+    (and a RuntimeWarning) say the trajectory is dead reckoning alone, after H1's 'filter inconsistent'."""
+    result, warned = _run_warned(h3_scene.sequence, {"noise.pixel_sigma": 1e-300})
+    stats = result.stats
+    assert stats.observations > 0 and stats.observations_used == 0 and stats.observations_gated > 0
+    h3 = _h3_messages(result)
+    assert len(h3) == 1
+    counts = f"{stats.observations} observations was used ({stats.observations_gated} gated)"
+    assert h3[0].startswith(f"none of the {counts}")
+    assert "dead reckoning alone" in h3[0]
+    assert h3[0] in warned
+    assert any("filter inconsistent" in m for m in stats.health_messages)
+
+
+def test_h3_all_gated_mapping_run_says_stereo_triangulations(h3_scene):
+    """H3 end to end: the same all-gated run in mode mapping says its map is stereo triangulations alone."""
+    result, warned = _run_warned(h3_scene.sequence, {"noise.pixel_sigma": 1e-300, "estimator.mode": "mapping"})
+    h3 = _h3_messages(result)
+    assert len(h3) == 1 and "the map holds stereo triangulations alone" in h3[0]
+    assert h3[0] in warned
+
+
+def test_h3_huge_velocities_say_dead_reckoning(h3_scene):
+    """H3 end to end: linear velocities times 1e6 make every prediction miss; the slam run says dead reckoning."""
+    seq = dataclasses.replace(h3_scene.sequence, linear_velocity=h3_scene.sequence.linear_velocity * 1e6)
+    result, warned = _run_warned(seq, {})
+    h3 = _h3_messages(result)
+    assert result.stats.observations_used == 0 or result.stats.gated_share > 0.9
+    assert len(h3) == 1 and "dead reckoning" in h3[0] and h3[0] in warned
+
+
+def _without_observations(seq) -> Sequence:
+    n = seq.num_steps
+    return Sequence.from_steps(seq.time_stamps, seq.linear_velocity, seq.angular_velocity,
+                               [np.zeros(0, np.int64)] * n, [np.zeros((0, 4))] * n, seq.K, seq.baseline,
+                               seq.imu_T_cam)
+
+
+@pytest.mark.parametrize("mode, words", [("slam", "the trajectory is dead reckoning alone"),
+                                         ("mapping", "the map holds stereo triangulations alone")])
+def test_h3_run_without_observations(h3_scene, mode, words):
+    """H3 end to end: a sequence with no observation at all gets 'no valid stereo observation' in slam and mapping."""
+    seq = _without_observations(h3_scene.sequence)
+    assert seq.num_observations == 0
+    result, warned = _run_warned(seq, {"estimator.mode": mode})
+    assert result.stats.health_messages == [f"no valid stereo observation in the input: {words}"]
+    assert result.stats.health_messages[0] in warned
+
+
+@pytest.mark.parametrize("case", ["all gated", "no observations"])
+def test_h3_dead_reckoning_mode_gets_no_message(h3_scene, case):
+    """H3 end to end: mode dead-reckoning is not meant to see: no health message and no RuntimeWarning."""
+    seq = _without_observations(h3_scene.sequence) if case == "no observations" else h3_scene.sequence
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        result = run_sequence(seq, Config.from_values({"noise.pixel_sigma": 1e-300 if case == "all gated" else 1.5,
+                                                       "estimator.mode": "dead-reckoning"}))
+    assert result.stats.health_messages == []
+
+
+def test_h3_normal_synthetic_run_has_no_h3_message(h3_scene):
+    """H3 end to end: a normal synthetic slam run (the scene's own noise) uses its observations, no H3 message."""
+    result, warned = _run_warned(h3_scene.sequence, {
+        "noise.pixel_sigma": h3_scene.config.pixel_sigma,
+        "noise.linear_velocity_sigma": float(np.max(h3_scene.config.linear_sigma)),
+        "noise.angular_velocity_sigma": float(np.max(h3_scene.config.angular_sigma))})
+    stats = result.stats
+    assert stats.observations_used > 0.5 * stats.observations and stats.gated_share < 0.9
+    assert _h3_messages(result) == []
+    assert not any("dead reckoning" in m for m in warned)

@@ -19,6 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from vislam.backend.data.npz import load_sequence, save_sequence
 from vislam.backend.data.sequence import validate_sequence
@@ -27,6 +29,7 @@ from vislam.backend.geometry import se3
 from vislam.backend.options import parse_assignment
 from vislam.frontend.config import FundamentalMethod, TrackerConfig
 from vislam.frontend.images import open_stereo_directory
+from vislam.frontend.draw import TrackDrawer
 from vislam.frontend.imu_input import read_imu, read_imu_T_cam
 from vislam.frontend.track import check_imu, image_steps, iter_tracks, track_directory
 from vislam.frontend.tracker import StereoTracker
@@ -266,6 +269,156 @@ def test_real_kitti_frames():
     assert np.mean(counts) >= 150  # bound 100; measured 231
 
 
+# ---------------------------------------------------------------------------------------------- featureless and tiny frames
+
+
+def _texture(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A smooth random grey texture (cubic upsampling of noise): corners the tracker can follow."""
+    small = rng.integers(0, 256, (height // 4 + 2, width // 4 + 2)).astype(np.float32)
+    return np.clip(cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
+
+
+def _textured_pairs(n: int, black=(), size=(160, 96), disparity: int = 6, seed: int = 0):
+    """``n`` stereo pairs of one textured plane sliding 1 px a frame (right image ``disparity`` px
+    to the left); the frames in ``black`` are all zeros."""
+    w, h = size
+    scene = _texture(np.random.default_rng(seed), h, w + n + disparity + 2)
+    pairs = []
+    for k in range(n):
+        left = np.ascontiguousarray(scene[:, k : k + w])
+        right = np.ascontiguousarray(scene[:, k + disparity : k + disparity + w])
+        if k in black:
+            left, right = np.zeros_like(left), np.zeros_like(right)
+        pairs.append((left, right))
+    return pairs
+
+
+def _write_pairs(root: Path, pairs, times=None) -> Path:
+    """The KITTI layout of ``pairs`` under ``root`` (K: f = 100 px, centre of the image; baseline 0.5 m)."""
+    h, w = pairs[0][0].shape
+    for folder, side in (("image_0", 0), ("image_1", 1)):
+        (root / folder).mkdir(parents=True)
+        for k, pair in enumerate(pairs):
+            assert cv2.imwrite(str(root / folder / f"{k:06d}.png"), pair[side])
+    (root / "calib.txt").write_text(f"P0: 100 0 {w / 2} 0 0 100 {h / 2} 0 0 0 1 0\n"
+                                    f"P1: 100 0 {w / 2} -50 0 100 {h / 2} 0 0 0 1 0\n")
+    stamps = times if times is not None else [0.1 * k for k in range(len(pairs))]
+    (root / "times.txt").write_text("".join(f"{t:.6e}\n" for t in stamps))
+    return root
+
+
+@pytest.mark.parametrize("black", [(0,), (3,), (2, 3), tuple(range(6))], ids=["first", "middle", "two", "all"])
+def test_featureless_frames_give_no_observations_and_tracking_goes_on(tmp_path, black):
+    """An all-black frame yields ids (0,) and pixels (0,4); the textured frames around it are tracked."""
+    root = _write_pairs(tmp_path / "d", _textured_pairs(6, black))
+    frames = list(iter_tracks(root, draw_dir=tmp_path / "draw"))
+    assert [k for k, _, _ in frames] == list(range(6))
+    for k, ids, pixels in frames:
+        assert ids.dtype == np.int64 and pixels.dtype == np.float64
+        if k in black:
+            assert ids.shape == (0,) and pixels.shape == (0, 4), k
+        else:
+            assert ids.size >= 10 and pixels.shape == (ids.size, 4), (k, ids.size)
+            assert np.all(np.diff(ids) > 0) and np.isfinite(pixels).all()
+            assert np.all(pixels[:, 0] - pixels[:, 2] > 0)
+    # a track never spans a black frame: ids after it are all new
+    seen_before = {int(i) for k, ids, _ in frames if k < max(black) for i in ids}
+    assert not seen_before & {int(i) for k, ids, _ in frames if k > max(black) for i in ids}
+    assert sorted(p.name for p in (tmp_path / "draw").iterdir()) == [f"{k:06d}.png" for k in range(6)]
+
+
+@pytest.mark.parametrize("size", [(8, 8), (20, 15), (17, 40), (1, 1)])
+def test_images_too_small_to_track_are_refused_before_any_work(tmp_path, size):
+    rng = np.random.default_rng(1)
+    pairs = [(rng.integers(0, 256, size[::-1], dtype=np.uint8),) * 2 for _ in range(3)]
+    root = _write_pairs(tmp_path / "d", pairs)
+    label = f"{size[0]}x{size[1]}"
+    for call in (lambda: iter_tracks(root, draw_dir=tmp_path / "draw"),
+                 lambda: track_directory(root, tmp_path / "no_imu.csv", draw_dir=tmp_path / "draw")):
+        with pytest.raises(InputError) as info:
+            call()  # raised on the call, before any frame is read
+        message = str(info.value)
+        assert str(root) in message and label in message and "too small" in message and "\n" not in message
+        assert f"{TrackerConfig().min_image_side} px" in message
+    assert not (tmp_path / "draw").exists()
+    with pytest.raises(ValueError, match="too small"):
+        StereoTracker().step(*pairs[0])
+
+
+def test_min_image_side_is_what_the_options_need():
+    assert TrackerConfig().min_image_side == 18  # 2 border_px + 2
+    assert TrackerConfig.from_values({"border_px": 0}).min_image_side == 15  # lk_window, affine_window
+    assert TrackerConfig.from_values({"border_px": 0, "lk_window": 3, "affine_window": 0}).min_image_side == 9  # subpix
+    assert TrackerConfig.from_values({"border_px": 0, "lk_window": 3, "affine_window": 0, "subpix_window": 0,
+                                      }).min_image_side == 3
+    assert TrackerConfig.from_values({"lk_window": 31}).min_image_side == 31
+
+
+_TRACKER_OPTIONS = [{}, {"border_px": 0}, {"border_px": 0, "lk_window": 3, "affine_window": 0},
+                    {"stereo_seed_scale": 8, "lk_levels": 6, "lk_levels_tracked": 5},
+                    {"verify_births": True, "motion_threshold_px": 0.7, "birth_lookahead_frames": 3, "min_isotropy": 0.2,
+                     "confirm_frames": 1, "predict_flow": False, "fundamental_method": "ransac"}]
+
+
+@settings(max_examples=60, deadline=None)
+@example(options={}, extra=(0, 6), kinds=["noise"], seed=0)  # shrunk pair too small for the disparity seeds' block matcher
+@given(options=st.sampled_from(_TRACKER_OPTIONS), extra=st.tuples(st.integers(-2, 14), st.integers(-2, 14)),
+       kinds=st.lists(st.sampled_from(["black", "white", "noise", "texture", "dots"]), min_size=1, max_size=5),
+       seed=st.integers(0, 2**16))
+def test_any_frames_are_tracked_or_refused_for_their_size(options, extra, kinds, seed):
+    """Frames of any content at sizes around ``min_image_side``: refused (ValueError) exactly when a
+    side is smaller, else every frame gives ids (n,) and finite pixels (n,4), none for a blank frame."""
+    config = TrackerConfig.from_values(options)
+    w, h = (max(1, config.min_image_side + e) for e in extra)
+    rng = np.random.default_rng(seed)
+    tracker = StereoTracker(config, np.array([[100.0, 0, w / 2], [0, 100, h / 2], [0, 0, 1]]), 0.5)
+    scene = _texture(rng, h, w + 8)
+    for k, kind in enumerate(kinds):
+        if kind in ("black", "white"):
+            wide = np.full((h, w + 8), 0 if kind == "black" else 255, np.uint8)
+        elif kind == "noise":
+            wide = rng.integers(0, 256, (h, w + 8), dtype=np.uint8)
+        elif kind == "dots":
+            wide = np.zeros((h, w + 8), np.uint8)
+            wide[rng.integers(0, h, 6), rng.integers(0, w + 8, 6)] = 255
+        else:
+            wide = scene
+        shift = k % 3
+        left = np.ascontiguousarray(wide[:, 4 + shift : 4 + shift + w])
+        right = np.ascontiguousarray(wide[:, 1 + shift : 1 + shift + w])
+        if min(w, h) < config.min_image_side:
+            with pytest.raises(ValueError, match="too small"):
+                tracker.step(left, right)
+            return
+        ids, pixels = tracker.step(left, right)
+        assert ids.shape == (pixels.shape[0],) and pixels.shape[1:] == (4,) and np.isfinite(pixels).all()
+        if kind in ("black", "white"):
+            assert ids.size == 0
+
+
+def test_draw_directory_that_cannot_be_one_is_refused(tmp_path, monkeypatch):
+    a_file = tmp_path / "pictures"
+    a_file.write_text("not a directory")
+    for path in (a_file, a_file / "sub"):
+        with pytest.raises(InputError) as info:
+            TrackDrawer(path)
+        assert str(path) in str(info.value) and "not a directory" in str(info.value) and "\n" not in str(info.value)
+    root = _write_pairs(tmp_path / "d", _textured_pairs(2))
+    with pytest.raises(InputError, match="pictures"):
+        iter_tracks(root, draw_dir=a_file)  # on the call, before any frame
+    assert a_file.read_text() == "not a directory"
+    drawn = TrackDrawer(tmp_path / "new" / "dir")  # missing parents are made
+    assert drawn.out_dir.is_dir()
+    import vislam.frontend.draw as draw
+
+    monkeypatch.setattr(draw.os, "access", lambda path, mode: False)  # as a read-only directory answers
+    for path in (tmp_path / "new" / "dir", tmp_path / "new" / "other"):
+        with pytest.raises(InputError, match="not writable") as info:
+            TrackDrawer(path)
+        assert str(path) in str(info.value)
+    assert not (tmp_path / "new" / "other").exists()
+
+
 # ---------------------------------------------------------------------------------------------- inputs
 
 
@@ -334,6 +487,15 @@ def test_directory_reader_refuses_in_one_line(tmp_path, what):
     with pytest.raises(InputError) as info:
         open_stereo_directory(root)
     assert name in str(info.value) and "\n" not in str(info.value)
+
+
+def test_longer_times_txt_gives_the_first_stamps(tmp_path):
+    root = _kitti_dir(tmp_path / "d", n=4)
+    (root / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(9)) + "# stamps of frames past the last image\n")
+    np.testing.assert_allclose(open_stereo_directory(root).times, [0.0, 0.1, 0.2, 0.3])
+    (root / "times.txt").write_text("0\n0.1\n0.2\n")
+    with pytest.raises(InputError, match=r"times\.txt: 3 time stamps for 4 frames"):
+        open_stereo_directory(root)
 
 
 def test_unreadable_or_resized_frame_is_named_when_read(tmp_path):

@@ -13,9 +13,8 @@ from scipy.spatial.transform import Rotation
 
 from vislam.backend.data.files import atomic_write
 from vislam.backend.data.tum import read_tum, write_tum
-from vislam.backend.errors import InputError, VislamError
+from vislam.backend.errors import InputError
 from vislam.tools.outputs import (
-    prepare_output_dir,
     uncertainty_colors,
     write_json,
     write_map_npz,
@@ -78,22 +77,6 @@ def test_atomic_write_failure_keeps_existing_target(tmp_path):
     assert listing(tmp_path) == ["traj.txt"]
 
 
-# ---------------------------------------------------------------- prepare_output_dir
-
-
-def test_prepare_output_dir(tmp_path):
-    out = prepare_output_dir(tmp_path / "a" / "b", force=False)
-    assert out.is_dir()
-    assert prepare_output_dir(out, force=False) == out  # empty: fine
-    (out / "x.txt").write_text("x")
-    with pytest.raises(VislamError, match="not empty; use --force"):
-        prepare_output_dir(out, force=False)
-    assert prepare_output_dir(out, force=True) == out
-    assert (out / "x.txt").exists()  # force does not delete anything
-    with pytest.raises(VislamError):
-        prepare_output_dir(out / "x.txt", force=True)
-
-
 # ---------------------------------------------------------------- TUM
 
 
@@ -132,6 +115,13 @@ def test_evo_reads_what_write_tum_wrote(tmp_path):
 
 
 GOOD = "1.0 0 0 0 0 0 0 1"
+
+
+def test_read_tum_normalizes_a_quaternion_typed_to_few_decimals(tmp_path):
+    path = tmp_path / "typed.txt"
+    path.write_text("0 1 2 3 0.7071 0 0 0.7071\n1 1 2 3 0 0 0 1\n")  # norm 0.99999
+    _, poses = read_tum(path)
+    np.testing.assert_allclose(poses[0, :3, :3], [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -173,6 +163,11 @@ def test_read_tum_normalises_quaternion(tmp_path):
     expected[:3, 3] = [1.0, 2.0, 3.0]
     np.testing.assert_allclose(poses[0], expected, atol=1e-12)
     # (0, 0, 2, 2) normalised: 90 degrees about z
+    np.testing.assert_allclose(poses[1, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    # components beyond 1e154 (their squares overflow) and below 1e-154 (underflow) alike
+    path.write_text("0 1 2 3 1e200 0 0 1\n1 1 2 3 0 0 1e-200 1e-200\n")
+    _, poses = read_tum(path)
+    np.testing.assert_allclose(poses[0, :3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
     np.testing.assert_allclose(poses[1, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
 
 

@@ -141,4 +141,4 @@ def test_public_face():
 
 def test_console_script_points_into_vislam():
     scripts = {e.name: e.value for e in importlib.metadata.entry_points(group="console_scripts")}
-    assert scripts["vislam"] == "vislam.tools.cli:main"
+    assert scripts["vislam"] == "vislam.tools.cli:entry"

@@ -333,3 +333,139 @@ def test_write_scene_round_trip(tmp_path):
     np.testing.assert_allclose(poses[:, :3, :3], scene.world_T_imu_true[:, :3, :3], rtol=0, atol=1e-8)
     assert (out / "gt_tum.txt").read_text().startswith(f"# {scene.config.source} ground truth world_T_imu")
     assert sorted(p.name for p in out.iterdir()) == ["data.npz", "gt_tum.txt", "landmarks.npz"]
+
+
+# ------------------------------------------------------------------ memory bounds and the sparse file layout
+
+import os
+
+import vislam.synth.landmarks as synth_landmarks
+import vislam.synth.observe as synth_observe
+from vislam.backend.data import npz as npz_module
+from vislam.backend.data.npz import save_sequence
+
+SCENE_ARRAYS = ("world_T_imu_true", "twists_true", "landmark_ids", "landmark_positions", "landmark_point_index",
+                "points", "gyro_bias_true", "outlier")
+SEQUENCE_ARRAYS = ("time_stamps", "linear_velocity", "angular_velocity", "obs_ptr", "obs_ids", "obs_pixels")
+
+
+def assert_identical_scene(a: Scene, b: Scene) -> None:
+    for name in SCENE_ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for name in SEQUENCE_ARRAYS:
+        np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)
+    assert a.sequence.num_features == b.sequence.num_features
+
+
+@pytest.fixture(scope="module")
+def small_street() -> Scene:
+    return make_scene(SceneConfig(steps=80))
+
+
+@pytest.mark.parametrize("scenario", ["street", "aerial"])
+def test_huge_landmark_density_is_refused_before_allocating(scenario):
+    """landmark_density 1e6 over 300 steps raises ConfigError (quickly, before drawing points) naming GiB."""
+    with pytest.raises(ConfigError) as exc:
+        make_scene(SceneConfig(scenario=scenario, landmark_density=1e6, steps=300))
+    message = str(exc.value)
+    assert "GiB" in message and "landmark_density" in message and "\n" not in message
+
+
+@pytest.mark.parametrize("scenario", ["street", "aerial"])
+def test_point_budget_follows_max_points(monkeypatch, scenario):
+    """A scene whose expected point count exceeds a lowered MAX_POINTS is refused; the default bound lets it through."""
+    assert make_scene(SceneConfig(scenario=scenario, steps=80)).points.shape[0] > 100
+    monkeypatch.setattr(synth_landmarks, "MAX_POINTS", 100)
+    with pytest.raises(ConfigError, match="GiB"):
+        make_scene(SceneConfig(scenario=scenario, steps=80))
+
+
+def test_observation_budget_triggers(monkeypatch, small_street):
+    """MAX_OBSERVATIONS lowered below the scene's observations: make_scene raises ConfigError naming GiB and the bound."""
+    assert small_street.sequence.num_observations > 1000
+    monkeypatch.setattr(synth_observe, "MAX_OBSERVATIONS", 1000)
+    with pytest.raises(ConfigError) as exc:
+        make_scene(SceneConfig(steps=80))
+    assert "GiB" in str(exc.value) and "1,000" in str(exc.value)
+
+
+def test_observation_budget_sampling_estimate_triggers(monkeypatch, small_street):
+    """The estimate from a sample of the points (more points than _SAMPLE_POINTS) refuses a scene whose
+    sample alone is under MAX_OBSERVATIONS but whose whole would exceed it ('about ... GiB')."""
+    n = small_street.sequence.num_observations  # ~6500 from ~290 points
+    monkeypatch.setattr(synth_observe, "_SAMPLE_POINTS", 100)
+    monkeypatch.setattr(synth_observe, "MAX_OBSERVATIONS", int(0.6 * n))
+    with pytest.raises(ConfigError) as exc:
+        make_scene(SceneConfig(steps=80))
+    assert str(exc.value).startswith("synthetic scene: about ") and "GiB" in str(exc.value)
+
+
+@pytest.mark.parametrize("patch", ["bound", "sample"])
+def test_scene_under_the_observation_budget_is_unchanged(monkeypatch, small_street, patch):
+    """A scene under a lowered MAX_OBSERVATIONS, or built through the sampling estimate (small
+    _SAMPLE_POINTS), has exactly the arrays of the unpatched scene."""
+    if patch == "bound":
+        monkeypatch.setattr(synth_observe, "MAX_OBSERVATIONS", 2 * small_street.sequence.num_observations)
+    else:
+        monkeypatch.setattr(synth_observe, "_SAMPLE_POINTS", 100)
+    assert_identical_scene(make_scene(SceneConfig(steps=80)), small_street)
+
+
+def _dense_bytes(seq) -> int:
+    return 4 * int(seq.num_features) * seq.num_steps * 8
+
+
+@pytest.mark.parametrize("layout", ["2022", "2019"])
+@pytest.mark.parametrize("over", [True, False])
+def test_save_sequence_sparse_over_the_dense_limit(tmp_path, monkeypatch, small_street, over, layout):
+    """save_sequence(dense=None) writes the sparse keys (obs_ptr, obs_ids, obs_pixels, num_features, no
+    features) when 4*M*N*8 bytes exceed DENSE_LIMIT_BYTES, the dense features otherwise (at the limit
+    too); both load back to the same observations, time stamps, K, baseline and imu_T_cam."""
+    seq = small_street.sequence
+    monkeypatch.setattr(npz_module, "DENSE_LIMIT_BYTES", _dense_bytes(seq) - 1 if over else _dense_bytes(seq))
+    path = tmp_path / "data.npz"
+    save_sequence(seq, path, layout=layout)
+    with np.load(path) as f:
+        keys = set(f.files)
+        if over:
+            assert {"obs_ptr", "obs_ids", "obs_pixels", "num_features"} <= keys and "features" not in keys
+            assert int(f["num_features"]) == seq.num_features
+        else:
+            assert "features" in keys and not keys & {"obs_ptr", "obs_ids", "obs_pixels", "num_features"}
+            assert f["features"].shape == (4, seq.num_features, seq.num_steps)
+    back = load_sequence(path, image_size=small_street.image_size)
+    assert back.dropped == {"nonpositive_disparity": 0, "outside_image": 0}
+    for name in SEQUENCE_ARRAYS + ("K", "imu_T_cam"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(seq, name), err_msg=name)
+    assert back.baseline == seq.baseline and back.num_features == seq.num_features
+    assert back.layout == layout and back.tracker == seq.tracker
+    assert os.listdir(tmp_path) == ["data.npz"]
+
+
+def test_save_sequence_explicit_dense_overrides_the_limit(tmp_path, monkeypatch, small_street):
+    """dense=False writes the sparse layout and dense=True the dense one, whatever DENSE_LIMIT_BYTES says."""
+    seq = small_street.sequence
+    monkeypatch.setattr(npz_module, "DENSE_LIMIT_BYTES", 1)
+    save_sequence(seq, tmp_path / "dense.npz", dense=True)
+    monkeypatch.setattr(npz_module, "DENSE_LIMIT_BYTES", 1 << 40)
+    save_sequence(seq, tmp_path / "sparse.npz", dense=False)
+    with np.load(tmp_path / "dense.npz") as f:
+        assert "features" in f.files and "obs_ptr" not in f.files
+    with np.load(tmp_path / "sparse.npz") as f:
+        assert "obs_ptr" in f.files and "features" not in f.files
+    for name in ("dense.npz", "sparse.npz"):
+        back = load_sequence(tmp_path / name, image_size=small_street.image_size)
+        for key in ("obs_ptr", "obs_ids", "obs_pixels"):
+            np.testing.assert_array_equal(getattr(back, key), getattr(seq, key), err_msg=f"{name} {key}")
+
+
+def test_observation_budget_message_counts_are_plausible(monkeypatch, small_street):
+    """The 'observations in all' the refusal names is of the order of the scene's real count (within 10x)."""
+    import re
+
+    n = small_street.sequence.num_observations
+    monkeypatch.setattr(synth_observe, "MAX_OBSERVATIONS", 1000)
+    with pytest.raises(ConfigError) as exc:
+        make_scene(SceneConfig(steps=80))
+    claimed = float(re.search(r"(\S+) observations in all", str(exc.value)).group(1))
+    assert n / 10 <= claimed <= 10 * n, str(exc.value)

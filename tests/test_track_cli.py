@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from vislam.backend.config import Config
 from vislam.backend.data.npz import load_sequence
 from vislam.frontend.config import TrackerConfig
+from vislam.frontend.tracker import StereoTracker
 from vislam.tools.cli import main
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
@@ -123,6 +126,99 @@ def test_draw_writes_one_png_per_frame(rendered, tmp_path):
 
     image = cv2.imread(str(draw / names[5]))
     assert image.shape == (2 * 376, 1241, 3)  # left above right
+
+
+def _copy_frames(src: Path, dst: Path, n: int, black=(), size=None, extra_stamps: int = 0) -> Path:
+    """The first ``n`` pairs of the KITTI-layout ``src`` in ``dst`` (resized to ``size``; the frames in
+    ``black`` all zeros), its calib.txt and the first ``n + extra_stamps`` lines of its times.txt."""
+    for folder in ("image_0", "image_1"):
+        (dst / folder).mkdir(parents=True)
+        for k in range(n):
+            image = cv2.imread(str(src / folder / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE)
+            if size is not None:
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            if k in black:
+                image[:] = 0
+            assert cv2.imwrite(str(dst / folder / f"{k:06d}.png"), image)
+    shutil.copy(src / "calib.txt", dst / "calib.txt")
+    stamps = (src / "times.txt").read_text().splitlines()
+    assert len(stamps) >= n + extra_stamps
+    (dst / "times.txt").write_text("\n".join(stamps[: n + extra_stamps]) + "\n")
+    return dst
+
+
+def _no_tracking(monkeypatch):
+    """Make any tracking fail loudly: a refusal must come before the first frame is tracked."""
+    def step(self, left, right):
+        raise AssertionError("tracking started on input that must be refused first")
+
+    monkeypatch.setattr(StereoTracker, "step", step)
+
+
+@pytest.mark.parametrize("black", [(0,), (3,), tuple(range(6))], ids=["first", "middle", "all"])
+def test_featureless_frames_do_not_stop_track_or_run(rendered, tmp_path, capsys, black):
+    """All-black frames give no observations; `vislam track` and `vislam run IMAGES` go on (exit 0)."""
+    images = _copy_frames(rendered, tmp_path / "images", 6, black)
+    data = tmp_path / "tracks.npz"
+    assert main(["track", str(images), "--imu", str(rendered / "data.npz"), "--out", str(data), "--quiet"]) == 0
+    seq = load_sequence(data)
+    assert seq.num_steps == 6
+    for k in range(6):
+        ids, pixels = seq.observations(k)
+        if k in black:
+            assert ids.shape == (0,) and pixels.shape == (0, 4), k
+        else:
+            assert ids.size >= 50, (k, ids.size)
+    out = tmp_path / "run"
+    assert main(["run", str(images), "--imu", str(rendered / "data.npz"), "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["steps"] == 6
+    assert len(np.loadtxt(out / "trajectory.txt", ndmin=2)) == 6
+    assert "Traceback" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("size", [(8, 8), (20, 15)], ids=["8x8", "20x15"])
+def test_images_too_small_to_track_are_refused_in_one_line(rendered, tmp_path, capsys, monkeypatch, size):
+    images = _copy_frames(rendered, tmp_path / "images", 3, size=size)
+    _no_tracking(monkeypatch)
+    data = tmp_path / "tracks.npz"
+    out = tmp_path / "run"
+    for argv in (["track", str(images), "--imu", str(rendered / "data.npz"), "--out", str(data), "--quiet"],
+                 ["run", str(images), "--imu", str(rendered / "data.npz"), "--out", str(out), "--quiet"]):
+        assert main(argv) == 2, argv[0]
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and str(images) in err and f"{size[0]}x{size[1]}" in err and "too small" in err, err
+    assert not data.exists()
+    assert not (out / "trajectory.txt").exists()
+
+
+def test_times_txt_may_hold_more_stamps_than_frames(rendered, tmp_path, capsys):
+    images = _copy_frames(rendered, tmp_path / "images", 4, extra_stamps=20)
+    data = tmp_path / "tracks.npz"
+    assert main(["track", str(images), "--imu", str(rendered / "data.npz"), "--out", str(data), "--quiet"]) == 0
+    assert load_sequence(data).num_steps == 4
+    # fewer stamps than frames stays an error naming times.txt
+    (images / "times.txt").write_text("".join((rendered / "times.txt").read_text().splitlines(keepends=True)[:3]))
+    assert main(["track", str(images), "--imu", str(rendered / "data.npz"), "--out", str(data), "--force"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "times.txt" in err and "3 time stamps for 4 frames" in err
+
+
+def test_draw_into_a_regular_file_is_refused_before_any_work(rendered, tmp_path, capsys, monkeypatch):
+    images = _copy_frames(rendered, tmp_path / "images", 3)
+    drawing = tmp_path / "pictures.png"
+    drawing.write_bytes(b"a file, not a directory")
+    _no_tracking(monkeypatch)
+    data = tmp_path / "tracks.npz"
+    out = tmp_path / "run"
+    for argv in (["track", str(images), "--imu", str(rendered / "data.npz"), "--out", str(data), "--quiet"],
+                 ["run", str(images), "--imu", str(rendered / "data.npz"), "--out", str(out), "--quiet"]):
+        for target in (drawing, drawing / "frames"):
+            assert main([*argv, "--draw", str(target)]) == 2, (argv[0], target)
+            err = capsys.readouterr().err.strip()
+            assert err.count("\n") == 0 and str(target) in err and "not a directory" in err, err
+    assert drawing.read_bytes() == b"a file, not a directory"
+    assert not data.exists()
+    assert not (out / "trajectory.txt").exists()
 
 
 @pytest.mark.skipif(not (IMAGES.is_dir() and DATA_0042.is_file()), reason=f"real images or data not found under {SHARED}")

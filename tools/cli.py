@@ -6,10 +6,13 @@ Every user error is one line on stderr and exit code 2; Ctrl-C exits 130 and lea
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 
 from .. import __version__
 from ..backend.errors import VislamError
+from . import console
 from .commands import COMMANDS
 
 EXIT_USAGE = 2
@@ -26,7 +29,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; the exit code (0, 2 for a refusal, 130 after Ctrl-C)."""
+    return _main(argv)
+
+
+def _main(argv: list[str] | None, sigint_after=None) -> int:
+    """:func:`main`; ``sigint_after``: the SIGINT handler to leave in place (default: the one before)."""
     args = build_parser().parse_args(argv)
+    with console.interrupt_handler(sigint_after) as interrupted:
+        rc = _dispatch(args)
+    if interrupted() and rc != EXIT_INTERRUPTED:  # pressed, but swallowed where Python ignores exceptions
+        print("vislam: interrupted (after the work was done: its outputs are complete)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return rc
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """The command, with every error as one line and its exit code."""
     try:
         return args.func(args)
     except VislamError as exc:
@@ -35,7 +54,41 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vislam: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except OSError as exc:  # the system refused a read or write the checks could not foresee (a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"vislam: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as exc:
+        if not _interrupted(exc):
+            raise
+        print("vislam: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` wraps a Ctrl-C: compiled code (numba) re-raises KeyboardInterrupt as a
+    SystemError, and an import it interrupts (open3d, matplotlib) as an ImportError."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def entry() -> None:  # pragma: no cover - the console script; tests call main()
+    """``vislam``: :func:`main`; after Ctrl-C leave at once (the outputs are already cleaned up, and
+    the teardown of native libraries would change the exit code: open3d reports "memory leaks" and
+    exits 1 when an import or a write of it was interrupted); once the work is done, a Ctrl-C during
+    the interpreter's teardown is ignored."""
+    rc = _main(None, sigint_after=signal.SIG_IGN)  # done: a Ctrl-C during the teardown changes nothing
+    if rc == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    sys.exit(rc)
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

@@ -6,7 +6,7 @@ import argparse
 
 from ..backend.config import Config
 from ..backend.errors import ConfigError
-from ..backend.options import parse_assignment
+from ..backend.options import printable_name, parse_assignment
 from ..frontend.config import TrackerConfig
 
 TRACKER = TrackerConfig.TABLE
@@ -33,7 +33,9 @@ def _split(assignments: list[str]) -> tuple[list[str], dict[str, str]]:
     for item in assignments:
         key, value = parse_assignment(item)
         table, _, leaf = key.partition(".")
-        if table == TRACKER and leaf:
+        if table == TRACKER and not leaf:
+            raise ConfigError(f"--set {printable_name(item)!s}: names no option (expected {TRACKER}.KEY=VALUE)")
+        if table == TRACKER:
             tracker[leaf] = value
         elif not leaf and key in TrackerConfig.keys():
             raise ConfigError(f"config key '{key}' is now '{TRACKER}.{key}'")

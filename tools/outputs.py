@@ -16,7 +16,6 @@ import os
 import sys
 import types
 from dataclasses import asdict, is_dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,6 @@ from ..backend.data.files import atomic_write
 from ..backend.errors import VislamError
 
 __all__ = [
-    "prepare_output_dir",
     "write_map_npz",
     "write_map_ply",
     "uncertainty_colors",
@@ -83,32 +81,6 @@ def import_open3d() -> types.ModuleType:
 
 MAP_COLORMAP = "viridis"
 TRAJECTORY_COLORMAP = "plasma"
-
-
-# --------------------------------------------------------------------------------------
-# atomic writes and the output directory
-# --------------------------------------------------------------------------------------
-
-
-def prepare_output_dir(path: str | os.PathLike, force: bool) -> Path:
-    """Create the output directory ``path`` (with parents) and return it.
-
-    An existing empty directory is fine. A non-empty one is refused unless ``force`` (its
-    files are then overwritten one by one as the run writes them; nothing is deleted).
-    A regular file at ``path`` is always refused.
-    """
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise VislamError(f"{path}: exists and is not a directory")
-    if out.is_dir() and not force and any(out.iterdir()):
-        raise VislamError(
-            f"{path}: output directory exists and is not empty; use --force to overwrite"
-        )
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise VislamError(f"{path}: cannot create output directory: {exc.strerror}") from exc
-    return out
 
 
 # --------------------------------------------------------------------------------------

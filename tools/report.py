@@ -15,8 +15,9 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -90,11 +91,13 @@ def write_run_outputs(
     source: str,
     gt: Optional[tuple[np.ndarray, np.ndarray]] = None,
     tracker=None,
+    notes: Sequence[str] = (),
 ) -> dict:
     """Write every output file (each atomically) and return the summary dict; ``tracker``: the
-    front end's options of a run from images (recorded in summary.json and config.toml)."""
+    front end's options of a run from images (recorded in summary.json and config.toml);
+    ``notes``: what the readers accepted with a remark (listed in summary.json)."""
     errors = evaluate(result, *gt) if gt is not None else None
-    notes: list[str] = []
+    notes = list(notes)
     write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
                       header="world_T_imu estimated by vislam")
     write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
@@ -128,6 +131,10 @@ def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t:
     plots.plot_errors_over_time(path, series, f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment")
 
 
+def _nis_text(mean_nis: float) -> str:
+    return f"{mean_nis:.2f}" if math.isfinite(mean_nis) else "n/a (no observation used)"
+
+
 def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     """A few lines for the terminal."""
     t = summary["timing"]
@@ -137,7 +144,7 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
         f"steps {summary['steps']}, observations used {obs['used']} (gated {100 * obs['gated_share']:.1f} %), "
         f"landmarks mapped {lm['mapped']} (active mean {lm['active_mean']:.1f}, max {lm['active_max']})",
         f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
-        f"({t['real_time_factor']:.0f}x real time); mean NIS per observation {summary['mean_nis_per_observation']:.2f}",
+        f"({t['real_time_factor']:.0f}x real time); mean NIS per observation " + _nis_text(summary['mean_nis_per_observation']),
     ]
     if t.get("kernel_seconds", 0.0) >= 2.0:
         lines.append(f"compiled the filter's kernels in {t['kernel_seconds']:.1f} s first (once after an install; "

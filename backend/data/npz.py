@@ -46,9 +46,9 @@ _READ_ERRORS = (zipfile.BadZipFile, *_INFLATE_ERRORS, EOFError, OSError)  # a da
 
 from ..errors import InputError
 from ..geometry.se3 import inverse
-from .files import atomic_write
-from .sequence import (LAYOUTS, Sequence, check_baseline, check_camera_matrix, check_numeric, check_rigid, check_shape,
-                       check_time_stamps, format_number, input_error, validate_sequence)
+from .files import atomic_write, check_output_file
+from .sequence import (LAYOUTS, ORTHO_ACCEPT, Sequence, check_baseline, check_camera_matrix, check_numeric, check_rigid,
+                       check_shape, check_time_stamps, format_number, input_error, nearest_rigid, validate_sequence)
 
 __all__ = ["load_sequence", "save_sequence", "IMAGE_MARGIN"]
 
@@ -59,6 +59,12 @@ IMAGE_MARGIN = 1.25
 _CHUNK_BYTES = 1 << 20
 
 _COMMON_KEYS = ("time_stamps", "features", "linear_velocity", "K", "b")
+#: The sparse layout of the observations, instead of ``features``: per step, CSR
+_SPARSE_KEYS = ("obs_ptr", "obs_ids", "obs_pixels", "num_features")
+#: The most feature tracks a file may declare (num_features of the sparse layout)
+MAX_FEATURES = 2**31 - 1
+#: save_sequence writes the sparse layout when the dense features array would exceed this
+DENSE_LIMIT_BYTES = 256 * 2**20
 
 
 # ----------------------------------------------------------------------------------------------
@@ -69,7 +75,8 @@ def _image_bounds(src: str, K: np.ndarray, image_size) -> tuple[float, float]:
     if image_size is None:
         cx, cy = float(K[0, 2]), float(K[1, 2])
         if not (cx > 0 and cy > 0):
-            raise input_error(src, "K", f"cannot infer the image size from cx = {format_number(cx)}, cy = {format_number(cy)}; pass image_size")
+            raise input_error(src, "K", f"cannot infer the image size from cx = {format_number(cx)}, cy = "
+                                        f"{format_number(cy)}; set input.image_width and input.image_height")
         return 2.0 * cx * IMAGE_MARGIN, 2.0 * cy * IMAGE_MARGIN
     try:
         w, h = (float(x) for x in image_size)
@@ -278,10 +285,8 @@ def _read_features(path: Path, src: str, n: int, image_wh: tuple[float, float]):
                 version = npformat.read_magic(f)
                 if version == (1, 0):
                     shape, fortran, dtype = npformat.read_array_header_1_0(f)
-                elif version == (2, 0):
+                elif version in ((2, 0), (3, 0)):  # 3.0 = 2.0 with a UTF-8 header: the same for numeric dtypes
                     shape, fortran, dtype = npformat.read_array_header_2_0(f)
-                elif hasattr(npformat, "_read_array_header"):  # (3, 0): utf-8 header
-                    shape, fortran, dtype = npformat._read_array_header(f, version)
                 else:
                     raise ValueError(f"unsupported .npy format version {version}")
             except Exception as e:  # numpy's header parser raises ValueError, TokenError, SyntaxError...
@@ -306,16 +311,18 @@ def _read_features(path: Path, src: str, n: int, image_wh: tuple[float, float]):
     except _READ_ERRORS as e:
         raise input_error(src, "features", f"cannot read the member: {type(e).__name__}: {e}") from None
 
+    keep, dropped = _keep_in_image(pixels, image_wh)
+    dropped["outside_image"] += partial_extra
+    return m, steps[keep], ids[keep], np.ascontiguousarray(pixels[keep]), dropped
+
+
+def _keep_in_image(pixels: np.ndarray, image_wh: tuple[float, float]) -> tuple[np.ndarray, dict[str, int]]:
+    """Observations inside the image with positive disparity, and the counts of the others."""
     w, h = image_wh
     u, v = pixels[:, 0::2], pixels[:, 1::2]
     outside = ((u < 0) | (u >= w) | (v < 0) | (v >= h)).any(axis=1)
     nonpos = ~outside & (pixels[:, 0] - pixels[:, 2] <= 0)
-    keep = ~(outside | nonpos)
-    dropped = {
-        "nonpositive_disparity": int(nonpos.sum()),
-        "outside_image": int(outside.sum()) + partial_extra,
-    }
-    return m, steps[keep], ids[keep], np.ascontiguousarray(pixels[keep]), dropped
+    return ~(outside | nonpos), {"nonpositive_disparity": int(nonpos.sum()), "outside_image": int(outside.sum())}
 
 
 def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Sequence:
@@ -330,6 +337,11 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         raise InputError(f"{src}: file does not exist")
     if not path.is_file():
         raise InputError(f"{src}: not a regular file")
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as exc:
+        raise InputError(f"{src}: cannot read: {exc.strerror}") from None
     if not zipfile.is_zipfile(path):
         raise InputError(f"{src}: not an .npz (zip) file")
 
@@ -340,14 +352,14 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
     with npz:
         keys = set(npz.files)
         have = sorted(keys)
-        for key in _COMMON_KEYS:
-            if key not in keys:
-                raise input_error(src, key, f"missing (file has keys {have})")
+        sparse = "features" not in keys and bool(set(_SPARSE_KEYS) & keys)  # then every sparse key is needed
+        for key in _COMMON_KEYS + (_SPARSE_KEYS if sparse else ()):
+            if key not in keys and not (key == "features" and sparse):
+                layout_of = " of the sparse layout" if key in _SPARSE_KEYS else ""
+                raise input_error(src, key, f"missing{layout_of} (file has keys {have})")
         complete = [lay for lay, pair in LAYOUTS.items() if set(pair) <= keys]
         need = ("need 'angular_velocity'+'imu_T_cam' (2022/23 layout) "
                 "or 'rotational_velocity'+'cam_T_imu' (2019/20 layout)")
-        if len(complete) == 2:
-            raise input_error(src, "imu_T_cam", f"ambiguous: both layouts' keys present; {need}")
         if not complete:
             partial = [lay for lay, pair in LAYOUTS.items() if set(pair) & keys]
             lay = partial[0] if len(partial) == 1 else "2022"
@@ -355,12 +367,17 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
             raise input_error(src, missing, f"missing; {need}; file has keys {have}")
         layout = complete[0]
         ang_key, ext_key = LAYOUTS[layout]
+        notes: list[str] = []
 
         def get(key: str) -> np.ndarray:
             try:
                 return check_numeric(src, key, npz[key])
             except (ValueError, *_READ_ERRORS) as e:  # object arrays refused by allow_pickle=False, bad headers
                 raise input_error(src, key, f"cannot read: {type(e).__name__}: {e}") from None
+
+        if len(complete) == 2:  # both layouts' keys: usable when they say the same
+            _check_layouts_agree(src, get)
+            notes.append(f"{src}: both layouts' keys present and in agreement; read as the 2022/23 layout")
 
         t = get("time_stamps")
         if t.ndim == 2 and t.shape[0] == 1:
@@ -381,21 +398,23 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
             raise input_error(src, "b", f"expected a scalar baseline, got shape {b.shape}")
         baseline = float(b.reshape(()))
         check_baseline(src, "b", baseline)
-        ext = get(ext_key)
-        check_rigid(src, ext_key, ext)
+        ext, note = nearest_rigid(src, ext_key, get(ext_key))
+        notes += [note] if note else []
+        with np.errstate(over="ignore", invalid="ignore"):
+            imu_T_cam = inverse(ext) if layout == "2019" else np.ascontiguousarray(ext)
+        if not np.isfinite(imu_T_cam).all():
+            raise input_error(src, ext_key, "translation too large: the inverse transform overflows")
         wh = _image_bounds(src, K, image_size)
         tracker = _read_tracker(src, npz) if "tracker" in keys else ""
+        if sparse:
+            m, steps, ids, pixels, dropped = _read_sparse(src, get, n, wh)
 
-    m, steps, ids, pixels, dropped = _read_features(path, src, n, wh)
+    if not sparse:
+        m, steps, ids, pixels, dropped = _read_features(path, src, n, wh)
     ptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(steps, minlength=n), out=ptr[1:])
 
-    if layout == "2019":
-        cam_T_imu_file = np.ascontiguousarray(ext)
-        imu_T_cam = inverse(cam_T_imu_file)
-    else:
-        cam_T_imu_file = None
-        imu_T_cam = np.ascontiguousarray(ext)
+    cam_T_imu_file = np.ascontiguousarray(ext) if layout == "2019" else None
     seq = Sequence(
         time_stamps=np.ascontiguousarray(t),
         linear_velocity=vel["linear_velocity"],
@@ -411,10 +430,52 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         layout=layout,
         dropped=dropped,
         tracker=tracker,
+        notes=notes,
         _cam_T_imu_file=cam_T_imu_file,
     )
     validate_sequence(seq)
     return seq
+
+
+def _check_layouts_agree(src: str, get) -> None:
+    """A file with both layouts' keys is read when they agree (the same angular rates, extrinsics
+    that are each other's inverse); InputError naming the keys otherwise."""
+    need = "keep one layout's keys ('angular_velocity'+'imu_T_cam' or 'rotational_velocity'+'cam_T_imu')"
+    a, r = get("angular_velocity"), get("rotational_velocity")
+    if a.shape != r.shape or not np.allclose(a, r, rtol=0.0, atol=1e-9):
+        raise input_error(src, "rotational_velocity", f"both layouts' keys present and 'angular_velocity' differs; {need}")
+    imu_T_cam, cam_T_imu = get("imu_T_cam"), get("cam_T_imu")
+    check_rigid(src, "imu_T_cam", imu_T_cam, ORTHO_ACCEPT)
+    check_rigid(src, "cam_T_imu", cam_T_imu, ORTHO_ACCEPT)
+    gap = float(np.abs(imu_T_cam @ cam_T_imu - np.eye(4)).max())
+    if gap > 1e-6:
+        raise input_error(src, "cam_T_imu", f"both layouts' keys present and the extrinsics are not each other's "
+                                            f"inverse (max |imu_T_cam cam_T_imu - I| = {gap:.3g}); {need}")
+
+
+def _read_sparse(src: str, get, n: int, image_wh: tuple[float, float]):
+    """The observations of the sparse layout (``obs_ptr`` (N+1,), ``obs_ids`` (L,), ``obs_pixels``
+    (L,4), ``num_features``), with the same drop counts as the dense one."""
+    ptr, ids, pixels, m = (get(key) for key in _SPARSE_KEYS)  # float64, finite (check_numeric)
+    if m.size != 1 or not (0 <= m.reshape(()) <= MAX_FEATURES) or m.reshape(()) != np.round(m.reshape(())):
+        raise input_error(src, "num_features", f"expected one integer in [0, {MAX_FEATURES}], got "
+                                               f"{m.reshape(-1)[:3].tolist()}")
+    m = int(m.reshape(()))
+    if ids.ndim != 1:
+        raise input_error(src, "obs_ids", f"expected shape (L,), got {ids.shape}")
+    if ids.size and not (np.array_equal(ids, np.round(ids)) and ids.min() >= 0 and ids.max() < m):
+        raise input_error(src, "obs_ids", f"ids must be integers in [0, num_features = {m})")
+    if ptr.shape != (n + 1,) or not np.array_equal(ptr, np.round(ptr)):
+        raise input_error(src, "obs_ptr", f"expected ({n + 1},) integers (N from 'time_stamps'), got {ptr.shape}")
+    if ptr[0] != 0 or ptr[-1] != ids.size or ptr.min() < 0 or ptr.max() > ids.size:  # bounded: no int64 wrap below
+        raise input_error(src, "obs_ptr", f"not a CSR pointer from 0 to L = {ids.size}")
+    counts = np.diff(ptr.astype(np.int64))
+    if (counts < 0).any():
+        raise input_error(src, "obs_ptr", "not non-decreasing")
+    check_shape(src, "obs_pixels", pixels, (ids.size, 4), f"({ids.size}, 4)")
+    steps = np.repeat(np.arange(n), counts)
+    keep, dropped = _keep_in_image(pixels, image_wh)
+    return m, steps[keep], ids.astype(np.int64)[keep], np.ascontiguousarray(pixels[keep], dtype=np.float64), dropped
 
 
 def _read_tracker(src: str, npz) -> str:
@@ -432,29 +493,41 @@ def _read_tracker(src: str, npz) -> str:
 # saving
 
 
-def save_sequence(seq: Sequence, path, *, layout: str | None = None) -> None:
-    """Write ``seq`` in the course layout (dense (4,M,N) features with -1, ``b`` 0-d).
+def save_sequence(seq: Sequence, path, *, layout: str | None = None, dense: bool | None = None) -> None:
+    """Write ``seq`` in the course layout (features with -1 where not seen, ``b`` 0-d).
 
     ``layout`` "2022" writes ``angular_velocity`` + ``imu_T_cam``, "2019" writes
-    ``rotational_velocity`` + ``cam_T_imu``; default: ``seq.layout``. Written with
+    ``rotational_velocity`` + ``cam_T_imu``; default: ``seq.layout``. The observations go in the
+    course's dense (4,M,N) ``features`` array, or with ``dense`` False in the sparse layout
+    (``obs_ptr``, ``obs_ids``, ``obs_pixels``, ``num_features``: per step, as in memory), which
+    :func:`load_sequence` reads too; by default dense unless that array would exceed
+    DENSE_LIMIT_BYTES (a long synthetic drive would need tens of GB). Written with
     ``np.savez_compressed`` to a temporary file in the target's directory, then moved onto
-    ``path`` with ``os.replace``: the target is either the old file or the complete new one,
-    and the temporary file is removed on any failure (KeyboardInterrupt included). The exact
-    name ``path`` is used (no ``.npz`` is appended). Dropped observations are not written.
-    Note: this builds the dense features array (4*M*N*8 bytes).
+    ``path``: the target is either the old file or the complete new one (KeyboardInterrupt
+    included). The exact name ``path`` is used (no ``.npz`` is appended). Dropped observations
+    are not written.
     """
     layout = seq.layout if layout is None else layout
     if layout not in LAYOUTS:
         raise InputError(f"{path}: layout must be '2022' or '2019', got {layout!r}")
+    check_output_file(path)
     validate_sequence(seq)
     ang_key, ext_key = LAYOUTS[layout]
     n, m = seq.num_steps, int(seq.num_features)
-    features = np.full((4, m, n), -1.0, dtype=np.float64)
-    steps = np.repeat(np.arange(n), np.diff(seq.obs_ptr))
-    features[:, seq.obs_ids, steps] = np.asarray(seq.obs_pixels, dtype=np.float64).T
+    if dense is None:
+        dense = 4 * m * n * 8 <= DENSE_LIMIT_BYTES
+    if dense:
+        features = np.full((4, m, n), -1.0, dtype=np.float64)
+        steps = np.repeat(np.arange(n), np.diff(seq.obs_ptr))
+        features[:, seq.obs_ids, steps] = np.asarray(seq.obs_pixels, dtype=np.float64).T
+        observations = {"features": features}
+    else:
+        observations = {"obs_ptr": np.asarray(seq.obs_ptr, dtype=np.int64), "obs_ids": np.asarray(seq.obs_ids, np.int64),
+                        "obs_pixels": np.asarray(seq.obs_pixels, dtype=np.float64),
+                        "num_features": np.asarray(m, dtype=np.int64)}
     arrays = {
         "time_stamps": np.asarray(seq.time_stamps, dtype=np.float64).reshape(1, n),
-        "features": features,
+        **observations,
         "linear_velocity": np.asarray(seq.linear_velocity, dtype=np.float64).T,
         ang_key: np.asarray(seq.angular_velocity, dtype=np.float64).T,
         "K": np.asarray(seq.K, dtype=np.float64),

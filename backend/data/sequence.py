@@ -29,8 +29,19 @@ __all__ = [
     "SYNTHETIC_TRACKER",
 ]
 
-#: Tolerance of R^T R = I for the extrinsic (the real files are orthonormal to 2e-7).
+#: Tolerance of max |R^T R - I| for the extrinsic of a Sequence made in memory (validate_sequence).
 ORTHO_TOL = 1e-5
+#: A rotation read from a file (nearest_rigid) off by more than ORTHO_EXACT is replaced by the
+#: nearest rotation; with a note when off by more than ORTHO_SILENT (the rounding of single
+#: precision; the real course files are off by 1e-8 .. 2e-7); refused beyond ORTHO_ACCEPT (a matrix
+#: typed to 3-5 decimals, as calibration sheets print it, is off by 1e-5 .. 1e-3).
+ORTHO_EXACT = 1e-12
+ORTHO_SILENT = 1e-6
+ORTHO_ACCEPT = 1e-3
+#: Time stamps: a median step above this many seconds is not in seconds (nanoseconds, microseconds)
+MAX_MEDIAN_STEP = 10.0
+#: ... and no single step may span more (dead reckoning cannot bridge it).
+MAX_STEP = 60.0
 
 #: The two course layouts: (angular rate key, extrinsic key) of each
 LAYOUTS = {
@@ -78,15 +89,31 @@ def check_shape(src: str, key: str, a: np.ndarray, expected: tuple, desc: str | 
 
 
 def check_time_stamps(src: str, key: str, t: np.ndarray) -> None:
+    """At least 2 stamps, strictly increasing, in seconds (median step <= MAX_MEDIAN_STEP), no step
+    longer than MAX_STEP."""
     if t.shape[0] == 0:
         raise input_error(src, key, "empty sequence (N = 0 steps)")
-    bad = np.flatnonzero(np.diff(t) <= 0)
+    if t.shape[0] < 2:
+        raise input_error(src, key, f"need at least 2 steps (one motion to estimate), got {t.shape[0]}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        steps = np.diff(t)
+    if not np.isfinite(steps).all():
+        raise input_error(src, key, "time stamps of magnitudes near 1e308: their differences overflow")
+    bad = np.flatnonzero(steps <= 0)
     if bad.size:
         i = int(bad[0]) + 1
         raise input_error(
             src, key,
             f"time stamps not strictly increasing: [{i}] = {format_number(t[i])} <= [{i - 1}] = {format_number(t[i - 1])}",
         )
+    median = float(np.median(steps))
+    if median > MAX_MEDIAN_STEP:
+        raise input_error(src, key, f"the median step is {median:.6g} s: not seconds (stamps in nanoseconds or "
+                                    "microseconds? divide them by 1e9 or 1e6)")
+    if steps.max() > MAX_STEP:
+        i = int(np.argmax(steps)) + 1
+        raise input_error(src, key, f"a gap of {steps[i - 1]:.6g} s between steps {i - 1} and {i}: dead reckoning "
+                                    f"cannot bridge more than {MAX_STEP:g} s; split the sequence there")
 
 
 def check_camera_matrix(src: str, key: str, K: np.ndarray) -> None:
@@ -99,6 +126,9 @@ def check_camera_matrix(src: str, key: str, K: np.ndarray) -> None:
         raise input_error(src, key, f"not a camera matrix: last row must be [0, 0, 1], got {K[2].tolist()}")
     if K[1, 0] != 0:
         raise input_error(src, key, f"not a camera matrix: K[1,0] must be 0, got {format_number(K[1, 0])}")
+    if abs(K[0, 1]) > 1e-6 * K[0, 0]:  # below, a thousandth of a pixel at the image edge: rounding
+        raise input_error(src, key, f"skew K[0,1] = {format_number(K[0, 1])}: a rectified stereo pair has none "
+                                    "(the stereo model has no skew term)")
 
 
 def check_baseline(src: str, key: str, b: float) -> None:
@@ -108,19 +138,40 @@ def check_baseline(src: str, key: str, b: float) -> None:
         raise input_error(src, key, f"baseline must be > 0, got {format_number(b)}")
 
 
-def check_rigid(src: str, key: str, T: np.ndarray) -> None:
+def check_rigid(src: str, key: str, T: np.ndarray, tol: float = ORTHO_TOL) -> float:
+    """Refuse ``T`` unless it is a 4x4 rigid transform whose rotation is orthonormal to ``tol``;
+    returns max |R^T R - I|."""
     check_shape(src, key, T, (4, 4))
     if not np.isfinite(T).all():
         raise input_error(src, key, "extrinsic has non-finite entries")
     if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise input_error(src, key, f"not a rigid transform: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     R = T[:3, :3]
-    dev = float(np.abs(R.T @ R - np.eye(3)).max())
-    if dev > ORTHO_TOL:
-        raise input_error(src, key, f"not a rigid transform: max |R^T R - I| = {dev:.3g} > {ORTHO_TOL:g}")
-    det = float(np.linalg.det(R))
-    if det <= 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf or NaN, refused below
+        det = float(np.linalg.det(R))
+        dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    if not det > 0:
         raise input_error(src, key, f"not a rigid transform: det(R) = {det:.6g} (a reflection)")
+    if not dev <= tol:
+        raise input_error(src, key, f"not a rigid transform: max |R^T R - I| = {dev:.3g} > {tol:g}")
+    return dev
+
+
+def nearest_rigid(src: str, key: str, T: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """``T`` as read from a file, and a note or None: used as it is when its rotation is orthonormal
+    to ORTHO_EXACT; up to ORTHO_ACCEPT replaced by the nearest rotation (R = U V^T of R's SVD), with
+    a note saying so beyond ORTHO_SILENT; InputError with the deviation beyond ORTHO_ACCEPT."""
+    dev = check_rigid(src, key, T, ORTHO_ACCEPT)
+    if dev <= ORTHO_EXACT:
+        return T, None
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = U @ Vt  # det > 0 was checked, so no reflection
+    moved = float(np.abs(out[:3, :3] - T[:3, :3]).max())
+    if dev <= ORTHO_SILENT:  # the rounding of a number stored in single precision: not worth a note
+        return out, None
+    return out, (f"{src}: key '{key}': rotation re-orthonormalized (max |R^T R - I| = {dev:.3g}; "
+                 f"the nearest rotation moves no entry by more than {moved:.3g})")
 
 
 
@@ -146,6 +197,7 @@ class Sequence:
     layout: str = "2022"  # "2022" (angular_velocity/imu_T_cam) or "2019" (rotational_velocity/cam_T_imu)
     dropped: dict[str, int] = field(default_factory=dict)  # {"nonpositive_disparity": n, "outside_image": n}
     tracker: str = ""  # the front end that made the tracks (optional key 'tracker'; "" unknown)
+    notes: list[str] = field(default_factory=list, compare=False)  # what the reader corrected and how
     # The cam_T_imu read from a 2019-layout file, kept so that saving in that layout writes it back
     # bit for bit. Used only while rigid_inverse(it) still equals imu_T_cam exactly.
     _cam_T_imu_file: np.ndarray | None = field(default=None, repr=False, compare=False)

@@ -14,9 +14,10 @@ from ..errors import InputError
 
 
 def read_lines(path, missing: str = "file does not exist") -> list[str]:
-    """The lines of a text file; InputError naming it (``missing`` says what the file should hold)."""
+    """The lines of a UTF-8 text file (a leading byte-order mark, as some editors write, is
+    skipped); InputError naming it (``missing`` says what the file should hold)."""
     try:
-        return Path(path).read_text(encoding="utf-8").splitlines()
+        return Path(path).read_text(encoding="utf-8-sig").splitlines()
     except FileNotFoundError:
         raise InputError(f"{path}: {missing}") from None
     except (OSError, UnicodeDecodeError) as e:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 from typing import Any
 
@@ -81,8 +80,7 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                 f"found {len(tokens)}"
             )
         values = finite_numbers(tokens, f"{path}:{lineno}")
-        norm = math.sqrt(sum(v * v for v in values[4:]))
-        if norm < 1e-12:
+        if not any(values[4:]):  # any other scale is normalized
             raise InputError(f"{path}:{lineno}: quaternion has zero norm")
         if stamps and values[0] <= stamps[-1]:
             raise InputError(
@@ -95,7 +93,8 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         raise InputError(f"{path}: no poses found (empty trajectory file)")
     data = np.asarray(rows, dtype=float)
-    quat = data[:, 4:8] / np.linalg.norm(data[:, 4:8], axis=1, keepdims=True)
+    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)  # scaled first: no overflow
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
     poses[:, :3, 3] = data[:, 1:4]

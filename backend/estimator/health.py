@@ -8,6 +8,10 @@ inside [4/sqrt f, 4 sqrt f] with at most 40 % gated (hysteresis: no flapping at 
 
 P must stay positive definite over the states the filter estimates; it is checked every 100
 steps, and where it is not its eigenvalues are clipped and the episode is reported.            (H2)
+
+A run that was meant to see is checked at its end: no valid observation at all, none used, or
+more than ``MAX_GATED_SHARE`` of them gated means the trajectory is (close to) dead reckoning,
+and the run says so rather than presenting it as visual-inertial.                                (H3)
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ from __future__ import annotations
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Optional
+
+#: H3: a run whose gated share of observations is above this is called close to dead reckoning
+MAX_GATED_SHARE = 0.9
 
 
 @dataclass
@@ -47,21 +55,43 @@ class HealthMonitor:
             self._total_count -= self._count.popleft()
             self._total_gated -= self._gated.popleft()
         total = self._total_count
-        if len(self._nis) < self.window or total < 20:
+        seen = total + self._total_gated
+        if len(self._nis) < self.window or seen < 20:  # every observation gated counts: that is the worst case
             return
-        mean = sum(self._nis) / total  # summed afresh: no rounding drift over a long run
-        gated_share = self._total_gated / (total + self._total_gated)
-        bad = mean > 4.0 * self.warn_factor or mean < 4.0 / self.warn_factor or gated_share > 0.5
+        mean = sum(self._nis) / total if total else float("nan")  # summed afresh: no rounding drift
+        gated_share = self._total_gated / seen
+        in_band = total > 0 and 4.0 / self.warn_factor <= mean <= 4.0 * self.warn_factor
+        bad = not in_band or gated_share > 0.5
         if bad and not self._inconsistent:
+            nis = f"mean NIS per observation {mean:.2f} (expected about 4)" if total else "no observation used"
             self.report(
-                f"step {step}: filter inconsistent: mean NIS per observation {mean:.2f} (expected about 4) "
-                f"and {100 * gated_share:.0f} % gated over the last {self.window} steps; tune pixel_sigma or the IMU noise"
+                f"step {step}: filter inconsistent: {nis} and {100 * gated_share:.0f} % gated over the last "
+                f"{self.window} steps; tune pixel_sigma or the IMU noise"
             )
             self._inconsistent = True
         elif self._inconsistent:  # the episode ends well inside the band (hysteresis: no flapping at its edge)
             f = self.warn_factor**0.5
-            self._inconsistent = not (4.0 / f <= mean <= 4.0 * f and gated_share <= 0.4)
+            self._inconsistent = not (total > 0 and 4.0 / f <= mean <= 4.0 * f and gated_share <= 0.4)
 
     def report(self, message: str) -> None:
         self.messages.append(message)
         warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def vision_check(observations: int, used: int, gated: int, slam: bool = True) -> Optional[str]:
+    """H3: the message when the vision of a run that was meant to see did (almost) nothing, else None.
+
+    ``observations``: valid observations in the input; ``used`` and ``gated``: in joint updates;
+    ``slam``: the poses were to be corrected (else mapping: only the landmarks).
+    """
+    alone, mostly = (("the trajectory is dead reckoning alone", "the trajectory is close to dead reckoning")
+                     if slam else ("the map holds stereo triangulations alone", "the map is mostly stereo triangulations"))
+    check = "check the calibration, the rectification, the time stamps and pixel_sigma"
+    if observations == 0:
+        return f"no valid stereo observation in the input: {alone}"
+    if used == 0:
+        return f"none of the {observations} observations was used ({gated} gated): {alone}; {check}"
+    share = gated / (used + gated)
+    if share > MAX_GATED_SHARE:
+        return f"{100 * share:.1f} % of the observations were gated (only {used} used): {mostly}; {check}"
+    return None

@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 
 from ..config import Config, Mode
 from ..data.sequence import Sequence
-from ..errors import ConfigError
+from ..errors import ConfigError, VislamError
 from ..geometry import se3
 from ..run.runner import run_sequence
 
@@ -274,10 +274,21 @@ class ConsistencyResult:
         }
 
     def summary_lines(self) -> list[str]:
-        """Three lines: pose NEES, landmark NEES, NIS, each against its 95 % band."""
+        """Pose NEES, landmark NEES, NIS, each against its 95 % band; then a warning line for each
+        distinct health message of the runs (how many runs had it)."""
         lo, hi = self.pose_nees_band
         llo, lhi = self.landmark_nees_band
         nlo, nhi = self.nis_band
+        return self._metric_lines(lo, hi, llo, lhi, nlo, nhi) + self._health_lines()
+
+    def _health_lines(self) -> list[str]:
+        counts: dict[str, int] = {}
+        for messages in self.health_messages.values():
+            for message in dict.fromkeys(m.split(": ", 1)[1] if m.startswith("step ") else m for m in messages):
+                counts[message] = counts.get(message, 0) + 1
+        return [f"warning ({n} of {self.runs} runs): {message}" for message, n in counts.items()]
+
+    def _metric_lines(self, lo, hi, llo, lhi, nlo, nhi) -> list[str]:
         return [
             f"pose NEES (6 dof): {100 * self.pose_nees_in_band:.0f} % of steps {self.skip}..{self.steps - 1} in the "
             f"95 % band [{lo:.2f}, {hi:.2f}] of the {self.runs}-run average; time average {self.pose_nees_time_average:.2f}",
@@ -384,6 +395,8 @@ def monte_carlo(
                 for fut in _finished(futures):
                     try:
                         traces.append(fut.result())
+                    except VislamError:  # the scene or the filter refused its settings: that says it all
+                        raise
                     except Exception as exc:
                         raise RuntimeError(f"monte carlo run with noise seed {seed_of[id(fut)]} failed: {exc}") from exc
                     if progress is not None:

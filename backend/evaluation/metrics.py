@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose", "alignment_scale"]
+__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose", "alignment_scale", "require_matches"]
 
 MIN_MATCHES = 3
 FALLBACK_DELTA_FRAMES = 10
@@ -72,6 +72,22 @@ def _check(t: Any, poses: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
     if len(stamps) > 1 and not np.all(np.diff(stamps) > 0):
         raise InputError(f"{what}: time stamps are not strictly increasing")
     return stamps, arr
+
+
+def require_matches(est_t: Any, gt_t: Any, source: str, max_diff: float = 0.01) -> int:
+    """The number of time stamps ``est_t`` that have a ground-truth stamp within ``max_diff`` s;
+    InputError naming ``source`` when fewer than 3 do (checked before a run, not after it)."""
+    est = np.asarray(est_t, dtype=float)
+    gt = np.sort(np.asarray(gt_t, dtype=float))  # at least one stamp (read_tum refuses an empty file)
+    idx = np.searchsorted(gt, est)
+    before, after = gt[np.clip(idx - 1, 0, gt.size - 1)], gt[np.clip(idx, 0, gt.size - 1)]
+    matched = int(np.sum(np.minimum(np.abs(before - est), np.abs(after - est)) <= max_diff))
+    if matched < MIN_MATCHES:
+        raise InputError(
+            f"{source}: only {matched} of the data's {est.size} time stamps ({est.min():.6f} .. {est.max():.6f} s) "
+            f"have a ground-truth stamp within {max_diff} s (ground truth spans {gt.min():.6f} .. {gt.max():.6f} s); "
+            f"at least {MIN_MATCHES} are needed")
+    return matched
 
 
 def _evo_trajectory(t: np.ndarray, poses: np.ndarray, name: str):

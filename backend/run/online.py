@@ -14,9 +14,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ..config import Config, RepeatedFrames
+from ..config import Config, Mode, RepeatedFrames
 from ..errors import InputError
 from ..estimator.ekf import ImuNoise, StepStats, VisualInertialEKF
+from ..estimator.health import vision_check
 from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
 from ..geometry.camera import StereoCamera
@@ -207,6 +208,12 @@ class OnlineRun:
         stats.sequence_seconds = self._t[-1] - self._t[0]
         stats.active_landmarks_mean = self._active_sum / stats.steps
         stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
+        mode = self.config.estimator.mode
+        if mode != Mode.DEAD_RECKONING:  # H3: a run meant to see that did not
+            message = vision_check(stats.observations, stats.observations_used, stats.observations_gated,
+                                   slam=mode == Mode.SLAM)
+            if message is not None:
+                self.ekf.health.report(message)
         stats.health_messages = list(self.ekf.health.messages)
         stats.seconds_bookkeeping = self.ekf.seconds_bookkeeping
         stats.seconds_update -= self.ekf.seconds_bookkeeping

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 import warnings
 
 import numpy as np
@@ -33,15 +34,27 @@ def landmark_errors(scene, ids: np.ndarray, positions: np.ndarray, world_T_imu: 
 
 
 def main(args: argparse.Namespace) -> int:
-    from ...backend.run.runner import run_sequence
-    from ...synth.scene import SceneConfig, make_scene, write_scene
-    from ..report import format_summary, write_run_outputs
+    from ...backend.data.files import output_directory
+    from ..report import format_summary
 
     t0 = time.perf_counter()
-    out = outputs.prepare_output_dir(args.out, args.force)
+    out = Path(args.out)
+    with output_directory(args.out, args.force) as staging:  # checked before any work
+        summary, scene_dir, median_err, compared = _demo(args, staging)
+    print(format_summary(summary))
+    print(f"landmarks within 20 m: median error {median_err:.3f} m over {compared}")
+    print(f"demo done in {time.perf_counter() - t0:.1f} s; outputs in {out}/ (scene and ground truth in {out / scene_dir}/)")
+    return 0
+
+
+def _demo(args: argparse.Namespace, out: Path):
+    from ...backend.run.runner import run_sequence
+    from ...synth.scene import SceneConfig, make_scene, write_scene
+    from ..report import write_run_outputs
+
     scene = make_scene(SceneConfig(scenario="street", seed=args.seed, landmark_density=0.5))
     scene_dir = out / "scene"
-    scene_dir.mkdir(exist_ok=True)
+    scene_dir.mkdir()
     write_scene(scene, scene_dir)
     seq = scene.sequence
     print(f"demo: synthetic street, {seq.num_steps} steps, {seq.num_observations} observations, "
@@ -55,7 +68,4 @@ def main(args: argparse.Namespace) -> int:
     median_err, compared = landmark_errors(scene, result.map_ids, result.map_positions, result.world_T_imu)
     summary["landmark_error_median_m_within_20m"] = median_err
     outputs.write_json(out / "summary.json", summary)
-    print(format_summary(summary))
-    print(f"landmarks within 20 m: median error {median_err:.3f} m over {compared}")
-    print(f"demo done in {time.perf_counter() - t0:.1f} s; outputs in {out}/ (scene and ground truth in {scene_dir}/)")
-    return 0
+    return summary, scene_dir.name, median_err, compared

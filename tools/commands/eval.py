@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+from pathlib import Path
 
+from ...backend.errors import ConfigError
 from .. import outputs
 
 
@@ -21,25 +25,38 @@ def add_parser(sub) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.tum import read_tum
+    from ...backend.data.files import check_output_file, output_directory
+    from ...backend.evaluation.metrics import require_matches
+
+    if not (math.isfinite(args.delta) and args.delta > 0):
+        raise ConfigError(f"--delta must be a positive number of metres, got {args.delta!r}")
+    if args.json is not None:
+        check_output_file(args.json)  # before any work
+    est_t, est = read_tum(args.estimate)
+    gt_t, gt = read_tum(args.ground_truth)
+    require_matches(est_t, gt_t, args.ground_truth)
+    with output_directory(args.out, args.force) if args.out is not None else contextlib.nullcontext() as staging:
+        _evaluate(args, est_t, est, gt_t, gt, staging)
+    if args.out is not None:
+        print(f"outputs in {args.out}/ (eval.json, trajectories.png, ate_over_time.png)")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, out: Path | None) -> None:
     from ...backend.evaluation.metrics import aligned_poses, trajectory_errors
     from ..plots import plot_trajectories_topdown
     from ..report import write_error_plot
 
-    est_t, est = read_tum(args.estimate)
-    gt_t, gt = read_tum(args.ground_truth)
     errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
     d = errors.as_dict()
     print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
           f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
-    if args.json:
+    if args.json is not None:
         outputs.write_json(args.json, d)
-    if args.out:
-        out = outputs.prepare_output_dir(args.out, args.force)
+    if out is not None:
         _, est_aligned, ref = aligned_poses(est_t, est, gt_t, gt, sim3=args.sim3)
         plot_trajectories_topdown(out / "trajectories.png", {"estimate (aligned)": est_aligned, "ground truth": ref},
                                   title=f"{args.estimate} vs {args.ground_truth}")
         write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
         outputs.write_json(out / "eval.json", d)
-        print(f"outputs in {out}/ (eval.json, trajectories.png, ate_over_time.png)")
-    return 0

@@ -12,6 +12,7 @@ import argparse
 import os
 import sys
 
+from ...backend.data.files import output_directory
 from ...backend.errors import ConfigError
 from .. import options, outputs
 
@@ -32,12 +33,7 @@ def add_parser(sub) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-
-    from tqdm import tqdm
-
-    from ...backend.evaluation.consistency import monte_carlo
-    from ...synth.scene import SceneConfig, SceneFactory
+    from ...synth.scene import SceneConfig, check_scene_size
     from ..plots import plot_consistency
 
     if args.runs < 1:
@@ -48,7 +44,24 @@ def main(args: argparse.Namespace) -> int:
                                landmark_density=args.landmark_density)
     # the scene's noise (pixel, velocity; its tracks are exact: tracker "synthetic") < --config < --set
     config = options.filter_config(args, base=scene_config.filter_config())
-    out = outputs.prepare_output_dir(args.out, args.force)
+    check_scene_size(scene_config)  # memory bounds, before any work
+    with output_directory(args.out, args.force) as staging:  # checked before any work
+        result = _monte_carlo(args, scene_config, config)
+        outputs.write_json(staging / "consistency.json", result)
+        plot_consistency(staging / "nees.png", result)
+    print("\n".join(result.summary_lines()))
+    return 0
+
+
+def _monte_carlo(args: argparse.Namespace, scene_config, config):
+    """The runs, on every core (or ``--workers``), with a progress bar."""
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    from ...backend.evaluation.consistency import monte_carlo
+    from ...synth.scene import SceneFactory
+
     workers = args.workers or os.cpu_count() or 1
     executor = (ProcessPoolExecutor(max_workers=min(workers, args.runs)) if workers > 1
                 else ThreadPoolExecutor(max_workers=1))  # one worker: no process start-up
@@ -61,7 +74,4 @@ def main(args: argparse.Namespace) -> int:
     finally:
         bar.close()
         executor.shutdown(wait=True, cancel_futures=True)
-    outputs.write_json(out / "consistency.json", result)
-    plot_consistency(out / "nees.png", result)
-    print("\n".join(result.summary_lines()))
-    return 0
+    return result

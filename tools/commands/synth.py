@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 
 from ...backend.errors import VislamError
-from .. import outputs
 
 
 def add_parser(sub) -> None:
@@ -20,20 +19,23 @@ def add_parser(sub) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ...synth.scene import SceneConfig, make_scene, write_scene
+    from ...backend.data.files import output_directory
+    from ...synth.scene import SceneConfig, check_scene_size, make_scene, write_scene
 
     if args.render and args.scenario != "street":
         raise VislamError("--render: only the street scenario has a textured world so far")
-    out = outputs.prepare_output_dir(args.out, args.force)
-    scene = make_scene(SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed))
-    write_scene(scene, out)
-    seq = scene.sequence
-    wrote = "data.npz, gt_tum.txt, landmarks.npz"
-    if args.render:
-        from ...synth.render import write_kitti_sequence
+    config = SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed)  # refused before any work
+    check_scene_size(config)
+    with output_directory(args.out, args.force) as staging:  # checked before any work
+        scene = make_scene(config)
+        write_scene(scene, staging)
+        wrote = "data.npz, gt_tum.txt, landmarks.npz"
+        if args.render:
+            from ...synth.render import write_kitti_sequence
 
-        write_kitti_sequence(out, scene)
-        wrote += ", image_0/, image_1/, calib.txt, times.txt, poses.txt (KITTI odometry layout)"
+            write_kitti_sequence(staging, scene)
+            wrote += ", image_0/, image_1/, calib.txt, times.txt, poses.txt (KITTI odometry layout)"
+    seq = scene.sequence
     print(f"{args.scenario} scene, seed {args.seed}: {seq.num_steps} steps, {seq.num_observations} observations "
-          f"of {scene.landmark_ids.size} tracks; wrote {wrote} to {out}/")
+          f"of {scene.landmark_ids.size} tracks; wrote {wrote} to {args.out}/")
     return 0

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from ...backend.errors import InputError
 from .. import console, options
 
 
@@ -23,20 +21,25 @@ def add_parser(sub) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from ...backend.data.files import check_output_file
     from ...backend.data.npz import save_sequence
     from ...frontend.images import open_stereo_directory
-    from ...frontend.track import track_directory
+    from ...frontend.draw import check_draw_dir
+    from ...frontend.track import check_image_size, check_imu, track_directory
 
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise InputError(f"{out}: exists; refusing to overwrite it (use --force)")
-    if not out.parent.is_dir():
-        raise InputError(f"{out.parent}: output directory does not exist")
+    out = check_output_file(args.out, overwrite=args.force)  # refused before any work
     config = options.tracker_config(args, only=True)
-    directory = open_stereo_directory(args.images)  # refuse a bad layout before any work
-    console.sayer(args.quiet)("tracker configuration:\n" + config.describe())
+    directory = open_stereo_directory(args.images)  # refuse a bad input before any work
+    check_image_size(directory, config)
+    if args.draw is not None:
+        check_draw_dir(args.draw)
+    imu = check_imu(args.imu, directory, args.imu_T_cam)
+    say = console.sayer(args.quiet)
+    for note in imu.notes:
+        say(f"note: {note}")
+    say("tracker configuration:\n" + config.describe())
     with console.progress_bar(len(directory), "track", "frame", args.quiet) as progress:
-        seq = track_directory(directory, args.imu, config, args.imu_T_cam, progress, args.draw)
+        seq = track_directory(directory, imu, config, None, progress, args.draw)
     save_sequence(seq, out)
     per_frame = seq.num_observations / seq.num_steps
     print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
