@@ -25,6 +25,7 @@ __all__ = [
     "Config", "EstimatorOptions", "NoiseOptions", "UpdateOptions", "LandmarkOptions", "DriftOptions",
     "HealthOptions", "ConventionOptions", "InputOptions", "ExecutionOptions",
     "StrChoice", "Mode", "ErrorModel", "Parametrization", "Choice", "VelocityIndex", "RepeatedFrames",
+    "StereoOffsetModel",
 ]
 
 
@@ -76,6 +77,14 @@ class VelocityIndex(StrChoice):
     AUTO = "auto"
     THIS = "this"  # the one stamped k
     NEXT = "next"  # the one stamped k+1
+
+
+class StereoOffsetModel(StrChoice):
+    """Which disparity offset a run removes (``backend.run.stereo_offset``, D1)."""
+
+    CONSTANT = "constant"  # one offset for the whole input, when the data shows one
+    RATE = "rate"  # a constant plus a term in the turn rate (a right image exposed late), each when shown
+    OFF = "off"  # none; nothing estimated
 
 
 class RepeatedFrames(StrChoice):
@@ -187,7 +196,7 @@ class HealthOptions(OptionTable):
 
 @dataclass
 class ConventionOptions(OptionTable):
-    """Data conventions a run decides from the data (``backend.run.conventions``, ``backend.run.timing``)."""
+    """Data conventions a run decides from the data (``backend.run.conventions``, ``.stereo_offset``, ``.timing``)."""
 
     TABLE = "conventions"
     imu_flip: Choice = Choice.AUTO  # flip the IMU's y and z axes, diag(1,-1,-1,1) @ imu_T_cam
@@ -196,6 +205,8 @@ class ConventionOptions(OptionTable):
     online_steps: int = 100  # image input: the test runs on the first frames, from 20 on every 10, until
     # one variant fits >= 10 % better than all others, at most this many frames
     repeated_frames: RepeatedFrames = RepeatedFrames.USE  # steps repeating the previous step's pixels
+    stereo_offset: StereoOffsetModel = StereoOffsetModel.CONSTANT  # disparity offset identified from the tracks and
+    # removed when significant (backend.run.stereo_offset): constant d_true = d - beta; rate: beta_0 + kappa omega_y; off
 
     def check(self) -> None:
         self.require_at_least(1, "horizon", "online_steps")

@@ -35,6 +35,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 VARIANTS = {
     "defaults": [],
+    "no stereo offset": ["conventions.stereo_offset=off"],
+    "stereo offset with a rate term": ["conventions.stereo_offset=rate"],
     "no re-anchoring": ["drift.reanchor_observations=0", "drift.reanchor_far_observations=0"],
     "no landmark random walk": ["drift.landmark_random_walk=0"],
     "persistent RANSAC outliers rescued": ["update.persistent_outlier_steps=0"],

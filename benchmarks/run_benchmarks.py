@@ -117,7 +117,7 @@ def main() -> int:
         rows.append((name, r))
         print(name, json.dumps(r), file=sys.stderr)
     lines = [
-        "| file | steps | obs used / valid | active mean / max | import + kernels s | load s | conventions s | filter s | "
+        "| file | steps | obs used / valid | active mean / max | import + kernels s | load s | conventions + stereo offset s | filter s | "
         "predict ms/step | update ms/step | bookkeeping ms/step | step ms median / p99 / max | outputs s "
         "| real-time factor | filter s, per-step min | real-time factor, per-step min | peak RSS MB | at the end: anonymous / mapped files MB |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",

@@ -14,6 +14,7 @@ from vislam.backend.run.conventions import ConventionDecision, decide_convention
 from vislam.backend.run.noise import decide_imu_noise
 from vislam.backend.run.online import OnlineRun
 from vislam.backend.run.runner import decide, decide_online, decisive, run_sequence, run_stream
+from vislam.backend.run.stereo_offset import identify_stereo_offset
 from vislam.synth.scene import SceneConfig, make_scene
 
 
@@ -162,11 +163,12 @@ def _assert_first_steps(read, steps):
 
 
 def test_decide_online_reads_until_decisive(long_scene):
-    """From 20 steps on, every 10, the convention test runs on the steps read so far; the first
-    decisive one ends the reading. The decision is the test's on those steps, the noise is from the
-    whole stream's velocities, and the stream goes on at the first step not read."""
+    """Without the stereo offset: from 20 steps on, every 10, the convention test runs on the
+    steps read so far; the first decisive one ends the reading. The decision is the test's on
+    those steps, the noise is from the whole stream's velocities, and the stream goes on at the
+    first step not read."""
     seq = long_scene.sequence
-    config = Config()
+    config = Config.from_values({"conventions.stereo_offset": "off"})
     steps = list(seq.steps())
     (conventions, noise), read, stream = _decide_online(steps, seq, config)
     n = len(read)
@@ -178,10 +180,29 @@ def test_decide_online_reads_until_decisive(long_scene):
     assert decisive(expected.errors_px)
     assert conventions.errors_px == expected.errors_px
     assert (conventions.imu_flip, conventions.velocity_index) == (expected.imu_flip, expected.velocity_index)
+    assert not conventions.stereo_offset.active and not conventions.stereo_offset.estimate
     whole = decide(seq, config)[1]  # the white noise of the whole stream
     assert np.array_equal(noise.linear_sigma, whole.linear_sigma)
     assert np.array_equal(noise.angular_sigma, whole.angular_sigma)
     assert next(stream)[0] == seq.time_stamps[n]  # nothing read beyond
+
+
+def test_decide_online_reads_online_steps_for_the_stereo_offset(long_scene):
+    """With the stereo offset (the default) the reading goes on to ``conventions.online_steps``:
+    the conventions are those of the first decisive test, the offset is estimated from every step
+    read."""
+    seq = long_scene.sequence
+    config = Config()
+    steps = list(seq.steps())
+    (conventions, _), read, stream = _decide_online(steps, seq, config)
+    n = config.conventions.online_steps
+    assert len(read) == n
+    _assert_first_steps(read, steps)
+    first = next(k for k in range(20, n, 10) if decisive(decide_conventions(seq.subset(k)).errors_px))
+    assert conventions.errors_px == decide_conventions(seq.subset(first)).errors_px
+    expected = identify_stereo_offset(seq.subset(n), conventions.imu_T_cam)
+    assert conventions.stereo_offset.estimate == expected.estimate
+    assert next(stream)[0] == seq.time_stamps[n]
 
 
 def test_decide_online_reads_at_most_online_steps(scene):

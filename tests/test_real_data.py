@@ -113,16 +113,54 @@ def test_0042_vision_does_not_make_weak_vision_worse(run_0042):
 
 
 def test_03_bias_state_keeps_the_car_upright(run_03):
-    """Target: the IMU's z axis within 8 deg of its start at every step. Dead reckoning tilts
-    56 deg (gyro bias ~ -0.011 rad/s); measured 7.6 deg with the filter (13.6 deg with the velocity
-    noise floor at 0.05 m/s: BENCHMARKS.md)."""
+    """The IMU's z axis stays within 9 deg of its start at every step; dead reckoning tilts 56 deg
+    (gyro bias ~ -0.011 rad/s). Measured 8.1 deg with the defaults (7.6 without the stereo offset,
+    which the next test shows to be right; the alternatives of BENCHMARKS.md's accuracy table
+    range from 5.8 to 9.3 deg: this proxy moves by a degree under changes that leave the
+    estimate's quality alike, so the bound is 9, not a number just above one run)."""
     def max_tilt(poses):
         z0 = poses[0, :3, 2]
         return np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1, 1))).max()
 
     assert max_tilt(run_03.dead_reckoning) > 45
-    assert max_tilt(run_03.world_T_imu) <= 8.0
+    assert max_tilt(run_03.world_T_imu) <= 9.0
     assert np.all(run_03.gyro_bias[:2] < -0.005)  # roll and pitch bias found, sign as documented
+
+
+def test_03_stereo_offset_agrees_with_dead_reckoning(run_03):
+    """03's pair measures disparities ~0.56 px short (found from the tracks alone, D2-D3). An
+    independent check that needs no vision fit: points triangulated at k with the offset removed,
+    carried to k+3 by dead reckoning (the IMU alone) and reprojected miss their pixels least near
+    the offset found (the convention test C1 over a grid of offsets)."""
+    import dataclasses
+
+    from vislam.backend.run.conventions import reprojection_error
+
+    offset = run_03.conventions.stereo_offset
+    assert offset.active and -0.8 < offset.beta0_px < -0.35
+    seq = load_sequence(DATA / "ece276a_03.npz")
+    c = run_03.conventions
+
+    def error(beta):
+        pixels = seq.obs_pixels.copy()
+        pixels[:, 2] += beta
+        return reprojection_error(dataclasses.replace(seq, obs_pixels=pixels), c.imu_T_cam, c.velocity_index, 3)
+
+    grid = np.arange(-1.5, 0.51, 0.25)
+    errors = np.array([error(b) for b in grid])
+    best = grid[np.argmin(errors)]
+    assert abs(best - offset.beta0_px) <= 0.3  # measured: best -0.75 (4.09 px), found -0.56
+    assert error(offset.beta0_px) < 0.95 * error(0.0)  # measured 4.12 against 4.46 px
+
+
+def test_0027_offset_terms_estimated_and_constant_not_applied(run_0027):
+    """0027: no constant offset (+0.04 +- 0.05 px) and a rate term of ~-1.6 px s/rad (4.5 sigma)
+    that the default constant model reports but does not apply (BENCHMARKS.md: applying it made
+    the estimate worse over six draws of the velocity noise)."""
+    offset = run_0027.conventions.stereo_offset
+    e = offset.estimate
+    assert not offset.active and abs(e["beta_mean_px"]) < 3 * e["beta_mean_se"] + 0.05
+    assert e["kappa_px_s"] < -1.0 and e["steps"] >= 200
 
 
 def test_map_is_sane(run_0027):

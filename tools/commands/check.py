@@ -33,6 +33,7 @@ def main(args: argparse.Namespace) -> int:
     for key, value in decision.errors_px.items():
         print(f"  {key:<28} {value:8.2f}")
     print(decision.describe())
+    print(decision.stereo_offset.describe())
     print(noise.describe())
     print(decide_track_drift(defaults, seq.tracker)[1])
     return 0
