@@ -1,7 +1,9 @@
 """vislam front end: OpenCV stereo tracking of rectified image pairs into course-layout observations.
 
 Modules: ``config`` (TrackerConfig), ``images`` (KITTI-layout directories), ``imu_input`` (IMU
-CSV / course .npz, extrinsic), ``tracker`` (StereoTracker.step), ``detect`` (grid corners),
-``affine`` (drift-free patch refinement), ``motion`` (camera motion, rigid-motion checks),
-``draw`` (debug pictures), ``track`` (track_directory, iter_tracks, image_steps).
+CSV / course .npz, extrinsic), ``kitti_raw`` (KITTI raw calibration, stamps, OXTS records and
+poses), ``raw_drive`` (a KITTI raw drive: frames, OXTS velocities, ground truth), ``tracker``
+(StereoTracker.step), ``detect`` (grid corners), ``affine`` (drift-free patch refinement),
+``motion`` (camera motion, rigid-motion checks), ``draw`` (debug pictures), ``track``
+(track_directory, iter_tracks, image_steps).
 """

@@ -10,6 +10,8 @@ left one is the reference (``P0[:, 3] = 0``) and the right one sits
 :func:`open_stereo_directory` checks the layout, calibration and time stamps and reads the first
 pair (image size); frames are then read lazily, one pair at a time. Every problem raises
 :class:`~backend.errors.InputError` with one line naming the file and what is wrong.
+:func:`paired_frame_names`, :func:`stereo_intrinsics` and :func:`stereo_directory` serve the KITTI raw
+layout too (:mod:`~vislam.frontend.raw_drive`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ import numpy as np
 from ..backend.errors import InputError
 from ..backend.data.textio import content_lines, finite_numbers, read_lines
 
-__all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey"]
+__all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey",
+           "stereo_intrinsics", "paired_frame_names", "stereo_directory"]
 
 LEFT_DIR, RIGHT_DIR = "image_0", "image_1"
 
@@ -57,21 +60,33 @@ def read_calibration(path: Path) -> tuple[np.ndarray, float]:
     for key in ("P0", "P1"):
         if key not in rows:
             raise InputError(f"{path}: no '{key}:' row (need P0: and P1: 3x4 projection matrices)")
-    P0, P1 = rows["P0"], rows["P1"]
+    return stereo_intrinsics(path, rows["P0"], rows["P1"])
+
+
+def stereo_intrinsics(path: Path, P_left: np.ndarray, P_right: np.ndarray,
+                      names: tuple[str, str] = ("P0", "P1")) -> tuple[np.ndarray, float]:
+    """(K (3,3), baseline (m)) of a rectified pair from its 3x4 projection matrices.
+
+    ``K = P_left[:, :3]``; ``baseline = -P_right[0,3] / P_right[0,0]``. InputError naming ``path``
+    and the rows (``names``) unless K is a camera matrix shared by both, ``P_left[:, 3] = 0``,
+    ``P_right[1:, 3] = 0`` and the baseline is finite and > 0.
+    """
+    left, right = names
+    P0, P1 = P_left, P_right
     K = P0[:, :3].copy()
     scale = float(np.abs(K).max())
     if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
-        raise InputError(f"{path}: P0[:, :3] is not a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        raise InputError(f"{path}: {left}[:, :3] is not a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     if not np.allclose(P1[:, :3], K, rtol=0.0, atol=_K_TOL * scale):
-        raise InputError(f"{path}: P0 and P1 disagree in K (P[:, :3]); the images must be rectified with one K")
+        raise InputError(f"{path}: {left} and {right} disagree in K (P[:, :3]); the images must be rectified with one K")
     if np.abs(P0[:, 3]).max() > _K_TOL * scale:
-        raise InputError(f"{path}: P0[:, 3] must be 0 (the left camera is the reference), got {P0[:, 3].tolist()}")
+        raise InputError(f"{path}: {left}[:, 3] must be 0 (the left camera is the reference), got {P0[:, 3].tolist()}")
     if np.abs(P1[1:, 3]).max() > _K_TOL * scale:
-        raise InputError(f"{path}: P1[1:, 3] must be 0 (a horizontal rectified baseline), got {P1[1:, 3].tolist()}")
+        raise InputError(f"{path}: {right}[1:, 3] must be 0 (a horizontal rectified baseline), got {P1[1:, 3].tolist()}")
     with np.errstate(over="ignore"):
         baseline = float(-P1[0, 3] / P1[0, 0])
     if not (np.isfinite(baseline) and baseline > 0):
-        raise InputError(f"{path}: baseline -P1[0,3]/P1[0,0] = {baseline:.6g} m must be a finite number > 0 "
+        raise InputError(f"{path}: baseline -{right}[0,3]/{right}[0,0] = {baseline:.6g} m must be a finite number > 0 "
                          "(right camera to the right)")
     return K, baseline
 
@@ -155,11 +170,52 @@ class StereoDirectory:
                 yield i, left, right
 
 
-def _png_names(folder: Path) -> list[str]:
+def _png_names(folder: Path, layout: str) -> list[str]:
     if not folder.is_dir():
         what = "not a directory" if folder.exists() else "missing directory"
-        raise InputError(f"{folder}: {what} (KITTI layout: {LEFT_DIR}/ left and {RIGHT_DIR}/ right .png frames)")
+        raise InputError(f"{folder}: {what} ({layout})")
     return sorted(p.name for p in folder.iterdir() if p.suffix.lower() == ".png" and not p.name.startswith("."))
+
+
+def paired_frame_names(root: Path, left: str, right: str, layout: str) -> list[str]:
+    """The sorted .png names of ``root/left`` (at least 2), each with a right image of the same name
+    in ``root/right``; InputError naming the folder otherwise (``layout`` describes the expected one)."""
+    left_names = _png_names(root / left, layout)
+    right_names = _png_names(root / right, layout)
+    if not left_names:
+        raise InputError(f"{root / left}: empty sequence (no .png frames)")
+    if len(left_names) < 2:
+        raise InputError(f"{root / left}: one frame ({left_names[0]}); a sequence needs at least 2 (one step of motion)")
+    if len(left_names) != len(right_names):
+        raise InputError(
+            f"{root / right}: {len(right_names)} frames but {left}/ has {len(left_names)} (need one right image per left image)"
+        )
+    if left_names != right_names:
+        name = next(a for a, b in zip(left_names, right_names) if a != b)
+        raise InputError(f"{root / right}: no {name} to pair with {left}/{name} (file names must match)")
+    return left_names
+
+
+def stereo_directory(root: Path, left: str, right: str, names: list[str], times: np.ndarray, K: np.ndarray,
+                     baseline: float) -> StereoDirectory:
+    """The :class:`StereoDirectory` of frames ``names`` in ``root/left`` and ``root/right``, after
+    reading the first pair (its size is every frame's; InputError if left and right differ)."""
+    left0 = read_grey(root / left / names[0])
+    right0 = read_grey(root / right / names[0])
+    if left0.shape != right0.shape:
+        raise InputError(
+            f"{root / right / names[0]}: size {right0.shape[1]}x{right0.shape[0]} differs from "
+            f"the left image's {left0.shape[1]}x{left0.shape[0]}"
+        )
+    return StereoDirectory(
+        root=root,
+        left_paths=tuple(root / left / n for n in names),
+        right_paths=tuple(root / right / n for n in names),
+        times=times,
+        K=K,
+        baseline=baseline,
+        image_size=(int(left0.shape[1]), int(left0.shape[0])),
+    )
 
 
 def open_stereo_directory(path) -> StereoDirectory:
@@ -167,34 +223,8 @@ def open_stereo_directory(path) -> StereoDirectory:
     root = Path(path)
     if not root.is_dir():
         raise InputError(f"{root}: {'not a directory' if root.exists() else 'missing directory'}")
-    left_names = _png_names(root / LEFT_DIR)
-    right_names = _png_names(root / RIGHT_DIR)
-    if not left_names:
-        raise InputError(f"{root / LEFT_DIR}: empty sequence (no .png frames)")
-    if len(left_names) < 2:
-        raise InputError(f"{root / LEFT_DIR}: one frame ({left_names[0]}); a sequence needs at least 2 (one step of motion)")
-    if len(left_names) != len(right_names):
-        raise InputError(
-            f"{root / RIGHT_DIR}: {len(right_names)} frames but {LEFT_DIR}/ has {len(left_names)} (need one right image per left image)"
-        )
-    if left_names != right_names:
-        name = next(a for a, b in zip(left_names, right_names) if a != b)
-        raise InputError(f"{root / RIGHT_DIR}: no {name} to pair with {LEFT_DIR}/{name} (file names must match)")
+    layout = f"KITTI layout: {LEFT_DIR}/ left and {RIGHT_DIR}/ right .png frames"
+    names = paired_frame_names(root, LEFT_DIR, RIGHT_DIR, layout)
     K, baseline = read_calibration(root / "calib.txt")
-    times = read_times(root / "times.txt", len(left_names))
-    left0 = read_grey(root / LEFT_DIR / left_names[0])
-    right0 = read_grey(root / RIGHT_DIR / right_names[0])
-    if left0.shape != right0.shape:
-        raise InputError(
-            f"{root / RIGHT_DIR / right_names[0]}: size {right0.shape[1]}x{right0.shape[0]} differs from "
-            f"the left image's {left0.shape[1]}x{left0.shape[0]}"
-        )
-    return StereoDirectory(
-        root=root,
-        left_paths=tuple(root / LEFT_DIR / n for n in left_names),
-        right_paths=tuple(root / RIGHT_DIR / n for n in right_names),
-        times=times,
-        K=K,
-        baseline=baseline,
-        image_size=(int(left0.shape[1]), int(left0.shape[0])),
-    )
+    times = read_times(root / "times.txt", len(names))
+    return stereo_directory(root, LEFT_DIR, RIGHT_DIR, names, times, K, baseline)

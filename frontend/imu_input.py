@@ -28,7 +28,7 @@ from ..backend.data.npz import load_sequence
 from ..backend.data.sequence import nearest_rigid
 from ..backend.data.textio import content_lines, read_lines
 
-__all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam"]
+__all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam", "with_imu_T_cam"]
 
 
 
@@ -140,6 +140,16 @@ def _read_imu_T_cam(path) -> tuple[np.ndarray, str | None]:
     return nearest_rigid(str(path), "imu_T_cam", T)
 
 
+def with_imu_T_cam(imu: ImuVelocities, imu_T_cam_path) -> ImuVelocities:
+    """``imu`` with the extrinsic of a 4x4 text file (``--imu-T-cam``, :func:`read_imu_T_cam`)
+    in place of its own; a re-orthonormalization note is added to its notes."""
+    T, note = _read_imu_T_cam(imu_T_cam_path)
+    return ImuVelocities(
+        imu.time_stamps, imu.linear_velocity, imu.angular_velocity,
+        T, imu.layout, imu.source, imu.notes + ((note,) if note else ()),
+    )
+
+
 def read_imu(path, n_frames: int, imu_T_cam_path=None) -> ImuVelocities:
     """IMU samples for ``n_frames`` frames from a CSV or a course .npz (module docstring); the
     result always carries an extrinsic (from ``imu_T_cam_path`` if given, else the .npz)."""
@@ -151,11 +161,7 @@ def read_imu(path, n_frames: int, imu_T_cam_path=None) -> ImuVelocities:
     else:
         imu = read_imu_csv(path, n_frames)
     if imu_T_cam_path is not None:
-        T, note = _read_imu_T_cam(imu_T_cam_path)
-        return ImuVelocities(
-            imu.time_stamps, imu.linear_velocity, imu.angular_velocity,
-            T, imu.layout, imu.source, imu.notes + ((note,) if note else ()),
-        )
+        return with_imu_T_cam(imu, imu_T_cam_path)
     if imu.imu_T_cam is None:
         raise InputError(f"{path}: a CSV carries no camera extrinsic; give it with --imu-T-cam FILE (4x4 imu_T_cam)")
     return imu

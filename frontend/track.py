@@ -1,4 +1,5 @@
-"""Track a KITTI-layout image directory into the course sequence layout (what `vislam track` does).
+"""Track a KITTI-layout image directory (odometry layout or a raw drive,
+:func:`~vislam.frontend.raw_drive.open_images`) into the course sequence layout (what `vislam track` does).
 
 :func:`track_directory` runs :class:`~vislam.frontend.tracker.StereoTracker` over every frame and
 returns a :class:`~vislam.backend.data.sequence.Sequence`: time stamps, velocities and the camera
@@ -22,8 +23,9 @@ from ..backend.errors import InputError
 from ..backend.data.sequence import VISLAM_TRACKER, Sequence
 from .config import TrackerConfig
 from .draw import TrackDrawer, check_draw_dir
-from .images import StereoDirectory, open_stereo_directory
+from .images import StereoDirectory, open_stereo_directory  # noqa: F401 (imported from here by benchmarks/)
 from .imu_input import ImuVelocities, read_imu
+from .raw_drive import open_images
 from .tracker import StereoTracker
 
 __all__ = ["track_directory", "iter_tracks", "image_steps", "check_imu", "check_image_size", "tracks_to_sequence",
@@ -43,7 +45,7 @@ def opencv_threads(n: int):
 
 
 def _stereo(images_dir) -> StereoDirectory:
-    return images_dir if isinstance(images_dir, StereoDirectory) else open_stereo_directory(images_dir)
+    return images_dir if isinstance(images_dir, StereoDirectory) else open_images(images_dir)[0]
 
 
 def check_image_size(stereo: StereoDirectory, config: TrackerConfig) -> None:
@@ -60,7 +62,7 @@ def check_image_size(stereo: StereoDirectory, config: TrackerConfig) -> None:
 
 
 def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
-                tracker: StereoTracker | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+                tracker: StereoTracker | None = None, on_frame: Callable | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """Yield ``(frame index, ids (n,) int64 increasing, pixels (n,4) uL vL uR vR)`` per frame of a
     KITTI-layout directory (path or :class:`~frontend.images.StereoDirectory`), frame by frame; a
     frame without trackable texture yields ids (0,) and pixels (0,4).
@@ -73,26 +75,29 @@ def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
     check_image_size(stereo, config)
     tracker = tracker if tracker is not None else StereoTracker(config, stereo.K, stereo.baseline)
     drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
-    return _tracked_frames(stereo, config, tracker, drawer)
+    return _tracked_frames(stereo, config, tracker, drawer, on_frame)
 
 
 def _tracked_frames(stereo: StereoDirectory, config: TrackerConfig, tracker: StereoTracker,
-                    drawer: TrackDrawer | None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+                    drawer: TrackDrawer | None, on_frame: Callable | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """The frame loop of :func:`iter_tracks` (its inputs already checked)."""
     with opencv_threads(config.threads):
         for index, left, right in stereo.frames():
             ids, pixels = tracker.step(left, right)
             if drawer is not None:
                 drawer.draw(index, left, right, ids, pixels)
+            if on_frame is not None:  # e.g. a viewer recording: the decoded images, not read again
+                on_frame(index, left, right, ids, pixels)
             yield index, ids, pixels
 
 
 def image_steps(stereo: StereoDirectory, imu: ImuVelocities, config: TrackerConfig | None = None,
-                draw_dir=None) -> Iterator[tuple]:
+                draw_dir=None, on_frame: Callable | None = None) -> Iterator[tuple]:
     """Yield ``(t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4))`` per frame:
     the IMU sample of the frame (:func:`check_imu`) and its tracks, as soon as they exist. The
-    image size and ``draw_dir`` are checked on the call (:func:`iter_tracks`)."""
-    frames = iter_tracks(stereo, config, draw_dir)
+    image size and ``draw_dir`` are checked on the call (:func:`iter_tracks`); ``on_frame(index,
+    left, right, ids, pixels)`` is called with each tracked frame."""
+    frames = iter_tracks(stereo, config, draw_dir, on_frame=on_frame)
     return ((imu.time_stamps[index], imu.linear_velocity[index], imu.angular_velocity[index], ids, pixels)
             for index, ids, pixels in frames)
 

@@ -57,6 +57,8 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
         timing["sequence_seconds"] / sum(timing[p] for p in parts), rel=1e-9)
     assert timing["wall_seconds"] == pytest.approx(sum(timing[p] for p in parts), rel=1e-9)
     assert "kernel_seconds" in timing  # compiling or loading the kernels, once per process, reported apart
+    latency = timing["step_ms"]  # README: the latency of one step
+    assert 0 < latency["median"] <= latency["p99"] <= latency["max"] < 1e3 * timing["filter_seconds"]
     # evo reads the trajectory
     from evo.tools import file_interface
 
@@ -159,9 +161,65 @@ def test_check_prints_both_convention_numbers(capsys):
 def test_run_without_landmarks_says_map_ply_is_not_written(short_0027, tmp_path, capsys):
     """Dead reckoning maps nothing: no map.ply (a PLY cloud needs a point), and the run says so."""
     out = tmp_path / "dr"
-    assert main(["run", str(short_0027), "--out", str(out), "--mode", "dead-reckoning", "--quiet"]) == 0
+    assert main(["run", str(short_0027), "--out", str(out), "--mode", "dead-reckoning", "--no-progress"]) == 0
     names = {p.name for p in out.iterdir()}
     assert "map.ply" not in names and {"map.npz", "trajectory.ply", "summary.json"} <= names
     summary = json.loads((out / "summary.json").read_text())
     assert any("map.ply not written" in note for note in summary["notes"])
     assert "note: no landmark was mapped" in capsys.readouterr().out
+
+
+def test_synth_render_says_its_size_first_and_shows_progress(tmp_path, capsys):
+    """`vislam synth --render` announces the images' size before writing them (within 30 %) and
+    draws a progress bar; --quiet says neither."""
+    import re
+
+    out = tmp_path / "s"
+    assert main(["synth", "--steps", "12", "--render", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    announced = float(re.search(r"about (\d+) MB of PNG images", err).group(1))
+    written = sum(p.stat().st_size for p in out.glob("image_*/*.png")) / 1e6
+    assert abs(announced - written) <= 0.3 * written + 1
+    assert "render" in err and "12/12" in err
+    assert main(["synth", "--steps", "12", "--render", "--out", str(tmp_path / "q"), "--quiet"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_run_writes_kitti_pose_files(tmp_path):
+    """--format kitti: the left camera's pose in its first frame, 12 numbers a line, one line per step,
+    the TUM trajectory composed with imu_T_cam."""
+    from vislam.backend.data.npz import load_sequence
+    from vislam.backend.data.tum import read_tum
+    from vislam.backend.geometry import se3
+
+    assert main(["synth", "--steps", "40", "--out", str(tmp_path / "s")]) == 0
+    out = tmp_path / "run"
+    assert main(["run", str(tmp_path / "s" / "data.npz"), "--out", str(out), "--format", "kitti", "--quiet"]) == 0
+    imu_T_cam = json.loads((out / "summary.json").read_text())["conventions"]["imu_T_cam_used"]
+    _, world_T_imu = read_tum(out / "trajectory.txt")
+    world_T_cam = world_T_imu @ np.array(imu_T_cam)
+    expected = (se3.inverse(world_T_cam[0]) @ world_T_cam)[:, :3, :].reshape(-1, 12)
+    for name in ("trajectory_kitti.txt", "dead_reckoning_kitti.txt"):
+        rows = np.loadtxt(out / name)
+        assert rows.shape == (load_sequence(tmp_path / "s" / "data.npz").num_steps, 12)
+    np.testing.assert_allclose(np.loadtxt(out / "trajectory_kitti.txt"), expected, atol=1e-6)
+
+
+def test_run_starts_with_one_screen_and_verbose_and_quiet_do_what_they_say(tmp_path, capsys):
+    """Default: the options that differ from the defaults in one line; --verbose: every option;
+    --quiet: nothing at all on a successful run."""
+    assert main(["synth", "--steps", "30", "--out", str(tmp_path / "s")]) == 0
+    data = str(tmp_path / "s" / "data.npz")
+    capsys.readouterr()
+    assert main(["run", data, "--out", str(tmp_path / "a"), "--set", "noise.pixel_sigma=0.7", "--no-progress"]) == 0
+    captured = capsys.readouterr()
+    assert "configuration: the defaults but noise.pixel_sigma=0.7" in captured.err
+    assert "[noise]" not in captured.err and "outputs in" in captured.out
+    assert len((captured.err + captured.out).splitlines()) <= 25  # one screen
+    assert main(["run", data, "--out", str(tmp_path / "b"), "--verbose", "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "[noise]" in err and "pixel_sigma" in err and "[tracker]" not in err
+    assert main(["run", data, "--out", str(tmp_path / "c"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == ""
+    assert (tmp_path / "c" / "summary.json").is_file()

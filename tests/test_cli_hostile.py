@@ -97,7 +97,8 @@ def test_vision_that_did_nothing_is_a_health_warning(arrays, tmp_path, capsys, c
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     said = [m for m in summary["health"] if "dead reckoning" in m]
     assert said, summary["health"]
-    assert any(m in capsys.readouterr().out for m in said)  # on screen too
+    captured = capsys.readouterr()
+    assert any(m in captured.out + captured.err for m in said)  # on screen too, even with --quiet
 
 
 def test_a_pixel_sigma_that_gates_everything_is_a_health_warning(arrays, tmp_path, capsys):

@@ -286,12 +286,15 @@ def test_plots(tmp_path):
 
     poses = random_poses(100, seed=2)
     path = tmp_path / "topdown.png"
-    plot_trajectories_topdown(
+    t = np.arange(100) * 0.1
+    plot = plot_trajectories_topdown(
         path,
-        {"ground truth": poses, "estimate": poses[:, :3, 3] + 0.1, "other": poses[:, :3, 3] * 2},
+        {"estimate": (t, poses[:, :3, 3] + 0.1), "other": (t, poses[:, :3, 3] * 2)},
+        (t, poses),
         landmarks=np.random.default_rng(0).normal(size=(25000, 3)),
         title="test",
     )
+    assert plot.landmarks_total == 25000 and plot.landmarks_drawn == 20000  # a random subset of those in view
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     errors_path = tmp_path / "ate.png"
     plot_errors_over_time(errors_path, {"error": (np.arange(100) * 0.1, np.abs(np.sin(np.arange(100))))}, "ATE")

@@ -142,3 +142,19 @@ def test_public_face():
 def test_console_script_points_into_vislam():
     scripts = {e.name: e.value for e in importlib.metadata.entry_points(group="console_scripts")}
     assert scripts["vislam"] == "vislam.tools.cli:entry"
+
+
+def test_every_subpackage_is_listed_for_the_wheel():
+    """pyproject's explicit package list names every folder with an __init__.py (a non-editable
+    install ships only those; a missing one breaks `pip install .`)."""
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {"vislam"} | {
+        "vislam." + ".".join(p.parent.relative_to(root).parts)
+        for p in root.rglob("__init__.py")
+        if not ({"tests", ".venv", "build", "benchmarks", "examples"} & set(p.relative_to(root).parts))
+        and p.parent != root
+    }
+    assert listed == found

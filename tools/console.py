@@ -84,3 +84,34 @@ def progress_bar(total: Optional[int], desc: str, unit: str, quiet: bool) -> Ite
         yield advance
     finally:
         bar.close()
+
+
+def add_verbosity_options(p) -> None:
+    """--verbose, --quiet and --no-progress: a one-screen start by default (input, decisions, noise,
+    the options that differ from the defaults), the full configuration with --verbose, nothing
+    but errors with --quiet; the progress bar has its own switch."""
+    p.add_argument("--verbose", action="store_true", help="also print the full configuration at the start")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors (no progress bar, no summary)")
+    p.add_argument("--no-progress", dest="no_progress", action="store_true", help="no progress bar")
+
+
+def progress_off(args) -> bool:
+    """True when the progress bar is off (--quiet or --no-progress)."""
+    return bool(getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def configuration_text(verbose: bool, *tables) -> str:
+    """The configuration for the start of a command: every option (``verbose``), else one line with
+    the options that differ from their defaults (``OptionSet`` / ``OptionTable`` objects)."""
+    if verbose:
+        return "configuration:\n" + "\n".join(t.describe() for t in tables)
+    changed = []
+    for t in tables:
+        parts = t.tables().values() if hasattr(t, "tables") else (t,)
+        for table in parts:
+            defaults = type(table)().as_dict()
+            changed += [f"{table.TABLE}.{k}={v!r}" for k, v in table.as_dict().items() if defaults.get(k) != v]
+    if not changed:
+        return "configuration: the defaults (every option: --verbose, or config.toml of a run)"
+    return f"configuration: the defaults but {', '.join(changed)} (every option: --verbose, or config.toml of a run)"
+

@@ -1,4 +1,8 @@
-"""Figures of vislam runs and Monte Carlo consistency (PNG, 150 dpi), written atomically.
+"""Figures of vislam runs, evaluations and Monte Carlo consistency (PNG, 150 dpi), written atomically.
+
+``vislam run``, ``vislam eval`` and ``vislam mc`` draw through this module only, so a curve kind
+has one look everywhere (:data:`COLORS`): estimate blue, dead reckoning orange, ground truth black
+dashed, landmarks light grey dots, start (o) and end (x) markers grey, each with its own legend entry.
 
 Only matplotlib's object-oriented API is used (``matplotlib.figure.Figure`` rendered by the
 Agg canvas); pyplot is never imported, so no display or GUI backend is needed, no global
@@ -8,23 +12,57 @@ figure state is kept and importing this module does not change the caller's back
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
 from ..backend.data.files import atomic_write
+from ..backend.errors import InputError
 
-__all__ = ["plot_trajectories_topdown", "plot_errors_over_time", "plot_consistency"]
+__all__ = [
+    "COLORS",
+    "Alignment",
+    "TrajectoryPlot",
+    "align_to_ground_truth",
+    "trajectory_figure",
+    "plot_trajectories_topdown",
+    "plot_errors_over_time",
+    "plot_consistency",
+]
 
 DPI = 150
 MAX_LANDMARKS_PLOTTED = 20000
+#: Ground truth is drawn from this many seconds before the first estimated stamp to as many after the last.
+GT_CROP_TOLERANCE = 0.05
+#: Margin around the trajectories' extent, as a share of its larger side.
+MARGIN = 0.05
+#: Height / width of the data area is kept within these bounds (the shorter side is widened).
+ASPECT_BOUNDS = (0.5, 1.25)
 
-# Fixed looks for the trajectory names a run produces; other names cycle through tab10.
-_STYLES = {
-    "ground truth": dict(color="black", linestyle="--", linewidth=1.2),
-    "estimate": dict(color="tab:blue", linestyle="-", linewidth=1.5),
-    "dead reckoning": dict(color="tab:orange", linestyle="-", linewidth=1.0),
+#: One colour per curve kind, in every figure of every command.
+COLORS = {
+    "estimate": "tab:blue",
+    "dead reckoning": "tab:orange",
+    "ground truth": "black",
+    "landmarks": "0.7",
+    "start/end": "tab:gray",
 }
+_LINES = {
+    "estimate": dict(linestyle="-", linewidth=1.5, zorder=4),
+    "dead reckoning": dict(linestyle="-", linewidth=1.0, zorder=3),
+    "ground truth": dict(linestyle=(0, (4, 3)), linewidth=1.0, zorder=5),  # on top: the others show through
+}
+_OTHER_COLORS = ("tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:red")
+
+
+def _color(kind: str, others: dict) -> str:
+    """The fixed colour of ``kind``, else the next unused one of ``_OTHER_COLORS`` (kept in ``others``)."""
+    if kind in COLORS:
+        return COLORS[kind]
+    if kind not in others:
+        others[kind] = _OTHER_COLORS[len(others) % len(_OTHER_COLORS)]
+    return others[kind]
 
 
 def _new_figure(figsize: tuple[float, float]):
@@ -41,71 +79,276 @@ def _save(fig, path: str | os.PathLike) -> None:
         fig.savefig(tmp, dpi=DPI, format="png")
 
 
-def _xy(traj: Any, name: str) -> np.ndarray:
+# ---------------------------------------------------------------------------------------- alignment
+
+
+def _as_poses(traj: Any, name: str) -> np.ndarray:
+    """(N, 4, 4) poses from (N, 4, 4) poses or (N, 3) / (N, 2) positions (identity rotations)."""
     arr = np.asarray(traj, dtype=float)
     if arr.ndim == 3 and arr.shape[1:] == (4, 4):
-        return arr[:, :2, 3]
+        return arr
     if arr.ndim == 2 and arr.shape[1] in (2, 3):
-        return arr[:, :2]
+        poses = np.tile(np.eye(4), (arr.shape[0], 1, 1))
+        poses[:, : arr.shape[1], 3] = arr
+        return poses
     raise ValueError(f"trajectory {name!r} must have shape (N, 4, 4), (N, 3) or (N, 2), got {arr.shape}")
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """``p -> scale * rotation @ p + translation``, moving an estimate onto the ground truth
+    (Umeyama on the time-matched positions, as ``backend.evaluation.metrics`` aligns for the ATE)."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    scale: float  # 1 for SE(3)
+    sim3: bool
+    ate_rmse: float  # m, over the matched poses after alignment
+
+    @property
+    def name(self) -> str:
+        return "Sim(3)" if self.sim3 else "SE(3)"
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Aligned points.
+
+        Parameters
+        ----------
+        points : (K, 3) array
+
+        Returns
+        -------
+        (K, 3) array
+        """
+        return self.scale * np.asarray(points, dtype=float) @ self.rotation.T + self.translation
+
+
+def align_to_ground_truth(stamps: Any, poses: Any, gt_stamps: Any, gt_poses: Any, *, sim3: bool = False,
+                          max_diff: float = 0.01) -> Alignment:
+    """The SE(3) (or Sim(3)) alignment of an estimate to the ground truth, with its ATE RMSE.
+
+    Parameters
+    ----------
+    stamps : (N,) array, seconds
+    poses : (N, 4, 4) array or (N, 3) positions
+    gt_stamps : (M,) array, seconds
+    gt_poses : (M, 4, 4) array
+    sim3 : bool
+        Also fit the scale.
+    max_diff : float
+        Largest stamp difference (s) of a matched pair.
+
+    Returns
+    -------
+    Alignment
+        Equal to what ``metrics.trajectory_errors`` / ``alignment_scale`` use; raises ``InputError``
+        when fewer than 3 poses match or the matched positions are degenerate.
+    """
+    from evo.core.geometry import GeometryException, umeyama_alignment
+
+    from ..backend.evaluation.metrics import associate
+
+    est_m, gt_m, _ = associate(stamps, _as_poses(poses, "estimate"), gt_stamps, gt_poses, max_diff=max_diff)
+    x, y = est_m[:, :3, 3], gt_m[:, :3, 3]
+    try:
+        rotation, translation, scale = umeyama_alignment(x.T, y.T, sim3)
+    except GeometryException as exc:
+        raise InputError(f"cannot align the estimate to the ground truth ({exc}); are the {len(x)} matched "
+                         f"positions all on one straight line?") from exc
+    scale = float(scale)
+    moved = scale * x @ rotation.T + translation
+    ate = float(np.sqrt(np.mean(np.sum((y - moved) ** 2, axis=1))))
+    return Alignment(np.asarray(rotation, dtype=float), np.asarray(translation, dtype=float), scale, bool(sim3), ate)
+
+
+# ---------------------------------------------------------------------------------------- trajectories
+
+
+@dataclass
+class TrajectoryPlot:
+    """A drawn top-down figure and what it shows."""
+
+    figure: Any  # matplotlib.figure.Figure (Agg canvas)
+    xlim: tuple[float, float]  # m
+    ylim: tuple[float, float]  # m
+    alignments: dict[str, Alignment] = field(default_factory=dict)  # curve -> alignment (with ground truth)
+    ground_truth_span: Optional[tuple[float, float]] = None  # first and last stamp (s) of the ground truth drawn
+    landmarks_total: int = 0  # finite landmarks given
+    landmarks_outside: int = 0  # of those, beyond the axes (not shown)
+    landmarks_drawn: int = 0
+
+
+def _metres(value: float) -> str:
+    return f"{value:.0f} m" if abs(value) >= 1000 else f"{value:.3g} m"
+
+
+def _alignment_lines(alignments: Mapping[str, Alignment]) -> list[str]:
+    if not alignments:
+        return []
+    first = next(iter(alignments.values()))
+    if len(alignments) == 1:
+        what = f"Sim(3), scale {first.scale:.5f}" if first.sim3 else "SE(3)"
+        return [f"aligned ({what}); ATE RMSE {_metres(first.ate_rmse)}"]
+    if first.sim3:
+        per_curve = "; ".join(f"{name}: scale {a.scale:.5f}, ATE RMSE {_metres(a.ate_rmse)}"
+                              for name, a in alignments.items())
+    else:
+        per_curve = "ATE RMSE " + ", ".join(f"{name} {_metres(a.ate_rmse)}" for name, a in alignments.items())
+    return [f"each curve aligned ({first.name}) to the ground truth", per_curve]
+
+
+def _limits(xy: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Axes limits around the (P, 2) points: a margin, then the shorter side widened to ASPECT_BOUNDS."""
+    if len(xy) == 0:
+        return (-1.0, 1.0), (-1.0, 1.0)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    size = hi - lo
+    margin = MARGIN * float(size.max()) if size.max() > 0 else 1.0
+    lo, hi = lo - margin, hi + margin
+    width, height = hi - lo
+    low, high = ASPECT_BOUNDS
+    if height < low * width:
+        grow = 0.5 * (low * width - height)
+        lo[1], hi[1] = lo[1] - grow, hi[1] + grow
+    elif height > high * width:
+        grow = 0.5 * (height / high - width)
+        lo[0], hi[0] = lo[0] - grow, hi[0] + grow
+    return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
+
+
+def trajectory_figure(
+    curves: Mapping[str, tuple[Any, Any]],
+    ground_truth: Optional[tuple[Any, Any]] = None,
+    landmarks: Any = None,
+    *,
+    sim3: bool = False,
+    title: str = "",
+    landmarks_of: str = "estimate",
+    max_diff: float = 0.01,
+) -> TrajectoryPlot:
+    """Top-down (x-y, equal aspect) figure of trajectories, the ground truth and the landmarks.
+
+    With ground truth each curve is aligned to it (as for its ATE) and the title says how, with
+    each ATE RMSE; the ground truth is cut to the curves' time span (``GT_CROP_TOLERANCE``). The
+    axes limits come from the drawn curves (with a margin); landmarks beyond them are not
+    shown, and the title says how many.
+
+    Parameters
+    ----------
+    curves : mapping of str to (stamps (N,), poses (N, 4, 4) or positions (N, 3))
+        Keyed by kind (``"estimate"``, ``"dead reckoning"``; other names get other colours).
+    ground_truth : (stamps (M,), poses (M, 4, 4)), optional
+    landmarks : (K, 3) array, optional
+        In the frame of ``curves[landmarks_of]`` (else of the first curve); moved with its alignment.
+    sim3 : bool
+        Sim(3) instead of SE(3) alignment.
+    title : str
+        First title line.
+    landmarks_of : str
+    max_diff : float
+        Largest stamp difference (s) of a matched pair for the alignment.
+
+    Returns
+    -------
+    TrajectoryPlot
+    """
+    parsed = {}
+    for name, (stamps, poses) in curves.items():
+        P = _as_poses(poses, name)
+        t = np.asarray(stamps, dtype=float)
+        if t.shape != (P.shape[0],):
+            raise ValueError(f"trajectory {name!r}: stamps must have shape ({P.shape[0]},), got {t.shape}")
+        if len(t):
+            parsed[name] = (t, P)
+    alignments: dict[str, Alignment] = {}
+    xy = {}
+    for name, (t, P) in parsed.items():
+        positions = P[:, :3, 3]
+        if ground_truth is not None:
+            alignments[name] = align_to_ground_truth(t, P, *ground_truth, sim3=sim3, max_diff=max_diff)
+            positions = alignments[name].apply(positions)
+        xy[name] = positions[:, :2]
+    gt_span = None
+    if ground_truth is not None:
+        gt_t = np.asarray(ground_truth[0], dtype=float)
+        gt_xy = _as_poses(ground_truth[1], "ground truth")[:, :2, 3]
+        if parsed:
+            first = min(t[0] for t, _ in parsed.values()) - GT_CROP_TOLERANCE
+            last = max(t[-1] for t, _ in parsed.values()) + GT_CROP_TOLERANCE
+            keep = (gt_t >= first) & (gt_t <= last)
+            gt_t, gt_xy = gt_t[keep], gt_xy[keep]
+        if len(gt_t):
+            xy["ground truth"] = gt_xy
+            gt_span = (float(gt_t.min()), float(gt_t.max()))
+    points = np.concatenate([p for p in xy.values()]) if xy else np.zeros((0, 2))
+    xlim, ylim = _limits(points[np.all(np.isfinite(points), axis=1)])
+
+    lm = np.zeros((0, 2))
+    total = outside = 0
+    if landmarks is not None:
+        lm3 = np.asarray(landmarks, dtype=float)
+        if lm3.ndim != 2 or lm3.shape[1] != 3:
+            raise ValueError(f"landmarks must have shape (K, 3), got {lm3.shape}")
+        lm3 = lm3[np.all(np.isfinite(lm3), axis=1)]
+        frame = alignments.get(landmarks_of, next(iter(alignments.values()), None))
+        lm = (frame.apply(lm3) if frame is not None else lm3)[:, :2]
+        total = len(lm)
+        inside = (lm[:, 0] >= xlim[0]) & (lm[:, 0] <= xlim[1]) & (lm[:, 1] >= ylim[0]) & (lm[:, 1] <= ylim[1])
+        outside = int(total - inside.sum())
+        lm = lm[inside]
+        if len(lm) > MAX_LANDMARKS_PLOTTED:
+            keep = np.random.default_rng(0).choice(len(lm), MAX_LANDMARKS_PLOTTED, replace=False)
+            lm = lm[np.sort(keep)]
+
+    width, height = xlim[1] - xlim[0], ylim[1] - ylim[0]
+    fig = _new_figure((8.0, 7.0 * height / width + 1.6))
+    ax = fig.add_subplot(1, 1, 1)
+    if total:
+        ax.scatter(lm[:, 0], lm[:, 1], s=1.5, c=COLORS["landmarks"], linewidths=0, label="landmarks",
+                   zorder=1, rasterized=True)
+    others: dict = {}
+    for name, points in xy.items():
+        style = dict(_LINES.get(name, dict(linestyle="-", linewidth=1.2, zorder=3)))
+        ax.plot(points[:, 0], points[:, 1], color=_color(name, others), label=name, **style)
+    marker = COLORS["start/end"]
+    for i, points in enumerate(xy.values()):
+        ax.plot(points[0, 0], points[0, 1], marker="o", markersize=7, markeredgewidth=1.5, color=marker,
+                markerfacecolor="none", linestyle="none", zorder=6, label="start" if i == 0 else None)
+        ax.plot(points[-1, 0], points[-1, 1], marker="x", markersize=7, markeredgewidth=1.5, color=marker,
+                linestyle="none", zorder=6, label="end" if i == 0 else None)
+    ax.set_xlim(*xlim)
+    ax.set_ylim(*ylim)
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(True, linewidth=0.3)
+    lines = [title] if title else []
+    lines += _alignment_lines(alignments) if ground_truth is not None else ["not aligned (no ground truth)"]
+    if outside:
+        lines.append(f"{outside} of {total} landmarks beyond the axes not shown")
+    if len(lm) < total - outside:
+        lines.append(f"a random {len(lm)} of the {total - outside} landmarks in view drawn")
+    ax.set_title("\n".join(lines), fontsize="medium")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize="small", markerscale=1.0)
+    fig.tight_layout()
+    return TrajectoryPlot(fig, xlim, ylim, alignments, gt_span, total, outside, len(lm))
 
 
 def plot_trajectories_topdown(
     path: str | os.PathLike,
-    trajectories: Mapping[str, Any],
-    landmarks: np.ndarray | None = None,
-    title: str = "",
-) -> None:
-    """Top-down (x-y, equal axes) plot of named trajectories and optionally the landmarks.
+    curves: Mapping[str, tuple[Any, Any]],
+    ground_truth: Optional[tuple[Any, Any]] = None,
+    landmarks: Any = None,
+    **kwargs: Any,
+) -> TrajectoryPlot:
+    """:func:`trajectory_figure` written to ``path`` (PNG); same parameters, returns its result."""
+    plot = trajectory_figure(curves, ground_truth, landmarks, **kwargs)
+    _save(plot.figure, path)
+    return plot
 
-    ``trajectories`` maps a legend name (e.g. ``"dead reckoning"``, ``"estimate"``,
-    ``"ground truth"``) to ``(N, 4, 4)`` poses or ``(N, 3)`` positions. Each start is marked
-    with a circle, each end with a cross. ``landmarks`` ``(K, 3)`` are drawn as small grey
-    dots, a fixed random subset of at most 20000 if there are more.
-    """
-    fig = _new_figure((8.0, 8.0))
-    ax = fig.add_subplot(1, 1, 1)
-    if landmarks is not None:
-        lm = np.asarray(landmarks, dtype=float)
-        if lm.ndim != 2 or lm.shape[1] not in (2, 3):
-            raise ValueError(f"landmarks must have shape (K, 3), got {lm.shape}")
-        lm = lm[np.all(np.isfinite(lm[:, :2]), axis=1)]
-        if len(lm) > MAX_LANDMARKS_PLOTTED:
-            keep = np.random.default_rng(0).choice(len(lm), MAX_LANDMARKS_PLOTTED, replace=False)
-            lm = lm[np.sort(keep)]
-        if len(lm):
-            ax.scatter(
-                lm[:, 0], lm[:, 1], s=1.0, c="0.6", alpha=0.5, linewidths=0,
-                label=f"landmarks ({len(lm)})", zorder=1, rasterized=True,
-            )
-    others = iter(f"C{i}" for i in range(2, 1000))
-    start_labelled = False
-    for name, traj in trajectories.items():
-        xy = _xy(traj, name)
-        if len(xy) == 0:
-            continue
-        style = dict(_STYLES.get(name, {}))
-        style.setdefault("color", next(others))
-        style.setdefault("linewidth", 1.2)
-        ax.plot(xy[:, 0], xy[:, 1], label=name, zorder=3, **style)
-        ax.plot(
-            xy[0, 0], xy[0, 1], marker="o", markersize=7, color=style["color"],
-            markerfacecolor="none", linestyle="none", zorder=4,
-            label=None if start_labelled else "start (o) / end (x)",
-        )
-        ax.plot(xy[-1, 0], xy[-1, 1], marker="x", markersize=7, color=style["color"],
-                linestyle="none", zorder=4)
-        start_labelled = True
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(True, linewidth=0.3)
-    if title:
-        ax.set_title(title)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="best", fontsize="small", markerscale=1.0)
-    fig.tight_layout()
-    _save(fig, path)
+
+# ---------------------------------------------------------------------------------------- errors, consistency
 
 
 def plot_errors_over_time(
@@ -113,9 +356,20 @@ def plot_errors_over_time(
     series: Mapping[str, tuple[Any, Any]],
     title: str,
     ylabel: str = "error [m]",
-) -> None:
-    """One line per named ``(time_stamps (N,), errors (N,))`` over time since the earliest stamp
-    (seconds), each with its RMSE as a dashed line of the same colour."""
+):
+    """Errors over time since the earliest stamp, each with its RMSE as a dashed line.
+
+    Parameters
+    ----------
+    path : path of the PNG
+    series : mapping of str to (time_stamps (N,), errors (N,))
+        Keyed by curve kind (colours of :data:`COLORS`).
+    title, ylabel : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
     checked = {}
     for name, (time_stamps, errors) in series.items():
         t = np.asarray(time_stamps, dtype=float)
@@ -127,11 +381,11 @@ def plot_errors_over_time(
     t0 = min(starts) if starts else 0.0
     fig = _new_figure((9.0, 4.0))
     ax = fig.add_subplot(1, 1, 1)
-    colors = ["tab:blue", "tab:orange", "tab:green", "tab:purple"]
-    for i, (name, (t, e)) in enumerate(checked.items()):
+    others: dict = {}
+    for name, (t, e) in checked.items():
         if not len(t):
             continue
-        color = colors[i % len(colors)]
+        color = _color(name, others)
         finite = e[np.isfinite(e)]
         rmse = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("nan")
         ax.plot(t - t0, e, color=color, linewidth=1.0, label=f"{name} (RMSE {rmse:.3g})")
@@ -146,25 +400,37 @@ def plot_errors_over_time(
         ax.set_title(title)
     fig.tight_layout()
     _save(fig, path)
+    return fig
 
 
-def plot_consistency(path: str | os.PathLike, result) -> None:
-    """Two panels over the steps: the run-averaged pose NEES with its 95 % band (log y), and the
-    NIS per observation with its band for one step's observations of all runs."""
+def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = ()):
+    """Run-averaged pose NEES with its 95 % band (log y) and NIS per observation over the steps.
+
+    Parameters
+    ----------
+    path : path of the PNG
+    result : ``backend.evaluation.consistency.ConsistencyResult``
+    notes : lines added under the first panel's title (e.g. the landmark NEES check)
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
     steps = np.arange(result.steps)
-    fig = _new_figure((9.0, 6.5))
+    fig = _new_figure((9.0, 6.5 + 0.2 * len(notes)))
     ax = fig.add_subplot(2, 1, 1)
     lo, hi = result.pose_nees_band
     nees = np.asarray(result.pose_nees_mean, dtype=float)
     positive = nees > 0
-    ax.plot(steps[positive], nees[positive], color="tab:blue", linewidth=1.0,
+    ax.plot(steps[positive], nees[positive], color=COLORS["estimate"], linewidth=1.0,
             label=f"pose NEES, average of {result.runs} runs")
     ax.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % band [{lo:.2f}, {hi:.2f}]")
     ax.axhline(6.0, color="tab:green", linewidth=0.8, linestyle="--", label="expectation 6")
     ax.axvline(result.skip, color="0.5", linewidth=0.6, linestyle=":")
     ax.set_yscale("log")
     ax.set_ylabel("pose NEES (6 dof)")
-    ax.set_title(f"{100 * result.pose_nees_in_band:.0f} % of steps {result.skip}..{result.steps - 1} in the band")
+    ax.set_title("\n".join([f"{100 * result.pose_nees_in_band:.0f} % of steps {result.skip}..{result.steps - 1} "
+                            "in the band", *notes]), fontsize="medium")
     ax.grid(True, which="both", linewidth=0.3)
     ax.legend(loc="best", fontsize="small")
 
@@ -179,5 +445,31 @@ def plot_consistency(path: str | os.PathLike, result) -> None:
     ax.set_ylabel("NIS / observation (4 dof)")
     ax.grid(True, linewidth=0.3)
     ax.legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_batch(path: str | os.PathLike, rows: list[dict]) -> None:
+    """``vislam batch``: ATE RMSE (m, SE(3)-aligned) per input, one bar per configuration; an input
+    without ground truth, or a run that failed, has no bar."""
+    names = list(dict.fromkeys(os.path.basename(r["input"]) for r in rows))
+    labels = list(dict.fromkeys(r["configuration"] for r in rows))
+    fig = _new_figure((max(6.0, 0.8 * len(names) * max(len(labels), 1)), 4.0))
+    ax = fig.add_subplot(1, 1, 1)
+    width = 0.8 / max(len(labels), 1)
+    for j, label in enumerate(labels):
+        heights = []
+        for name in names:
+            value = next((r.get("ate_m") for r in rows
+                          if os.path.basename(r["input"]) == name and r["configuration"] == label), None)
+            heights.append(value if isinstance(value, float) and np.isfinite(value) else 0.0)
+        ax.bar(np.arange(len(names)) + (j - (len(labels) - 1) / 2) * width, heights, width, label=label,
+               color=_OTHER_COLORS[j % len(_OTHER_COLORS)] if j else COLORS["estimate"])
+    ax.set_xticks(np.arange(len(names)), names)
+    ax.set_ylabel("ATE RMSE (m), aligned (SE(3))")
+    ax.set_title("vislam batch: ATE per input and configuration (no bar: no ground truth, or the run failed)",
+                 fontsize=9)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     _save(fig, path)

@@ -7,7 +7,7 @@
 | map.npz | `ids`, `positions` (K,3), `covariances` (K,3,3) |
 | map.ply | landmarks coloured by uncertainty (viridis on log10 of the largest sigma: dark = certain, yellow = uncertain) |
 | trajectory.ply | the path as a line set coloured by time |
-| trajectory.png | top-down plot: dead reckoning, estimate, ground truth, landmarks |
+| trajectory.png | top-down plot: estimate, dead reckoning, landmarks; with ground truth each SE(3)-aligned to it (title: ATE RMSE) and the ground truth over the run's time span |
 | ate_over_time.png | with ground truth: position error of each pose after SE(3) alignment, estimate and dead reckoning |
 | summary.json | counts, timings, decisions, configuration and (with ground truth) errors |
 | config.toml | the configuration used (every table; [tracker] from images), loadable with --config |
@@ -75,6 +75,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
             "bookkeeping_seconds": stats.seconds_bookkeeping,
             "sequence_seconds": stats.sequence_seconds,
             "real_time_factor": stats.real_time_factor,
+            "step_ms": {"median": stats.step_ms_median, "p99": stats.step_ms_p99, "max": stats.step_ms_max},
         },
         "conventions": result.conventions.as_dict(),
         "imu_noise": result.imu_noise.as_dict(),
@@ -107,10 +108,9 @@ def write_run_outputs(
     if not outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances):
         notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
     outputs.write_trajectory_ply(out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps)
-    curves = {"dead reckoning": result.dead_reckoning, "estimate": result.world_T_imu}
-    if gt is not None:
-        curves["ground truth"] = gt[1]
-    plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, landmarks=result.map_positions,
+    curves = {"estimate": (result.time_stamps, result.world_T_imu),
+              "dead reckoning": (result.time_stamps, result.dead_reckoning)}
+    plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, gt, result.map_positions,
                                     title=f"{Path(source).name}: {result.config.estimator.mode}")
     if gt is not None:
         write_error_plot(out_dir / "ate_over_time.png", {"estimate": result.world_T_imu, "dead reckoning": result.dead_reckoning},
@@ -129,7 +129,8 @@ def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t:
     """Position error over time of each named estimate (same stamps), each aligned to the ground truth."""
     series = {name: ate_per_pose(time_stamps, poses, gt_t, gt_poses, sim3=sim3, return_stamps=True)
               for name, poses in estimates.items()}
-    plots.plot_errors_over_time(path, series, f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment")
+    title = f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment"
+    plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""))
 
 
 def _nis_text(mean_nis: float) -> str:

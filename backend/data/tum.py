@@ -99,3 +99,21 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
     poses[:, :3, 3] = data[:, 1:4]
     return data[:, 0].copy(), poses
+
+
+def write_kitti_poses(path: str | os.PathLike, world_T_imu: Any, imu_T_cam: Any, header: str | None = None) -> None:
+    """Write a trajectory in the KITTI odometry pose format: per line the 12 numbers (row-major,
+    ``%.9e``) of the top 3x4 of ``cam0_T_cam_k = (world_T_imu_0 imu_T_cam)^-1 world_T_imu_k imu_T_cam``,
+    the left camera's pose in its first frame, as KITTI's ``poses/XX.txt`` and evo's ``kitti``
+    format hold them (no time stamps: line k is frame k). ``header`` is not written (the format has
+    no comments); it is accepted for symmetry with :func:`write_tum` and ignored."""
+    poses = _check_poses(world_T_imu)
+    T = np.asarray(imu_T_cam, dtype=float).reshape(4, 4)
+    if not np.all(np.isfinite(poses)):
+        bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
+        raise ValueError(f"non-finite pose at index {int(bad[0])}")
+    world_T_cam = poses @ T
+    cam0_T_cam = se3.inverse(world_T_cam[0]) @ world_T_cam if len(poses) else world_T_cam
+    text = "".join(" ".join(f"{v:.9e}" for v in P[:3, :].ravel()) + "\n" for P in cam0_T_cam)
+    with atomic_write(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")

@@ -113,6 +113,19 @@ class LandmarkMap:
         return ids_all[best], pos_all[best], cov_all[best]
 
 
+_CONTROLLER = None
+
+
+def _blas_controller():
+    """One threadpoolctl controller per process (finding the BLAS libraries takes ~0.5 ms)."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER
+
+
 class VisualInertialEKF:
     """Stereo visual-inertial EKF on SE(3) with a bounded landmark state (online API).
 
@@ -132,7 +145,12 @@ class VisualInertialEKF:
     expected_landmarks : int, optional
         With ``estimator.full_state``: refuse at once when that many would not fit.
 
-    Use: ``predict(dt, v, w)`` then ``update(ids, pixels)`` once per time step.
+    Use: ``predict(dt, v, w)`` then ``update(ids, pixels)`` once per time step, ``finish()`` at the
+    end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
+    ``execution.blas_threads`` threads (one by default: at the filter's ~200 x 200 sizes more
+    threads are slower, up to 40x on a busy machine), whatever the caller set; ``close()`` gives
+    the caller's setting back. (Limiting per call instead costs ~0.1 ms a step: OpenBLAS re-sizes
+    its pool each time.)
     """
 
     def __init__(
@@ -178,6 +196,7 @@ class VisualInertialEKF:
         self.health = HealthMonitor(config.health.nis_window, config.health.nis_warn_factor)
         self.step_index = 0
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
+        self._blas_limit = _blas_controller().limit(limits=config.execution.blas_threads, user_api="blas")
 
     # ------------------------------------------------------------------ public state
     @property
@@ -301,6 +320,18 @@ class VisualInertialEKF:
         """Marginalize every active landmark into the map (end of the sequence)."""
         if self.state.num_landmarks:
             self._remove(np.ones(self.state.num_landmarks, dtype=bool), to_map=True)
+
+    def close(self) -> None:
+        """Give the process its BLAS threads back (also when the filter is garbage-collected)."""
+        limit, self._blas_limit = getattr(self, "_blas_limit", None), None
+        if limit is not None:
+            limit.restore_original_limits()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the libraries may be gone
+            pass
 
     def landmark_map(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (K,), positions (K,3), covariances (K,3,3)) of mapped and active landmarks, by id.

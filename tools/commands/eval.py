@@ -17,8 +17,9 @@ def add_parser(sub) -> None:
     p.add_argument("ground_truth")
     p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
     p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
-    p.add_argument("--json", help="write the numbers as JSON")
-    p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned) and ate_over_time.png")
+    p.add_argument("--json", help="write the numbers as JSON (with alignment_scale: 1 for SE(3))")
+    p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
+                   "estimate's time span) and ate_over_time.png")
     p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
     p.set_defaults(func=main)
 
@@ -43,20 +44,23 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, out: Path | None) -> None:
-    from ...backend.evaluation.metrics import aligned_poses, trajectory_errors
+    from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
     from ..plots import plot_trajectories_topdown
     from ..report import write_error_plot
 
     errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
     d = errors.as_dict()
+    d["alignment_scale"] = alignment_scale(est_t, est, gt_t, gt) if args.sim3 else 1.0
     print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
           f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
+    if args.sim3:
+        print(f"Sim(3) scale {d['alignment_scale']:.12g} (applied to the estimate; < 1: its path is longer "
+              "than the ground truth's)")
     if args.json is not None:
         outputs.write_json(args.json, d)
     if out is not None:
-        _, est_aligned, ref = aligned_poses(est_t, est, gt_t, gt, sim3=args.sim3)
-        plot_trajectories_topdown(out / "trajectories.png", {"estimate (aligned)": est_aligned, "ground truth": ref},
-                                  title=f"{args.estimate} vs {args.ground_truth}")
+        plot_trajectories_topdown(out / "trajectories.png", {"estimate": (est_t, est)}, (gt_t, gt), sim3=args.sim3,
+                                  title=f"{Path(args.estimate).name} vs {Path(args.ground_truth).name}")
         write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
         outputs.write_json(out / "eval.json", d)

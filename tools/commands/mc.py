@@ -2,19 +2,21 @@
 
 ``vislam mc --scenario street --runs 20 --steps 300 --out DIR`` runs the filter on ``runs`` noise
 realizations of one scene (``backend.evaluation.consistency``) and writes ``consistency.json`` and
-``nees.png``. The filter's noise defaults to the scene's (the filter on its own model);
-``--config`` and ``--set TABLE.KEY=VALUE`` change the filter as for ``vislam run``.
+``nees.png``; a warning line is printed when the landmark NEES mean lies outside the 95 % band of
+the run average (:func:`landmark_nees_check`). The filter's noise defaults to the scene's (the
+filter on its own model); ``--config`` and ``--set TABLE.KEY=VALUE`` change the filter as for
+``vislam run``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
-import sys
 
 from ...backend.data.files import output_directory
 from ...backend.errors import ConfigError
-from .. import options, outputs
+from .. import console, options, outputs
 
 
 def add_parser(sub) -> None:
@@ -26,9 +28,11 @@ def add_parser(sub) -> None:
                    help="geometry seed; run i uses the noise seed SEED+i (default 0)")
     p.add_argument("--landmark-density", type=float, default=1.0, help="scales the scene's landmark density")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
+    p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     options.add_config_options(p)
+    console.add_verbosity_options(p)
     p.set_defaults(func=main)
 
 
@@ -47,31 +51,91 @@ def main(args: argparse.Namespace) -> int:
     check_scene_size(scene_config)  # memory bounds, before any work
     with output_directory(args.out, args.force) as staging:  # checked before any work
         result = _monte_carlo(args, scene_config, config)
-        outputs.write_json(staging / "consistency.json", result)
-        plot_consistency(staging / "nees.png", result)
-    print("\n".join(result.summary_lines()))
+        check = landmark_nees_check(result)
+        data = result.as_dict()
+        data["landmark_nees"].update(check)
+        outputs.write_json(staging / "consistency.json", data)
+        plot_consistency(staging / "nees.png", result, notes=(landmark_nees_line(result, check),))
+    if not args.quiet:
+        print("\n".join(summary_lines(result, check)))
     return 0
 
 
-def _monte_carlo(args: argparse.Namespace, scene_config, config):
-    """The runs, on every core (or ``--workers``), with a progress bar."""
-    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+def landmark_nees_check(result) -> dict:
+    """The landmark NEES average against the 95 % band of the average of one chi2(3) value per run.
 
-    from tqdm import tqdm
+    A run's landmarks share the pose errors they were seen with, so each run counts as one
+    independent sample: the band is the pose NEES band's construction with 3 dof and R runs
+    (``consistency.average_band(3, R)``), wider than the band of all landmarks as if independent.
+
+    Parameters
+    ----------
+    result : ``backend.evaluation.consistency.ConsistencyResult``
+
+    Returns
+    -------
+    dict
+        ``expectation`` (3), ``band_of_run_average`` [lo, hi] and ``in_band_of_run_average``
+        (bool; None without mapped landmarks), for consistency.json's ``landmark_nees``.
+    """
+    from ...backend.evaluation.consistency import average_band
+
+    lo, hi = average_band(3, int(result.runs))
+    mean = float(result.landmark_nees_mean)
+    in_band = bool(lo <= mean <= hi) if result.landmark_count > 0 and math.isfinite(mean) else None
+    return {"expectation": 3.0, "band_of_run_average": [lo, hi], "in_band_of_run_average": in_band}
+
+
+def landmark_nees_line(result, check: dict) -> str:
+    """One line: the landmark NEES mean, the band of the run average and whether it lies in it."""
+    lo, hi = check["band_of_run_average"]
+    if check["in_band_of_run_average"] is None:
+        return "landmark NEES: no landmark mapped"
+    where = "in" if check["in_band_of_run_average"] else "OUTSIDE"
+    return (f"landmark NEES mean {result.landmark_nees_mean:.2f} {where} the 95 % band "
+            f"[{lo:.2f}, {hi:.2f}] of the {result.runs}-run average")
+
+
+def summary_lines(result, check: dict) -> list[str]:
+    """``result.summary_lines()``, then a warning when the landmark NEES is outside its run-average band."""
+    lines = list(result.summary_lines())
+    if check["in_band_of_run_average"] is False:
+        lo, hi = check["band_of_run_average"]
+        state = ("the map's covariances are too small (overconfident)" if result.landmark_nees_mean > hi
+                 else "the map's covariances are too large (pessimistic)")
+        lines.append(f"warning: landmark NEES mean {result.landmark_nees_mean:.2f} is outside the 95 % band "
+                     f"[{lo:.2f}, {hi:.2f}] of the {result.runs}-run average of chi2(3) (expectation 3): {state}")
+    return lines
+
+
+def _monte_carlo(args: argparse.Namespace, scene_config, config):
+    """The runs, on every core (or ``--workers``) or a Ray cluster (``--ray``), with a progress bar."""
+    from concurrent.futures import ThreadPoolExecutor
+    from contextlib import nullcontext
 
     from ...backend.evaluation.consistency import monte_carlo
     from ...synth.scene import SceneFactory
+    from ..pool import executor
 
     workers = args.workers or os.cpu_count() or 1
-    executor = (ProcessPoolExecutor(max_workers=min(workers, args.runs)) if workers > 1
-                else ThreadPoolExecutor(max_workers=1))  # one worker: no process start-up
-    print(f"vislam mc: {args.runs} runs of the {args.scenario} scene (geometry seed {args.seed}, {args.steps} steps), "
-          f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {workers} worker(s)", file=sys.stderr)
-    bar = tqdm(total=args.runs, unit="run", file=sys.stderr, desc="monte carlo")
-    try:
-        result = monte_carlo(SceneFactory(scene_config), config, args.runs, seed0=args.seed, executor=executor,
-                             progress=lambda done: bar.update(done - bar.n))
-    finally:
-        bar.close()
-        executor.shutdown(wait=True, cancel_futures=True)
+    where = f"Ray at {args.ray}" if args.ray else f"{workers} worker(s)"
+    console.sayer(args.quiet)(
+        f"vislam mc: {args.runs} runs of the {args.scenario} scene (geometry seed {args.seed}, {args.steps} steps), "
+        f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {where}\n" + console.configuration_text(args.verbose, config))
+    one_thread = workers == 1 and not args.ray  # one worker: no process start-up
+    pool = nullcontext(ThreadPoolExecutor(max_workers=1)) if one_thread else executor(args.workers, args.ray, args.runs)
+    with pool as runner, console.progress_bar(args.runs, "monte carlo", "run", console.progress_off(args)) as progress:
+        done = [0]
+
+        def advance(finished: int) -> None:
+            while done[0] < finished:
+                done[0] += 1
+                progress(done[0])
+
+        try:
+            result = monte_carlo(SceneFactory(scene_config), config, args.runs, seed0=args.seed, executor=runner,
+                                 progress=advance)
+        finally:
+            if one_thread:
+                runner.shutdown(wait=True, cancel_futures=True)
     return result

@@ -1,8 +1,11 @@
-"""``vislam run``: the estimator on a feature file, or on stereo images in one pass; every output."""
+"""``vislam run``: the estimator on a feature file, or on stereo images (an odometry-layout directory
+or a KITTI raw drive) in one pass; every output."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -14,18 +17,33 @@ from .. import console, options
 
 def add_parser(sub) -> None:
     p = sub.add_parser("run", help="the filter on a feature file (.npz) or stereo images: trajectory, map, summary")
-    p.add_argument("data", help="feature + IMU file in the course .npz layout, or a stereo image directory (with --imu)")
-    p.add_argument("--imu", help="with an image directory: IMU velocities (CSV t,vx,vy,vz,wx,wy,wz or a course .npz)")
+    p.add_argument("data", help="feature + IMU file in the course .npz layout, a stereo image directory (with --imu) "
+                               "or a KITTI raw drive (..._sync/: IMU and ground truth from its oxts/)")
+    p.add_argument("--imu", help="with an odometry-layout image directory: IMU velocities (CSV t,vx,vy,vz,wx,wy,wz "
+                                 "or a course .npz)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
-    p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG")
+    p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG "
+                                                 "(left image on top with track tails, right image below with the stereo matches)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
-    p.add_argument("--gt", help="ground truth TUM file (world_T_imu, the data's stamps) for ATE/RPE")
+    p.add_argument("--gt", help="ground truth TUM file (world_T_imu, the data's stamps) for ATE/RPE "
+                                "(a KITTI raw drive's default: its OXTS poses)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
-    p.add_argument("--quiet", action="store_true", help="no progress bar, no start-up listing")
+    p.add_argument("--format", choices=["tum", "kitti"], default="tum",
+                   help="kitti: also write trajectory_kitti.txt and dead_reckoning_kitti.txt (the left camera's "
+                        "pose in its first frame, 12 numbers a line, KITTI odometry poses format)")
+    p.add_argument("--rerun", metavar="FILE.rrd", help="also record the run for the Rerun viewer (rerun FILE.rrd): "
+                   "pose, trajectory, landmarks with their uncertainty; from images each frame and its tracks "
+                   "(pip install 'vislam[viewer]')")
+    p.add_argument("--rerun-live", dest="rerun_live", action="store_true",
+                   help="stream the same to a Rerun viewer while the run goes (one is started if none is running)")
+    console.add_verbosity_options(p)
     options.add_config_options(p)
     options.add_filter_flags(p)
     p.set_defaults(func=main)
 
+
+#: The OXTS poses of a KITTI raw drive, written next to the outputs (TUM)
+GROUND_TRUTH = "ground_truth.txt"
 
 #: Free space the outputs of a run need at most (trajectories, map, PLY, plots, summary: a few MB)
 OUTPUT_SPACE = 32 * 2**20
@@ -33,7 +51,7 @@ OUTPUT_SPACE = 32 * 2**20
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
-    from ...backend.data.tum import read_tum
+    from ...backend.data.tum import read_tum, write_tum
     from ..report import format_summary, write_run_outputs
 
     images = Path(args.data).is_dir()
@@ -48,13 +66,31 @@ def main(args: argparse.Namespace) -> int:
     gt = (args.gt, *read_tum(args.gt)) if args.gt else None
     say = console.sayer(args.quiet)
     out = Path(args.out)
-    with output_directory(args.out, args.force, OUTPUT_SPACE) as staging:  # checked before any work
+    with output_directory(args.out, args.force, OUTPUT_SPACE) as staging, _recorder(args) as recorder:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
-            result, notes = (_run_images(args, config, tracker, gt, say) if images
-                             else _run_file(args, config, gt, say))
+            drive = None
+            if images:
+                (result, notes), gt, drive = _run_images(args, config, tracker, gt, say, recorder)
+            else:
+                result, notes = _run_file(args, config, gt, say, recorder)
+        if recorder is not None:
+            recorder.log_result(result, gt[2] if gt else None)
+        if drive is not None:
+            write_tum(staging / GROUND_TRUTH, drive.imu.time_stamps, drive.world_T_imu,
+                      header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
+                             "convertOxtsToPose; world = the IMU frame at the first frame)")
         summary = write_run_outputs(result, staging, str(args.data), gt[1:] if gt else None, tracker, notes)
-    print(format_summary(summary, out))
+        if args.format == "kitti":
+            from ...backend.data.tum import write_kitti_poses
+
+            for name, poses in (("trajectory", result.world_T_imu), ("dead_reckoning", result.dead_reckoning)):
+                write_kitti_poses(staging / f"{name}_kitti.txt", poses, result.conventions.imu_T_cam)
+    if not args.quiet:
+        print(format_summary(summary, out))
+    else:  # nothing but errors, and the warnings that say the result is not what was asked for
+        for message in summary["health"]:
+            print(f"warning: {message}", file=sys.stderr)
     return 0
 
 
@@ -67,7 +103,16 @@ def _check_ground_truth(gt, time_stamps) -> None:
     require_matches(time_stamps, gt[1], gt[0])
 
 
-def _run_file(args: argparse.Namespace, config: Config, gt, say):
+def _recorder(args: argparse.Namespace):
+    """The --rerun recorder (tools.viewer), or an empty context."""
+    if not (args.rerun or args.rerun_live):
+        return contextlib.nullcontext()
+    from ..viewer import RerunRecorder
+
+    return RerunRecorder(args.rerun, spawn=args.rerun_live)
+
+
+def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     from ...backend.data.npz import load_sequence
     from ...backend.run.runner import run_sequence
 
@@ -75,39 +120,53 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say):
     seq = load_sequence(args.data, image_size=config.input.image_size)  # bad input is refused before any waiting
     load_seconds = time.perf_counter() - t0
     _check_ground_truth(gt, seq.time_stamps)
+    if recorder is not None:
+        recorder.time_stamps = seq.time_stamps
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
         f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))
     for note in seq.notes:
         say(f"note: {note}")
-    say("configuration:\n" + config.describe())
-    with console.progress_bar(seq.num_steps, "filter", "step", args.quiet) as progress:
-        return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say), list(seq.notes)
+    say(console.configuration_text(args.verbose, config))
+    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
+        return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
+                            observer=None if recorder is None else recorder.observer), list(seq.notes)
 
 
-def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say):
+def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
     """Tracking and the filter in one pass: each frame goes to the filter as soon as it is tracked;
-    the conventions are decided from the first frames (``backend.run.runner.decide_online``)."""
+    the conventions are decided from the first frames (``backend.run.runner.decide_online``).
+    Returns ((result, notes), ground truth, the raw drive or None): a KITTI raw drive brings its IMU
+    velocities and, without ``--gt``, its OXTS poses as the ground truth."""
     from ...backend.data.sequence import VISLAM_TRACKER
     from ...backend.geometry.camera import StereoCamera
     from ...backend.run.runner import run_stream
-    from ...frontend.images import open_stereo_directory
     from ...frontend.draw import check_draw_dir
+    from ...frontend.raw_drive import drive_imu, is_raw_drive, open_images
     from ...frontend.track import check_image_size, check_imu, image_steps
 
-    if not args.imu:
-        raise InputError(f"{args.data}: an image directory needs the IMU velocities: --imu FILE (.csv or course .npz)")
-    stereo = open_stereo_directory(args.data)  # refuse a bad input before any work
+    if not args.imu and not is_raw_drive(args.data):
+        raise InputError(f"{args.data}: an image directory needs the IMU velocities: --imu FILE (.csv or course .npz); "
+                         "a KITTI raw drive (image_00/, oxts/) carries its own")
+    stereo, drive = open_images(args.data)  # refuse a bad input before any work
     check_image_size(stereo, tracker)
     if args.draw is not None:
         check_draw_dir(args.draw)
-    imu = check_imu(args.imu, stereo, args.imu_T_cam)
-    _check_ground_truth(gt, imu.time_stamps)
+    imu = (drive_imu(drive, args.imu, args.imu_T_cam) if drive is not None
+           else check_imu(args.imu, stereo, args.imu_T_cam))
     notes = list(imu.notes)
+    if gt is None and drive is not None:
+        gt = drive.ground_truth
+        notes.append(f"ground truth: the OXTS poses of {drive.ground_truth_source} ({GROUND_TRUTH})")
+    _check_ground_truth(gt, imu.time_stamps)
     for note in notes:
         say(f"note: {note}")
-    say("configuration:\n" + config.describe() + "\n" + tracker.describe())
-    steps = image_steps(stereo, imu, tracker, args.draw)
-    with console.progress_bar(len(stereo), "track+filter", "frame", args.quiet) as progress:
-        return run_stream(steps, StereoCamera(stereo.K, stereo.baseline), imu.imu_T_cam, config,
-                          imu_velocities=(imu.linear_velocity, imu.angular_velocity), num_steps=len(stereo),
-                          tracker=VISLAM_TRACKER, progress=progress, say=say), notes
+    say(console.configuration_text(args.verbose, config, tracker))
+    if recorder is not None:
+        recorder.time_stamps = imu.time_stamps
+    steps = image_steps(stereo, imu, tracker, args.draw, on_frame=None if recorder is None else recorder.log_frame)
+    with console.progress_bar(len(stereo), "track+filter", "frame", console.progress_off(args)) as progress:
+        result = run_stream(steps, StereoCamera(stereo.K, stereo.baseline), imu.imu_T_cam, config,
+                            imu_velocities=(imu.linear_velocity, imu.angular_velocity), num_steps=len(stereo),
+                            tracker=VISLAM_TRACKER, progress=progress, say=say,
+                            observer=None if recorder is None else recorder.observer)
+    return (result, notes), gt, drive

@@ -1,0 +1,91 @@
+"""`vislam batch`: inputs x configurations on a process pool or Ray, one table; the same numbers as single runs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import pytest
+
+from vislam.backend.config import Config
+from vislam.backend.data.npz import load_sequence
+from vislam.backend.data.tum import read_tum
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.run.runner import run_sequence
+from vislam.tools.cli import main
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """Two synthetic feature files s0.npz, s1.npz with ground truth s0_gt.txt, s1_gt.txt."""
+    root = tmp_path_factory.mktemp("batch_inputs")
+    for seed in (0, 1):
+        scene = root / f"scene{seed}"
+        assert main(["synth", "--steps", "60", "--seed", str(seed), "--out", str(scene)]) == 0
+        shutil.copy(scene / "data.npz", root / f"s{seed}.npz")
+        shutil.copy(scene / "gt_tum.txt", root / f"s{seed}_gt.txt")
+    return root
+
+
+def _rows(out):
+    with open(out / "batch.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_batch_on_a_process_pool_matches_single_runs(inputs, tmp_path, capsys):
+    out = tmp_path / "b"
+    argv = ["batch", str(inputs / "s0.npz"), str(inputs / "s1.npz"), "--vary", "noise.pixel_sigma=0.5,1.0",
+            "--gt", str(inputs / "{stem}_gt.txt"), "--out", str(out), "--workers", "2", "--no-progress"]
+    assert main(argv) == 0
+    rows = _rows(out)
+    assert [(r["input"].endswith("s0.npz"), r["configuration"]) for r in rows] == [
+        (True, "noise.pixel_sigma=0.5"), (True, "noise.pixel_sigma=1.0"),
+        (False, "noise.pixel_sigma=0.5"), (False, "noise.pixel_sigma=1.0")]
+    # the same number as a single run of that input and configuration
+    result = run_sequence(load_sequence(inputs / "s1.npz"), Config().with_assignments(["noise.pixel_sigma=1.0"]))
+    gt_t, gt = read_tum(inputs / "s1_gt.txt")
+    expected = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt).ate_rmse
+    assert float(rows[3]["ate_m"]) == pytest.approx(expected, rel=1e-3)  # the CSV keeps 4 significant digits
+    data = json.loads((out / "batch.json").read_text())
+    assert data["rows"][3]["ate_m"] == pytest.approx(expected, rel=1e-12)
+    assert (out / "batch.png").stat().st_size > 1000
+    assert "s1.npz" in capsys.readouterr().out
+
+
+def test_batch_on_a_local_ray_instance_gives_the_pool_numbers(inputs, tmp_path):
+    pytest.importorskip("ray", reason="the cluster extra (ray) is not installed")
+    argv = ["batch", str(inputs / "s0.npz"), "--vary", "noise.pixel_sigma=0.5,1.0",
+            "--gt", str(inputs / "{stem}_gt.txt"), "--quiet"]
+    assert main([*argv, "--out", str(tmp_path / "pool"), "--workers", "1"]) == 0
+    assert main([*argv, "--out", str(tmp_path / "ray"), "--ray", "local", "--workers", "1"]) == 0
+    pool = json.loads((tmp_path / "pool" / "batch.json").read_text())["rows"]
+    ray = json.loads((tmp_path / "ray" / "batch.json").read_text())["rows"]
+    assert [r["ate_m"] for r in ray] == [r["ate_m"] for r in pool]
+
+
+def test_batch_refuses_and_reports(inputs, tmp_path, capsys):
+    out = tmp_path / "x"
+    assert main(["batch", str(inputs / "s0.npz"), "--vary", "noise.pixel_sigma", "--out", str(out)]) == 2
+    assert "--vary" in capsys.readouterr().err
+    assert main(["batch", str(inputs / "s0.npz"), "--vary", "noise.pixel_sigmaa=1", "--out", str(out)]) == 2
+    assert "pixel_sigmaa" in capsys.readouterr().err
+    assert main(["batch", str(tmp_path / "missing.npz"), "--out", str(out)]) == 2
+    assert "missing.npz" in capsys.readouterr().err
+    assert not out.exists()
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    assert main(["batch", str(bad), str(inputs / "s0.npz"), "--out", str(out), "--quiet", "--workers", "1"]) == 1
+    rows = _rows(out)
+    assert rows[0]["error"] and "bad.npz" in rows[0]["error"] and not rows[1]["error"]
+
+
+def test_mc_on_a_local_ray_instance_gives_the_pool_numbers(tmp_path):
+    pytest.importorskip("ray", reason="the cluster extra (ray) is not installed")
+    argv = ["mc", "--runs", "2", "--steps", "40", "--quiet"]
+    assert main([*argv, "--out", str(tmp_path / "pool"), "--workers", "2"]) == 0
+    assert main([*argv, "--out", str(tmp_path / "ray"), "--ray", "local", "--workers", "2"]) == 0
+    pool = json.loads((tmp_path / "pool" / "consistency.json").read_text())
+    ray = json.loads((tmp_path / "ray" / "consistency.json").read_text())
+    for key in ("landmark_nees", "nis"):
+        assert ray[key] == pool[key]

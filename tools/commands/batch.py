@@ -1,0 +1,162 @@
+"""``vislam batch``: many inputs x configurations, one table and one plot.
+
+``vislam batch A.npz B.npz --vary noise.pixel_sigma=1.0,1.5 --gt '../shared/data/gt/{stem}_gt_tum.txt'
+--out DIR`` runs the filter on every feature file with every configuration (the product of the
+``--vary`` lists over ``--config``/``--set``), on a local process pool (``--workers``) or a Ray
+cluster (``--ray ADDRESS``; ``--ray local`` starts one here), and writes ``batch.csv`` (input,
+configuration, ATE, RPE, mean NIS, gated share, seconds, real-time factor, health warnings),
+``batch.json`` and ``batch.png`` (ATE per input and configuration). ``{stem}`` in ``--gt`` is the
+input file's name without ``.npz``; an input without ground truth gets no ATE. A run that fails is
+a row with its one-line error; the exit code is then 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import itertools
+import math
+import time
+from pathlib import Path
+
+from ...backend.errors import ConfigError, VislamError
+from .. import console, options, outputs
+
+COLUMNS = ["input", "configuration", "steps", "ate_m", "rpe_m", "mean_nis", "gated_share", "seconds",
+           "real_time_factor", "health_warnings", "error"]
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("batch", help="run many feature files x configurations; one table and one plot")
+    p.add_argument("inputs", nargs="+", help="feature files (.npz)")
+    p.add_argument("--vary", action="append", default=[], metavar="TABLE.KEY=V1,V2,...",
+                   help="values of one option to try (repeatable: every combination runs)")
+    p.add_argument("--gt", metavar="PATTERN", help="ground truth TUM file per input; {stem} is the input's name without .npz")
+    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: every core)")
+    p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
+    p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
+    p.add_argument("--force", action="store_true")
+    options.add_config_options(p)
+    console.add_verbosity_options(p)
+    p.set_defaults(func=main)
+
+
+def configurations(args: argparse.Namespace) -> list[tuple[str, object]]:
+    """(label, Config) of every combination of the ``--vary`` values over ``--config``/``--set``;
+    every value is checked before any run."""
+    base = options.filter_config(args)
+    axes = []
+    for item in args.vary:
+        key, sep, values = item.partition("=")
+        choices = [v.strip() for v in values.split(",") if v.strip()]
+        if not sep or not key.strip() or not choices:
+            raise ConfigError(f"--vary {item!r}: expected TABLE.KEY=V1,V2,...")
+        axes.append([f"{key.strip()}={v}" for v in choices])
+    combos = list(itertools.product(*axes)) or [()]
+    return [(", ".join(c) or "defaults", base.with_assignments(list(c))) for c in combos]
+
+
+def run_one(path: str, config, gt_path: str | None) -> dict:
+    """One run in a worker: its row (module level, so a process pool or Ray can run it)."""
+    import warnings
+
+    from ...backend.data.npz import load_sequence
+    from ...backend.run.runner import run_sequence
+
+    row = {"input": path}
+    try:
+        t0 = time.perf_counter()
+        seq = load_sequence(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # health messages: counted in the row
+            result = run_sequence(seq, config, load_seconds=time.perf_counter() - t0)
+        stats = result.stats
+        row.update(steps=stats.steps, mean_nis=stats.mean_nis, gated_share=stats.gated_share,
+                   seconds=stats.total_seconds, real_time_factor=stats.real_time_factor,
+                   health_warnings=len(stats.health_messages))
+        if gt_path is not None:
+            from ...backend.data.tum import read_tum
+            from ...backend.evaluation.metrics import require_matches, trajectory_errors
+
+            gt_t, gt = read_tum(gt_path)
+            require_matches(result.time_stamps, gt_t, gt_path)
+            errors = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt)
+            row.update(ate_m=errors.ate_rmse, rpe_m=errors.rpe_trans_rmse)
+    except VislamError as exc:
+        row["error"] = str(exc).splitlines()[0]
+    return row
+
+
+def main(args: argparse.Namespace) -> int:
+    from ...backend.data.files import output_directory
+    from ..pool import executor
+
+    configs = configurations(args)
+    console.sayer(args.quiet)(f"vislam batch: {len(args.inputs)} input(s) x {len(configs)} configuration(s); "
+                              + console.configuration_text(args.verbose, configs[0][1]))
+    inputs = [str(Path(p)) for p in args.inputs]
+    for p in inputs:
+        if not Path(p).is_file():
+            raise ConfigError(f"{p}: {'not a file' if Path(p).exists() else 'file does not exist'}")
+    gts = {p: _gt_path(args.gt, p) for p in inputs}
+    jobs = [(p, label, config) for p in inputs for label, config in configs]
+    with output_directory(args.out, args.force) as staging:  # checked before any work
+        rows = [None] * len(jobs)
+        with executor(args.workers, args.ray, len(jobs)) as pool, \
+                console.progress_bar(len(jobs), "batch", "run", console.progress_off(args)) as progress:
+            futures = {pool.submit(run_one, p, config, gts[p]): i for i, (p, _, config) in enumerate(jobs)}
+            import concurrent.futures
+
+            for future in concurrent.futures.as_completed(futures):
+                i = futures[future]
+                rows[i] = dict(future.result(), configuration=jobs[i][1])
+                progress(i)
+        _write_table(staging / "batch.csv", rows)
+        outputs.write_json(staging / "batch.json", {"columns": COLUMNS, "rows": rows})
+        _plot(staging / "batch.png", rows)
+    if not args.quiet:
+        print(format_table(rows))
+        print(f"wrote batch.csv, batch.json, batch.png to {args.out}/")
+    return 1 if any(r.get("error") for r in rows) else 0
+
+
+def _gt_path(pattern: str | None, input_path: str) -> str | None:
+    if not pattern:
+        return None
+    stem = Path(input_path).name.removesuffix(".npz")
+    path = Path(pattern.replace("{stem}", stem))
+    return str(path) if path.is_file() else None
+
+
+def _value(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "n/a" if not math.isfinite(v) else f"{v:.4g}"
+    return str(v)
+
+
+def _write_table(path: Path, rows: list[dict]) -> None:
+    from ...backend.data.files import atomic_write
+
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(COLUMNS)
+        for row in rows:
+            writer.writerow([_value(row.get(c)) for c in COLUMNS])
+
+
+def format_table(rows: list[dict]) -> str:
+    """The rows as a Markdown table (what the terminal shows)."""
+    shown = ["input", "configuration", "ate_m", "rpe_m", "mean_nis", "seconds", "real_time_factor", "error"]
+    lines = ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
+    for row in rows:
+        lines.append("| " + " | ".join(_value(row.get(c)) if c != "input" else Path(row["input"]).name
+                                       for c in shown) + " |")
+    return "\n".join(lines)
+
+
+def _plot(path: Path, rows: list[dict]) -> None:
+    from ..plots import plot_batch
+
+    plot_batch(path, rows)
