@@ -155,3 +155,22 @@ def track_directory(
         if progress is not None:
             progress(index, len(stereo))
     return tracks_to_sequence(stereo, imu, all_ids, all_pixels, tracker.num_ids)
+
+
+def open_tracking_input(images, imu=None, imu_T_cam_path=None, config: TrackerConfig | None = None, draw_dir=None):
+    """(stereo directory, IMU samples per frame, the KITTI raw drive or None) of an image input,
+    every check done before the first frame is tracked: an odometry-layout directory needs ``imu``
+    (a path or :class:`~frontend.imu_input.ImuVelocities`), a raw drive carries its own; the image
+    size against ``config``; ``draw_dir``. InputError (one line) otherwise."""
+    from .raw_drive import drive_imu, is_raw_drive, open_images
+
+    if not imu and not is_raw_drive(images):
+        raise InputError(f"{images}: an odometry-layout image directory needs the IMU velocities: --imu FILE "
+                         "(.csv or course .npz); a KITTI raw drive (image_00/, oxts/) carries its own")
+    stereo, drive = open_images(images)
+    check_image_size(stereo, config if config is not None else TrackerConfig())
+    if draw_dir is not None:
+        check_draw_dir(draw_dir)
+    velocities = drive_imu(drive, imu, imu_T_cam_path) if drive is not None else check_imu(imu, stereo, imu_T_cam_path)
+    return stereo, velocities, drive
+

@@ -140,19 +140,9 @@ def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, reco
     from ...backend.data.sequence import VISLAM_TRACKER
     from ...backend.geometry.camera import StereoCamera
     from ...backend.run.runner import run_stream
-    from ...frontend.draw import check_draw_dir
-    from ...frontend.raw_drive import drive_imu, is_raw_drive, open_images
-    from ...frontend.track import check_image_size, check_imu, image_steps
+    from ...frontend.track import image_steps, open_tracking_input
 
-    if not args.imu and not is_raw_drive(args.data):
-        raise InputError(f"{args.data}: an image directory needs the IMU velocities: --imu FILE (.csv or course .npz); "
-                         "a KITTI raw drive (image_00/, oxts/) carries its own")
-    stereo, drive = open_images(args.data)  # refuse a bad input before any work
-    check_image_size(stereo, tracker)
-    if args.draw is not None:
-        check_draw_dir(args.draw)
-    imu = (drive_imu(drive, args.imu, args.imu_T_cam) if drive is not None
-           else check_imu(args.imu, stereo, args.imu_T_cam))
+    stereo, imu, drive = open_tracking_input(args.data, args.imu, args.imu_T_cam, tracker, args.draw)
     notes = list(imu.notes)
     if gt is None and drive is not None:
         gt = drive.ground_truth

@@ -28,22 +28,11 @@ def add_parser(sub) -> None:
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import check_output_file
     from ...backend.data.npz import save_sequence
-    from ...backend.errors import InputError
-    from ...frontend.draw import check_draw_dir
-    from ...frontend.raw_drive import drive_imu, is_raw_drive, open_images
-    from ...frontend.track import check_image_size, check_imu, track_directory
+    from ...frontend.track import open_tracking_input, track_directory
 
     out = check_output_file(args.out, overwrite=args.force)  # refused before any work
     config = options.tracker_config(args, only=True)
-    if not args.imu and not is_raw_drive(args.images):
-        raise InputError(f"{args.images}: an odometry-layout directory needs the IMU velocities: --imu FILE "
-                         "(.csv or course .npz); a KITTI raw drive (image_00/, oxts/) carries its own")
-    directory, drive = open_images(args.images)  # refuse a bad input before any work
-    check_image_size(directory, config)
-    if args.draw is not None:
-        check_draw_dir(args.draw)
-    imu = (drive_imu(drive, args.imu, args.imu_T_cam) if drive is not None
-           else check_imu(args.imu, directory, args.imu_T_cam))
+    directory, imu, _ = open_tracking_input(args.images, args.imu, args.imu_T_cam, config, args.draw)
     say = console.sayer(args.quiet)
     for note in imu.notes:
         say(f"note: {note}")
