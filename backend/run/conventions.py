@@ -114,6 +114,11 @@ class ConventionDecision:
     velocity_source: str
     stereo_offset: StereoOffset = field(default_factory=StereoOffset)  # the disparity offset model (backend.run.stereo_offset), set by the run
 
+    @property
+    def chosen_error_px(self) -> float | None:
+        """The convention test's median error (C1) of the variant used; None when it was not tested."""
+        return self.errors_px.get(_key(self.imu_flip, self.velocity_index))
+
     def as_dict(self) -> dict:
         return {
             "imu_flip": self.imu_flip,

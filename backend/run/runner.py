@@ -25,7 +25,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ..compiled import warm_up
-from ..config import Config
+from ..config import Config, Mode
 from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
@@ -70,22 +70,31 @@ def decide(seq: Sequence, config: Config) -> tuple[ConventionDecision, NoiseDeci
     """The extrinsic, the velocity timing and the IMU noise for a whole sequence."""
     c = config.conventions
     conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
-    conventions.stereo_offset = checked_offset(seq, conventions, identify_stereo_offset(seq, conventions.imu_T_cam,
-                                                                                        c.stereo_offset), c.horizon)
+    offset = identify_stereo_offset(seq, conventions.imu_T_cam, _offset_model(config))
+    conventions.stereo_offset = checked_offset(seq, conventions, offset, c.horizon,
+                                               without=conventions.chosen_error_px)  # C1 ran on this very sequence
     noise = decide_noise(config, seq.linear_velocity, seq.angular_velocity,
                          seq.num_observations / max(seq.num_steps, 1))
     return conventions, noise
 
 
+def _offset_model(config: Config) -> str:
+    """The stereo offset model to estimate: none for dead reckoning, which uses no vision."""
+    return "off" if config.estimator.mode == Mode.DEAD_RECKONING else str(config.conventions.stereo_offset)
+
+
 def checked_offset(seq: Sequence, conventions: ConventionDecision, offset: StereoOffset, horizon: int,
-                   tolerance: float = 1.05) -> StereoOffset:
+                   tolerance: float = 1.05, without: float | None = None) -> StereoOffset:
     """``offset``, unless removing it makes the convention test's reprojection (C1: points carried
     by dead reckoning, the IMU alone) worse by more than ``tolerance``: then none, and the estimate
-    says why. An independent check: vision found the offset, the IMU must not contradict it."""
+    says why. An independent check: vision found the offset, the IMU must not contradict it.
+    ``without``: the error without the offset when already measured on ``seq`` (the convention test's)."""
     if not offset.active:
         return offset
-    errors = [reprojection_error(s, conventions.imu_T_cam, conventions.velocity_index, horizon)
-              for s in (seq, offset.corrected(seq, conventions.imu_T_cam))]
+    if without is None:
+        without = reprojection_error(seq, conventions.imu_T_cam, conventions.velocity_index, horizon)
+    errors = [without, reprojection_error(offset.corrected(seq, conventions.imu_T_cam), conventions.imu_T_cam,
+                                          conventions.velocity_index, horizon)]
     offset.estimate["dead_reckoning_reprojection_px"] = {"without": errors[0], "with": errors[1]}
     if np.isfinite(errors[0]) and np.isfinite(errors[1]) and errors[1] > tolerance * errors[0]:
         estimate = dict(offset.estimate, rejected=(
@@ -114,7 +123,7 @@ def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.nda
     """
     limit = config.conventions.online_steps if num_steps is None else min(config.conventions.online_steps, num_steps)
     # the stereo offset wants every step up to the limit; the convention test stops once decisive
-    read_all = config.conventions.stereo_offset != "off"
+    read_all = _offset_model(config) != "off"
     read: list[Step] = []
     seconds = 0.0
     conventions = None
@@ -144,7 +153,7 @@ def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.nda
         conventions = decide_conventions(warm, c.imu_flip, c.velocity_index, c.horizon)
         seconds += time.perf_counter() - t0
     t0 = time.perf_counter()
-    offset = identify_stereo_offset(warm, conventions.imu_T_cam, config.conventions.stereo_offset)
+    offset = identify_stereo_offset(warm, conventions.imu_T_cam, _offset_model(config))
     conventions.stereo_offset = checked_offset(warm, conventions, offset, c.horizon)
     noise = decide_noise(config, *imu_velocities, warm.num_observations / warm.num_steps)
     seconds += time.perf_counter() - t0

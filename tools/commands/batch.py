@@ -13,6 +13,7 @@ a row with its one-line error; the exit code is then 1.
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import csv
 import itertools
 import math
@@ -105,8 +106,6 @@ def main(args: argparse.Namespace) -> int:
         with executor(args.workers, args.ray, len(jobs)) as pool, \
                 console.progress_bar(len(jobs), "batch", "run", console.progress_off(args)) as progress:
             futures = {pool.submit(run_one, p, config, gts[p]): i for i, (p, _, config) in enumerate(jobs)}
-            import concurrent.futures
-
             for future in concurrent.futures.as_completed(futures):
                 i = futures[future]
                 rows[i] = dict(future.result(), configuration=jobs[i][1])

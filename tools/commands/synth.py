@@ -11,10 +11,6 @@ from ...backend.errors import VislamError
 PNG_BYTES_PER_PIXEL = 0.52
 
 
-def seq_steps(scene) -> int:
-    return scene.sequence.num_steps
-
-
 def add_parser(sub) -> None:
     p = sub.add_parser("synth", help="make a synthetic scene with ground truth (feature file + gt_tum.txt)")
     p.add_argument("--scenario", choices=["street", "aerial"], default="street")
@@ -44,11 +40,11 @@ def main(args: argparse.Namespace) -> int:
             from ...synth.render import write_kitti_sequence
             from .. import console
 
-            cal = scene.config.calibration
-            size_mb = PNG_BYTES_PER_PIXEL * 2 * cal.width * cal.height * seq_steps(scene) / 1e6
-            console.sayer(args.quiet)(f"rendering {seq_steps(scene)} stereo pairs of {cal.width} x {cal.height}: "
+            cal, frames = scene.config.calibration, scene.sequence.num_steps
+            size_mb = PNG_BYTES_PER_PIXEL * 2 * cal.width * cal.height * frames / 1e6
+            console.sayer(args.quiet)(f"rendering {frames} stereo pairs of {cal.width} x {cal.height}: "
                                       f"about {size_mb:.0f} MB of PNG images")
-            with console.progress_bar(seq_steps(scene), "render", "frame", console.progress_off(args)) as progress:
+            with console.progress_bar(frames, "render", "frame", console.progress_off(args)) as progress:
                 write_kitti_sequence(staging, scene, progress=progress)
             wrote += ", image_0/, image_1/, calib.txt, times.txt, poses.txt (KITTI odometry layout)"
     seq = scene.sequence
