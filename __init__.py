@@ -5,13 +5,13 @@ The public face of the package (the names below load on first use)::
     import vislam
 
     seq = vislam.load_sequence("ece276a_0027.npz")        # a course .npz (either layout)
-    result = vislam.run_sequence(seq, vislam.Config())    # trajectory, map, statistics, decisions
+    result = vislam.run_sequence(seq, vislam.Config())    # trajectory, covariance, map, statistics, decisions
     result.world_T_imu                                    # (N, 4, 4)
 
-    # the online API: one predict and one update per time stamp
-    ekf = vislam.VisualInertialEKF(camera, imu_T_cam, vislam.Config(), vislam.ImuNoise(lin, ang))
-    ekf.predict(dt, v, w)
-    ekf.update(ids, pixels)
+    # the online API: what the data says, decided once, then one call per time stamp
+    decisions = vislam.decide(seq, vislam.Config())
+    run = vislam.OnlineRun(vislam.StereoCamera(seq.K, seq.baseline), decisions, vislam.Config())
+    run.step(t, v, w, ids, pixels)                         # run.ekf.world_T_imu, run.ekf.pose_covariance
 
 The packages: ``backend`` (the estimator, file formats, the run, evaluation), ``frontend`` (OpenCV
 stereo tracking of images), ``synth`` (synthetic scenes with ground truth) and ``tools`` (the
@@ -45,6 +45,8 @@ _PUBLIC = {
     # a whole run
     "run_sequence": "backend.run.runner",
     "run_stream": "backend.run.runner",
+    "decide": "backend.run.decisions",
+    "Decisions": "backend.run.decisions",
     "OnlineRun": "backend.run.online",
     "RunResult": "backend.run.online",
     # evaluation

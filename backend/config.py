@@ -90,9 +90,10 @@ class StereoOffsetModel(StrChoice):
 class RepeatedFrames(StrChoice):
     """What to do with a step whose pixels repeat the previous step's (``backend.run.timing``)."""
 
-    USE = "use"
-    SKIP = "skip"
-    CUT = "cut"
+    FREEZE = "freeze"  # the content froze: landmarks move with the camera for the step (I8); IMU + motion prior
+    USE = "use"  # use the repeated pixels as a new frame
+    SKIP = "skip"  # do not use them
+    CUT = "cut"  # end every track (the IMU alone bridges the step)
 
 
 @dataclass
@@ -118,19 +119,16 @@ class NoiseOptions(OptionTable):
     """The noise model: pixels, IMU velocities (white noise per axis), gyro bias, initial pose."""
 
     TABLE = "noise"
-    pixel_sigma: float = 1.5  # px, per coordinate of z = [uL, vL, uR, vR]
-    linear_velocity_sigma: Optional[float] = None  # m/s; unset: estimated from the data
-    angular_velocity_sigma: Optional[float] = None  # rad/s; unset: estimated from the data
-    linear_velocity_sigma_floor: float = 0.5  # m/s: an estimated white noise below this is raised to it
-    angular_velocity_sigma_floor: float = 0.002  # rad/s, likewise
+    pixel_sigma: Optional[float] = None  # px, per coordinate of z = [uL, vL, uR, vR]; unset: identified (N2)
+    linear_velocity_sigma: Optional[float] = None  # m/s; unset: identified from the data (N1, N3)
+    angular_velocity_sigma: Optional[float] = None  # rad/s; unset: identified from the data (N1, N3)
     gyro_bias_sigma0: float = 0.005  # rad/s: prior standard deviation of the gyro bias
     gyro_bias_random_walk: float = 2e-4  # rad/s/sqrt(s)
     initial_pose_sigma: float = 1e-6  # the world frame is the first pose
 
     def check(self) -> None:
-        self.require_positive("pixel_sigma", "linear_velocity_sigma_floor", "angular_velocity_sigma_floor",
-                              "gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
-        self.require_positive("linear_velocity_sigma", "angular_velocity_sigma", optional=True)
+        self.require_positive("gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
+        self.require_positive("pixel_sigma", "linear_velocity_sigma", "angular_velocity_sigma", optional=True)
 
 
 @dataclass
@@ -169,7 +167,7 @@ class DriftOptions(OptionTable):
     """Feature tracks that drift with their age: landmark random walk and re-anchoring."""
 
     TABLE = "drift"
-    track_drift: Choice = Choice.AUTO  # model drifting tracks; auto: not for vislam's or synthetic tracks (backend.run.drift)
+    track_drift: Choice = Choice.AUTO  # model drifting tracks; auto: by the test on the tracks (T1, backend.run.drift)
     landmark_random_walk: float = 0.05  # m/sqrt(s): with track drift, each xyz landmark's position random-walks
     reanchor_observations: int = 3  # with track drift, a landmark is re-triangulated after this many observations (0: never)
     reanchor_far_observations: int = 25  # ... this many when anchored with disparity < reanchor_far_disparity (0: never)
@@ -204,9 +202,11 @@ class ConventionOptions(OptionTable):
     horizon: int = 3  # steps between triangulation and reprojection in the convention test
     online_steps: int = 100  # image input: the test runs on the first frames, from 20 on every 10, until
     # one variant fits >= 10 % better than all others, at most this many frames
-    repeated_frames: RepeatedFrames = RepeatedFrames.USE  # steps repeating the previous step's pixels
+    repeated_frames: RepeatedFrames = RepeatedFrames.FREEZE  # steps repeating the previous step's pixels
     stereo_offset: StereoOffsetModel = StereoOffsetModel.CONSTANT  # disparity offset identified from the tracks and
     # removed when significant (backend.run.stereo_offset): constant d_true = d - beta; rate: beta_0 + kappa omega_y; off
+    velocity_correction: Choice = Choice.AUTO  # the IMU's lever arm and velocity offset against vision (N3):
+    # auto: removed when significant and dead reckoning agrees; yes: always removed; no: not estimated
 
     def check(self) -> None:
         self.require_at_least(1, "horizon", "online_steps")

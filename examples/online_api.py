@@ -16,22 +16,18 @@ else:
 
     seq = make_scene(SceneConfig(steps=200, seed=0)).sequence
 
-# 1. everything at once: conventions and noise decided from the data, then every step
+# 1. everything at once: what the data says decided from the whole file, then every step
 result = vislam.run_sequence(seq)
 print("run_sequence: final position", np.round(result.world_T_imu[-1][:3, 3], 3),
       f"{result.map_positions.shape[0]} landmarks, {result.stats.real_time_factor:.0f}x real time")
 
-# 2. the online API: one predict and one update per time stamp, with the decisions of step 1
-conventions, noise = result.conventions, result.imu_noise
-ekf = vislam.VisualInertialEKF(vislam.StereoCamera(seq.K, seq.baseline), conventions.imu_T_cam, result.config,
-                               vislam.ImuNoise(noise.linear_sigma, noise.angular_sigma))
-next_velocity = conventions.velocity_index == "next"  # which sample drives step k -> k+1 (the course files': k+1)
-previous = None
+# 2. the online API: the same decisions, then one call per time stamp (velocity timing, IMU corrections,
+# stereo offset and repeated frames are applied by OnlineRun)
+config = vislam.Config()
+decisions = vislam.decide(seq, config)  # conventions, noise, offsets, drift: each with its test's numbers
+print(decisions.describe())
+run = vislam.OnlineRun(vislam.StereoCamera(seq.K, seq.baseline), decisions, config)
 for t, v, w, ids, pixels in seq.steps():  # t (s), velocities (3,) m/s and rad/s, track ids (n,), pixels (n, 4)
-    pixels = conventions.stereo_offset.correct(pixels, float(conventions.imu_T_cam[:3, 1] @ w))  # the pair's offset
-    if previous is not None:
-        t0, v0, w0 = previous
-        ekf.predict(t - t0, *((v, w) if next_velocity else (v0, w0)))  # mu <- mu exp(dt u^); P by the error model
-    ekf.update(ids, pixels)  # gate, RANSAC, joint update, new landmarks, ended tracks to the map
-    previous = (t, v, w)
-print("online API:   final position", np.round(ekf.world_T_imu[:3, 3], 3))
+    run.step(t, v, w, ids, pixels)  # predict into t, then gate, RANSAC, joint update, new landmarks
+sigma = np.sqrt(np.diag(run.ekf.pose_covariance)[:3])  # of world_T_imu = mu exp(xi^), xi = [rho; phi]
+print("online API:   final position", np.round(run.ekf.world_T_imu[:3, 3], 3), "+-", np.round(sigma, 3), "m (body axes)")

@@ -3,11 +3,38 @@
 ``make_scene(SceneConfig(scenario="street" | "aerial", steps, seed, ...))`` builds a
 :class:`~vislam.backend.data.sequence.Sequence` (noisy stereo features with per-track ids, noisy IMU
 velocities) together with the true poses, twists and landmark positions by id;
-``write_scene(scene, out_dir)`` writes ``data.npz``, ``gt_tum.txt`` and ``landmarks.npz``.
-Depends on ``backend`` only.
+``write_scene(scene, out_dir)`` writes ``data.npz``, ``gt_tum.txt`` and ``landmarks.npz``. The
+observations' errors are ``SceneConfig.track_errors`` (:mod:`~vislam.synth.track_errors`: white
+noise, drift, bad tracks, a disparity offset, repeated frames, frame jitter, outliers);
+:mod:`~vislam.synth.grid` lists a seeded grid of scenes split into a tuning and a held-out part.
+Depends on ``backend`` only; the names below load on first use.
 """
 
-from .observe import Calibration, kitti_calibration
-from .scene import Scene, SceneConfig, make_scene, write_scene
+from __future__ import annotations
 
-__all__ = ["Calibration", "kitti_calibration", "Scene", "SceneConfig", "make_scene", "write_scene"]
+import importlib
+
+_PUBLIC = {
+    "Calibration": "observe",
+    "kitti_calibration": "observe",
+    "Scene": "scene",
+    "SceneConfig": "scene",
+    "make_scene": "scene",
+    "write_scene": "scene",
+    "TrackErrors": "track_errors",
+    "PRESETS": "track_errors",
+}
+
+__all__ = list(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'vislam.synth' has no attribute {name!r}")
+    value = getattr(importlib.import_module("." + _PUBLIC[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

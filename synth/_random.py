@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Stream numbers: changing the noise settings never changes the trajectory or the map.
-STREAMS = {"trajectory": 0, "landmarks": 1, "pixels": 2, "tracks": 3, "outliers": 4, "imu": 5}
+#: Stream numbers: changing the noise settings never changes the trajectory or the map, and each
+#: track error (``synth.track_errors``) draws from its own stream.
+STREAMS = {"trajectory": 0, "landmarks": 1, "pixels": 2, "tracks": 3, "outliers": 4, "imu": 5,
+           "repeats": 6, "jitter": 7, "drift": 8, "bad_tracks": 9}
 
 
 def generator(seed, stream: str | None = None) -> np.random.Generator:

@@ -7,12 +7,17 @@ of consecutive visible steps is cut further at random (every observation after t
 a new track with probability 1 / mean_track_length, so track lengths are geometric) to mimic a
 tracker losing features. Every track gets a new id; ``point_index[id]`` is its point. Ids are
 numbered by first step (then point), so they increase with time as a tracker's would.
+
+The errors of the pixels are :class:`~vislam.synth.track_errors.TrackErrors` (white noise by
+default; drift, bad tracks, a disparity offset, repeated frames, frame jitter and outliers on
+request): points are projected from the content poses of the frames (the steps that are not
+repeats), tracks are runs of consecutive frames, and a repeated step shows its frame again.
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -21,6 +26,15 @@ from ..backend.errors import ConfigError
 from ..backend.geometry import se3
 from ..backend.geometry.camera import StereoCamera
 from ._random import generator
+from .track_errors import (
+    TrackErrors,
+    TrackErrorTruth,
+    content_poses,
+    jitter_series,
+    jittered_poses,
+    repeated_steps,
+    track_offsets,
+)
 
 __all__ = [
     "Calibration",
@@ -111,6 +125,7 @@ class Observations(NamedTuple):
     obs_pixels: np.ndarray  # (L,4) uL vL uR vR (noisy; outliers replaced)
     point_index: np.ndarray  # (num_tracks,) int64: id -> index of its point
     outlier: np.ndarray  # (L,) bool: observation replaced by a random pixel
+    truth: TrackErrorTruth  # the drawn track errors (synth.track_errors)
 
 
 def camera_from_world(world_T_imu: np.ndarray, calibration: Calibration) -> np.ndarray:
@@ -221,8 +236,8 @@ def observe(
     points: np.ndarray,
     calibration: Calibration | None = None,
     *,
-    pixel_sigma: float = 0.5,
-    outlier_share: float = 0.0,
+    pixel_sigma: float | None = None,
+    outlier_share: float | None = None,
     mean_track_length: float | None = 15.0,
     min_depth: float = 2.0,
     max_depth: float = 60.0,
@@ -230,20 +245,23 @@ def observe(
     rng_pixels=None,
     rng_tracks=None,
     rng_outliers=None,
+    track_errors: TrackErrors | None = None,
 ) -> Observations:
     """Noisy stereo observations of ``points`` (P,3) from the poses (N,4,4), cut into tracks.
 
-    ``pixel_sigma`` is the Gaussian noise (px) of each of uL, vL, uR, vR; an observation whose
-    noisy pixels leave the image (or lose their disparity) counts as not visible.
-    ``outlier_share`` of the observations get a uniform random pixel with positive disparity
-    instead (same id). ``mean_track_length`` None or inf keeps whole visible runs. The random
-    streams default to independent streams of ``seed``.
+    ``track_errors`` (default ``TrackErrors()``: white noise of 0.5 px alone) is the error model
+    of :mod:`~vislam.synth.track_errors`; ``pixel_sigma`` (px, each of uL, vL, uR, vR) and
+    ``outlier_share``, when given, replace its values. An observation whose noisy pixels leave
+    the image (or lose their disparity) counts as not visible; one that track offsets move out
+    ends its track. Outliers get a uniform random pixel with positive disparity (same id).
+    ``mean_track_length`` None or inf keeps whole visible runs. The random streams default to
+    independent streams of ``seed``; the track errors always use streams of ``seed``.
     """
     calibration = kitti_calibration() if calibration is None else calibration
-    if not (pixel_sigma >= 0 and np.isfinite(pixel_sigma)):
-        raise ValueError(f"pixel_sigma must be finite and >= 0, got {pixel_sigma}")
-    if not 0.0 <= outlier_share <= 1.0:
-        raise ValueError(f"outlier_share must be in [0, 1], got {outlier_share}")
+    errors = TrackErrors() if track_errors is None else track_errors
+    given = {k: v for k, v in (("pixel_sigma", pixel_sigma), ("outlier_share", outlier_share)) if v is not None}
+    if given:
+        errors = replace(errors, **given)
     if mean_track_length is not None and not mean_track_length >= 1.0:
         raise ValueError(f"mean_track_length must be >= 1 (or None), got {mean_track_length}")
     if not 0.0 < min_depth < max_depth:
@@ -251,14 +269,30 @@ def observe(
     rng_pixels = generator(seed, "pixels") if rng_pixels is None else generator(rng_pixels)
     rng_tracks = generator(seed, "tracks") if rng_tracks is None else generator(rng_tracks)
     rng_outliers = generator(seed, "outliers") if rng_outliers is None else generator(rng_outliers)
-    n_steps = np.asarray(world_T_imu).shape[0]
+    world_T_imu = np.asarray(world_T_imu, dtype=float)
+    n_steps = world_T_imu.shape[0]
 
-    steps, idx, pixels = visible_pairs(world_T_imu, points, calibration, min_depth, max_depth)
-    pixels = pixels + pixel_sigma * rng_pixels.standard_normal(pixels.shape)
+    # frames: the steps that are not repeats, seen from the content poses (R), jittered (J)
+    repeated = repeated_steps(n_steps, errors.repeat_interval, generator(seed, "repeats"))
+    frame_step = np.flatnonzero(~repeated)  # (F,) the step each frame is first shown at
+    frame_of_step = np.cumsum(~repeated) - 1  # (N,)
+    content = content_poses(world_T_imu, repeated) if repeated.any() else world_T_imu.copy()
+    xi = np.zeros((n_steps, 6))
+    poses = content
+    if errors.jitters:
+        series = jitter_series(n_steps, errors.jitter_rotation, errors.jitter_translation, errors.jitter_correlation,
+                               generator(seed, "jitter"))
+        xi = series[frame_step][frame_of_step]
+        poses = jittered_poses(content, xi, calibration.imu_T_cam)
+
+    steps, idx, pixels = visible_pairs(poses[frame_step], points, calibration, min_depth, max_depth)  # steps: frames
+    if errors.disparity_offset != 0.0:
+        pixels[:, 2] -= errors.disparity_offset
+    pixels = pixels + errors.pixel_sigma * rng_pixels.standard_normal(pixels.shape)
     keep = _inside(pixels, calibration.width, calibration.height)
     steps, idx, pixels = steps[keep], idx[keep], pixels[keep]
 
-    # tracks: runs of consecutive steps of one point, cut at random
+    # tracks: runs of consecutive frames of one point, cut at random
     order = np.lexsort((steps, idx))
     steps, idx, pixels = steps[order], idx[order], pixels[order]
     n = steps.shape[0]
@@ -276,12 +310,44 @@ def observe(
     point_index = np.empty(first.shape[0], dtype=np.int64)
     point_index[track_id] = idx[first]
 
+    num_tracks = first.shape[0]
+    velocity, jump = np.zeros((num_tracks, 2)), np.zeros((num_tracks, 2))
+    bad, jump_step = np.zeros(num_tracks, dtype=np.int8), np.full(num_tracks, -1, dtype=np.int64)
+    if errors.drifts:  # (E); a track ends at its first observation that leaves the image
+        age = np.arange(n) - first[track]
+        length = np.diff(np.append(first, n))
+        drift = track_offsets(track, age, length, errors, generator(seed, "drift"), generator(seed, "bad_tracks"))
+        pixels += np.tile(drift.offsets, 2)
+        out = ~_inside(pixels, calibration.width, calibration.height)
+        end = length.copy()
+        np.minimum.at(end, track[out], age[out])
+        keep = age < end[track]
+        jumped = drift.jump_age < end
+        velocity[track_id], bad[track_id], jump[track_id] = drift.drift_velocity, drift.bad, drift.jump
+        jump_step[track_id[jumped]] = frame_step[steps[first[jumped]] + drift.jump_age[jumped]]
+        steps, ids, pixels = steps[keep], ids[keep], pixels[keep]
+        n = steps.shape[0]
+
     order = np.lexsort((ids, steps))
     steps, ids, pixels = steps[order], ids[order], pixels[order]
-    outlier = rng_outliers.random(n) < outlier_share
+    outlier = rng_outliers.random(n) < errors.outlier_share
     if outlier.any():
         pixels[outlier] = _random_pixels(rng_outliers, int(outlier.sum()), calibration, min_depth)
 
-    ptr = np.zeros(n_steps + 1, dtype=np.int64)
-    np.cumsum(np.bincount(steps, minlength=n_steps), out=ptr[1:])
-    return Observations(ptr, ids, np.ascontiguousarray(pixels), point_index, outlier)
+    ptr = np.zeros(frame_step.shape[0] + 1, dtype=np.int64)
+    np.cumsum(np.bincount(steps, minlength=frame_step.shape[0]), out=ptr[1:])
+    if repeated.any():  # a repeated step shows its frame's observations again
+        ptr, gather = _expand(ptr, frame_of_step)
+        ids, pixels, outlier = ids[gather], pixels[gather], outlier[gather]
+    truth = TrackErrorTruth(repeated, content, xi, velocity, bad, jump, jump_step)
+    return Observations(ptr, ids, np.ascontiguousarray(pixels), point_index, outlier, truth)
+
+
+def _expand(frame_ptr: np.ndarray, frame_of_step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(step_ptr (N+1,), gather (L,)): the CSR rows of the frames (``frame_ptr``, (F+1,)) shown at
+    each step, as indices into the frames' observations."""
+    counts = np.diff(frame_ptr)[frame_of_step]
+    ptr = np.zeros(frame_of_step.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    gather = np.arange(ptr[-1], dtype=np.int64) + np.repeat(frame_ptr[frame_of_step] - ptr[:-1], counts)
+    return ptr, gather

@@ -1,15 +1,18 @@
 """Synthetic feature scenes with ground truth: configuration, assembly and writing.
 
 ``make_scene(SceneConfig(...))`` is a pure function of the configuration: the trajectory, the
-landmarks, the pixel noise, the track cuts, the outliers and the IMU noise each come from their
-own random stream of ``seed``, so e.g. changing the IMU noise leaves the map and the pixels as
-they are.
+landmarks, the pixel noise, the track cuts, the outliers, each track error
+(``SceneConfig.track_errors``, :mod:`~vislam.synth.track_errors`) and the IMU noise each come
+from their own random stream of ``seed``, so e.g. changing the IMU noise leaves the map and the
+pixels as they are.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+import json
+from dataclasses import InitVar, dataclass, field, fields, replace
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -23,14 +26,23 @@ from ._random import generator
 from .imu import DEFAULT_ANGULAR_SIGMA, DEFAULT_GYRO_BIAS, DEFAULT_LINEAR_SIGMA, measure_velocities
 from .landmarks import LANDMARKS
 from .observe import Calibration, check_observation_count, kitti_calibration, observe
+from .track_errors import DRIFTING_TRACKER, FAST, JUMP, TrackErrors, TrackErrorTruth
 from .trajectories import TRAJECTORIES
 
-__all__ = ["SceneConfig", "SceneFactory", "Scene", "check_scene_size", "make_scene", "write_scene"]
+__all__ = ["SceneConfig", "SceneFactory", "Scene", "check_scene_size", "make_scene", "write_scene", "scene_facts"]
 
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Everything a synthetic scene depends on (same config -> identical arrays)."""
+    """Everything a synthetic scene depends on (same config -> identical arrays).
+
+    The observations' errors are ``track_errors``; the keywords ``pixel_sigma`` and
+    ``outlier_share``, when given, replace its values of the same name, and both read back as
+    attributes (``config.pixel_sigma`` is ``config.track_errors.pixel_sigma``). So
+    ``dataclasses.replace(config, pixel_sigma=0.3)`` changes the white noise, while
+    ``dataclasses.replace(config, track_errors=e)`` keeps the config's white noise and outliers
+    (replace passes them on as keywords): :meth:`with_track_errors` takes all of ``e``.
+    """
 
     scenario: str = "street"  # "street" | "aerial"
     steps: int = 500
@@ -43,15 +55,16 @@ class SceneConfig:
     gyro_bias_walk: float | tuple = 0.0  # rad/s per sqrt(s)
     velocity_index: str = "this"  # "this" | "next"
     # camera
-    pixel_sigma: float = 0.5  # px, each of uL vL uR vR
-    outlier_share: float = 0.0
+    pixel_sigma: InitVar[Optional[float]] = None  # px, each of uL vL uR vR (track_errors.pixel_sigma)
+    outlier_share: InitVar[Optional[float]] = None  # track_errors.outlier_share
     mean_track_length: float | None = 20.0  # steps (geometric); None: whole visible runs
     min_depth: float = 2.0  # m
     max_depth: float = 60.0  # m
     landmark_density: float = 1.0  # multiplies the scenario's landmark density
     calibration: Calibration = field(default_factory=kitti_calibration, compare=False)
+    track_errors: TrackErrors = field(default_factory=TrackErrors)  # every error of the pixels
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, pixel_sigma: Optional[float], outlier_share: Optional[float]) -> None:
         def bad(key, what):
             return ConfigError(f"synthetic scene: {key} {what}")
 
@@ -72,10 +85,11 @@ class SceneConfig:
         b = np.asarray(self.gyro_bias, dtype=float)
         if b.shape not in ((), (3,)) or not np.all(np.isfinite(b)):
             raise bad("gyro_bias", f"must be finite (a number or 3 values), got {self.gyro_bias!r}")
-        if not (np.isfinite(self.pixel_sigma) and self.pixel_sigma >= 0):
-            raise bad("pixel_sigma", f"must be >= 0 px, got {self.pixel_sigma!r}")
-        if not 0.0 <= self.outlier_share <= 1.0:
-            raise bad("outlier_share", f"must be in [0, 1], got {self.outlier_share!r}")
+        if not isinstance(self.track_errors, TrackErrors):
+            raise bad("track_errors", f"must be a TrackErrors, got {type(self.track_errors).__name__}")
+        given = {k: v for k, v in (("pixel_sigma", pixel_sigma), ("outlier_share", outlier_share)) if v is not None}
+        if given:
+            object.__setattr__(self, "track_errors", replace(self.track_errors, **given))
         if self.mean_track_length is not None and not self.mean_track_length >= 1:
             raise bad("mean_track_length", f"must be >= 1 step (or None), got {self.mean_track_length!r}")
         if not 0 < self.min_depth < self.max_depth:
@@ -88,18 +102,32 @@ class SceneConfig:
         return f"synthetic:{self.scenario}:seed{self.seed}"
 
     def filter_config(self) -> Config:
-        """The filter told this scene's own noise (pixel and velocity sigmas, the largest axis),
-        as `vislam demo` and `vislam mc` run it. (Left to the defaults, the velocity noise would be
-        estimated and raised to ``noise.linear_velocity_sigma_floor``, an allowance meant for real data.)"""
+        """The filter told this scene's own noise (pixel and velocity sigmas, the largest axis): the
+        filter on its own model (``vislam mc --true-noise``); by default a run identifies them."""
         return Config.from_values({
             "noise.pixel_sigma": self.pixel_sigma,
             "noise.linear_velocity_sigma": float(np.max(self.linear_sigma)),
             "noise.angular_velocity_sigma": float(np.max(self.angular_sigma)),
         })
 
+    def with_track_errors(self, errors: TrackErrors) -> "SceneConfig":
+        """This configuration with every track error of ``errors`` (white noise and outliers included)."""
+        return replace(self, track_errors=errors, pixel_sigma=None, outlier_share=None)
+
     def as_dict(self) -> dict:
-        """The configuration's fields (the calibration left out)."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "calibration"}
+        """The configuration's fields (the calibration left out), ``track_errors`` as a dict and
+        its ``pixel_sigma`` and ``outlier_share`` also at the top."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("calibration", "track_errors")}
+        out.update(pixel_sigma=self.pixel_sigma, outlier_share=self.outlier_share,
+                   track_errors=self.track_errors.as_dict())
+        return out
+
+
+# the keywords of SceneConfig that live in its track_errors
+SceneConfig.pixel_sigma = property(lambda self: self.track_errors.pixel_sigma,
+                                   doc="px: white noise of each of uL vL uR vR (track_errors.pixel_sigma)")
+SceneConfig.outlier_share = property(lambda self: self.track_errors.outlier_share,
+                                     doc="outliers' share (track_errors.outlier_share)")
 
 
 @dataclass(frozen=True)
@@ -132,6 +160,7 @@ class Scene:
     points: np.ndarray  # (P,3) every scene point (one point may carry several ids)
     gyro_bias_true: np.ndarray  # (N,3) rad/s, bias contained in each angular velocity sample
     outlier: np.ndarray  # (L,) bool, per observation of ``sequence`` (CSR order)
+    track_errors: TrackErrorTruth  # the drawn track errors (content poses, jitter, drift and bad tracks by id)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -152,9 +181,11 @@ def check_scene_size(config: SceneConfig) -> int:
 def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None) -> Scene:
     """Build the scene described by ``config`` (default: the 500-step street, seed 0).
 
-    Trajectory and landmark points come from ``config.seed``; pixel noise, track cuts, outliers
-    and IMU noise from ``noise_seed`` (default: ``config.seed``), each from its own random stream,
-    so Monte Carlo runs can share the geometry and differ only in the noise.
+    Trajectory and landmark points come from ``config.seed``; pixel noise, track cuts, outliers,
+    the track errors and IMU noise from ``noise_seed`` (default: ``config.seed``), each from its
+    own random stream, so Monte Carlo runs can share the geometry and differ only in the noise.
+    The sequence's ``tracker`` is ``"synthetic"``, or ``"synthetic-drifting"`` when its tracks
+    drift (``TrackErrors.drifts``).
     """
     cfg = SceneConfig() if config is None else config
     seed = int(cfg.seed)
@@ -165,12 +196,11 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
         traj.world_T_imu,
         points,
         cfg.calibration,
-        pixel_sigma=cfg.pixel_sigma,
-        outlier_share=cfg.outlier_share,
         mean_track_length=cfg.mean_track_length,
         min_depth=cfg.min_depth,
         max_depth=cfg.max_depth,
         seed=noise,
+        track_errors=cfg.track_errors,
     )
     imu = measure_velocities(
         traj.twists,
@@ -198,7 +228,7 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
         source=cfg.source if noise == seed else f"{cfg.source}:noise{noise}",
         layout="2022",
         dropped={"nonpositive_disparity": 0, "outside_image": 0},
-        tracker=SYNTHETIC_TRACKER,
+        tracker=DRIFTING_TRACKER if cfg.track_errors.drifts else SYNTHETIC_TRACKER,
     )
     validate_sequence(sequence)
     return Scene(
@@ -212,12 +242,16 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
         points=points,
         gyro_bias_true=imu.gyro_bias,
         outlier=obs.outlier,
+        track_errors=obs.truth,
     )
 
 
 def write_scene(scene: Scene, out_dir) -> Path:
     """Write ``data.npz`` (course 2022 layout), ``gt_tum.txt`` (world_T_imu) and ``landmarks.npz``
-    (``ids``, ``positions``) into ``out_dir`` (created if missing); returns the directory."""
+    (``ids``, ``positions``) into ``out_dir`` (created if missing); returns the directory. A scene
+    with track errors beyond white noise and outliers also gets ``scene.json`` (its configuration
+    and a summary of the drawn errors, :func:`scene_facts`) and ``track_errors.npz`` (the
+    :class:`~vislam.synth.track_errors.TrackErrorTruth` arrays, tracks by id)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_sequence(scene.sequence, out / "data.npz")
@@ -225,4 +259,35 @@ def write_scene(scene: Scene, out_dir) -> Path:
               header=f"{scene.config.source} ground truth world_T_imu: t tx ty tz qx qy qz qw")
     with atomic_write(out / "landmarks.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, ids=scene.landmark_ids, positions=scene.landmark_positions)
+    if scene.config.track_errors.effects():
+        with atomic_write(out / "track_errors.npz") as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, ids=scene.landmark_ids, **scene.track_errors._asdict())
+        with atomic_write(out / "scene.json") as tmp:
+            tmp.write_text(json.dumps(scene_facts(scene), indent=2) + "\n", encoding="utf-8")
     return out
+
+
+def scene_facts(scene: Scene) -> dict:
+    """The scene's configuration and what its track errors drew: repeated steps, drifting and bad
+    tracks, quantiles of the drift speed (px/step), the jitter's rms (plain JSON values)."""
+    truth, cfg = scene.track_errors, scene.config
+    speed = np.linalg.norm(truth.drift_velocity, axis=1)
+    drifting = speed[(truth.bad == 0) & (speed > 0)]
+    quantiles = {f"p{q}": float(np.percentile(drifting, q)) for q in (50, 90, 99)} if drifting.size else {}
+    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.as_dict().items()}
+    return {
+        "source": cfg.source,
+        "tracker": scene.sequence.tracker,
+        "config": config,
+        "track_errors": {
+            "repeated_steps": np.flatnonzero(truth.repeated).tolist(),
+            "tracks": int(truth.bad.size),
+            "drifting_tracks": int(drifting.size),
+            "drift_speed_px_per_step": quantiles,
+            "bad_tracks": {"jump": int(np.sum(truth.bad == JUMP)), "fast": int(np.sum(truth.bad == FAST)),
+                           "jumps_seen": int(np.sum(truth.jump_step >= 0))},
+            "disparity_offset_px": cfg.track_errors.disparity_offset,
+            "jitter_rms": {"translation_m": float(np.sqrt(np.mean(truth.jitter[:, :3] ** 2))),
+                           "rotation_rad": float(np.sqrt(np.mean(truth.jitter[:, 3:] ** 2)))},
+        },
+    }

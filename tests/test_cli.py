@@ -33,20 +33,28 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     gt = DATA / "gt" / "ece276a_0027_gt_tum.txt"
     assert main(["run", str(short_0027), "--out", str(out), "--gt", str(gt), "--quiet"]) == 0
     names = {p.name for p in out.iterdir()}
-    assert {"trajectory.txt", "dead_reckoning.txt", "map.npz", "map.ply", "trajectory.ply",
+    assert {"trajectory.txt", "dead_reckoning.txt", "pose_covariance.npz", "map.npz", "map.ply", "trajectory.ply",
             "trajectory.png", "ate_over_time.png", "summary.json", "config.toml"} <= names
     assert not [n for n in names if ".tmp" in n]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 150
-    assert summary["conventions"]["velocity_index"] == "next"
+    assert summary["decisions"]["conventions"]["velocity_index"] == "next"
     # the summary's error is what `vislam eval` computes from the files written
     assert main(["eval", str(out / "trajectory.txt"), str(gt), "--json", str(tmp_path / "eval.json")]) == 0
     evaluated = json.loads((tmp_path / "eval.json").read_text())
     assert evaluated["ate_rmse"] == pytest.approx(summary["errors"]["estimate"]["ate_rmse"], rel=1e-6)
     assert evaluated["num_matched"] == 150
-    # with --out: the JSON and both plots; an existing non-empty directory is refused
+    # ... and so is its NEES, from pose_covariance.npz beside the trajectory (found by default)
+    nees = summary["errors"]["nees"]
+    assert nees["matched_steps"] == 150 and nees["skipped_steps"] >= 1
+    for what, dof in (("position", 3), ("pose", 6)):
+        assert nees[what]["dof"] == evaluated["nees"][what]["dof"] == dof
+        assert evaluated["nees"][what]["mean"] == pytest.approx(nees[what]["mean"], rel=1e-3)
+        assert evaluated["nees"][what]["steps"] == nees[what]["steps"]
+    # with --out: the JSON and the plots; an existing non-empty directory is refused
     assert main(["eval", str(out / "trajectory.txt"), str(gt), "--out", str(tmp_path / "ev")]) == 0
-    assert {p.name for p in (tmp_path / "ev").iterdir()} == {"eval.json", "trajectories.png", "ate_over_time.png"}
+    assert {p.name for p in (tmp_path / "ev").iterdir()} == {"eval.json", "trajectories.png", "ate_over_time.png",
+                                                            "nees_over_time.png"}
     assert json.loads((tmp_path / "ev" / "eval.json").read_text()) == evaluated
     assert main(["eval", str(out / "trajectory.txt"), str(gt), "--out", str(tmp_path / "ev")]) == 2
     timing = summary["timing"]
@@ -69,9 +77,15 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
         assert m["covariances"].shape == (m["ids"].size, 3, 3)
     # the configuration, nested by table (a feature file: no [tracker])
     assert list(summary["config"]) == list(Config().tables())
-    # the defaults, with the decision taken from the data recorded (the course's tracks drift)
-    assert summary["config"] == Config().with_values({"drift.track_drift": "yes"}).as_dict()
-    assert summary["config"]["noise"]["pixel_sigma"] == 1.5 and summary["config"]["estimator"]["mode"] == "slam"
+    # the defaults, with the decisions taken from the data recorded (the course's tracks drift, the pixel
+    # noise identified, the gyro bias estimated or not)
+    decided = summary["decisions"]
+    assert decided["track_drift"]["drifting"] is True and decided["track_drift"]["decided_by"] == "test"
+    assert decided["pixel_noise"]["decided_by"] == "two-view fits" and decided["pixel_noise"]["sigma_px"] > 0
+    assert summary["config"] == Config().with_values({
+        "drift.track_drift": "yes", "noise.pixel_sigma": decided["pixel_noise"]["sigma_px"],
+        "estimator.estimate_gyro_bias": decided["gyro_bias"]["estimated"]}).as_dict()
+    assert summary["config"]["estimator"]["mode"] == "slam"
     # the config written is loadable and reproduces the run's settings
     assert Config.load(out / "config.toml").as_dict() == summary["config"]
     assert main(["run", str(short_0027), "--out", str(tmp_path / "again"), "--quiet",
@@ -154,7 +168,9 @@ def test_check_prints_both_convention_numbers(capsys):
     out = capsys.readouterr().out
     assert "flip=yes,velocity=next" in out and "flip=no,velocity=this" in out
     assert "IMU y,z flipped" in out
-    assert "track drift: landmark random walk" in out and "(auto: tracks from another tracker" in out
+    drift = [line for line in out.splitlines() if line.startswith("track drift: ")]
+    assert len(drift) == 1 and drift[0].startswith("track drift: yes (")  # decided by the test on the tracks (T1)
+    assert "two-view residuals" in drift[0] and "ratio" in drift[0] and "random walk" in drift[0]
 
 
 @needs_data
@@ -195,7 +211,7 @@ def test_run_writes_kitti_pose_files(tmp_path):
     assert main(["synth", "--steps", "40", "--out", str(tmp_path / "s")]) == 0
     out = tmp_path / "run"
     assert main(["run", str(tmp_path / "s" / "data.npz"), "--out", str(out), "--format", "kitti", "--quiet"]) == 0
-    imu_T_cam = json.loads((out / "summary.json").read_text())["conventions"]["imu_T_cam_used"]
+    imu_T_cam = json.loads((out / "summary.json").read_text())["decisions"]["conventions"]["imu_T_cam_used"]
     _, world_T_imu = read_tum(out / "trajectory.txt")
     world_T_cam = world_T_imu @ np.array(imu_T_cam)
     expected = (se3.inverse(world_T_cam[0]) @ world_T_cam)[:, :3, :].reshape(-1, 12)

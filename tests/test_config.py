@@ -45,13 +45,15 @@ def test_defaults_validate():
     assert Config.from_values({}) == config
     assert tuple(config.tables()) == TABLES
     assert config.estimator.mode == "slam" and config.noise.linear_velocity_sigma is None
+    assert config.noise.pixel_sigma is None  # identified from the data (N2) unless set
+    assert config.conventions.repeated_frames == "freeze" and config.conventions.velocity_correction == "auto"
     text = config.describe()
     for name, table in config.tables().items():
         assert f"[{name}]" in text
         assert all(f.name in text for f in dataclasses.fields(table))
     nested = config.as_dict()
     assert set(nested) == set(TABLES)
-    assert nested["noise"]["pixel_sigma"] == 1.5 and nested["landmarks"]["parametrization"] == "xyz"
+    assert nested["noise"]["pixel_sigma"] is None and nested["landmarks"]["parametrization"] == "xyz"
 
 
 def test_config_error_is_vislam_error():
@@ -159,7 +161,7 @@ def test_load_tables(tmp_path):
     path = write(tmp_path, '[noise]\npixel_sigma = 2.5\n[estimator]\nmode = "mapping"\n[health]\nnis_window = 7\n')
     config = Config.load(path)
     assert (config.noise.pixel_sigma, config.estimator.mode, config.health.nis_window) == (2.5, "mapping", 7)
-    assert config.with_values({"noise.pixel_sigma": 1.5, "estimator.mode": "slam", "health.nis_window": 50}) == Config()
+    assert config.with_values({"noise.pixel_sigma": None, "estimator.mode": "slam", "health.nis_window": 50}) == Config()
 
 
 def test_filter_table_and_flat_keys_are_refused_naming_the_new_place(tmp_path):
@@ -399,7 +401,7 @@ def test_with_assignments():
     base = Config.from_values({"noise.linear_velocity_sigma": 0.3})
     config = base.with_assignments(["noise.pixel_sigma=2.5", "estimator.mode=mapping", "noise.linear_velocity_sigma=none"])
     assert (config.noise.pixel_sigma, config.estimator.mode, config.noise.linear_velocity_sigma) == (2.5, "mapping", None)
-    assert base.noise.linear_velocity_sigma == 0.3 and base.noise.pixel_sigma == 1.5  # base untouched
+    assert base.noise.linear_velocity_sigma == 0.3 and base.noise.pixel_sigma is None  # base untouched
     more = config.with_assignments(["estimator.full-state=yes", " health.nis_window = 7 ", "landmarks.max_depth=auto",
                                     "estimator.estimate_gyro_bias=off"])
     assert (more.estimator.full_state, more.health.nis_window, more.landmarks.max_depth,

@@ -41,7 +41,8 @@ def test_filter_limits_its_own_blas_threads():
     seq = make_scene(SceneConfig(steps=3, seed=0)).sequence
     seen = []
     with threadpool_limits(2, user_api="blas"):  # the caller's setting
-        ekf = vislam.VisualInertialEKF(vislam.StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, vislam.Config(),
+        config = vislam.Config().with_values({"noise.pixel_sigma": 1.5})  # a filter built directly needs one
+        ekf = vislam.VisualInertialEKF(vislam.StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, config,
                                        vislam.ImuNoise(np.full(3, 0.2), np.full(3, 0.01)))
         model_predict = ekf.model.predict
 

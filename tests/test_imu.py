@@ -1,5 +1,5 @@
 """The IMU velocities: velocity timing and dead reckoning (``backend.estimator.propagation``),
-white-noise estimation and the noise decision (``backend.run.noise``)."""
+white-noise estimation (``backend.run.noise``) and the IMU noise a run decides (``backend.run.decisions``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ import pytest
 
 from vislam.backend.geometry import se3
 from vislam.backend.estimator.propagation import dead_reckoning, step_velocities
-from vislam.backend.run.noise import decide_imu_noise, estimate_white_noise
+from vislam.backend.config import Config
+from vislam.backend.run.decisions import decide
+from vislam.backend.run.noise import estimate_white_noise
 
 
 def smooth_signal(n: int = 3000, dt: float = 0.1) -> np.ndarray:
@@ -102,29 +104,52 @@ def test_dead_reckoning_velocity_index():
     np.testing.assert_allclose(nxt[:, 0, 3], dt * np.array([0, 1, 3, 6, 10]), atol=1e-12)
 
 
-def test_decide_imu_noise_configured_and_estimated():
+@pytest.fixture(scope="module")
+def short_scene():
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    return make_scene(SceneConfig(steps=60, seed=4)).sequence
+
+
+def test_imu_noise_configured_wins_else_the_white_noise(short_scene):
+    """The IMU noise a run decides (``backend.run.decisions.decide``) where vision cannot measure it
+    (dead reckoning uses no vision): each configured sigma is used as given, per axis and on its own;
+    an unset one is the white noise of the whole stream's samples (N1, ``imu_velocities``), with no
+    floor: clean velocities give their own (tiny) white noise, not a hand-set minimum."""
     rng = np.random.default_rng(4)
     lin = smooth_signal() + rng.normal(0.0, 0.3, (3000, 3))
     ang = smooth_signal() * 0.01 + rng.normal(0.0, 0.02, (3000, 3))
-    configured = decide_imu_noise(lin, ang, 0.5, 0.01, 0.05, 0.002)
-    assert configured.source == "configured"
+    dead = {"estimator.mode": "dead-reckoning"}
+
+    def imu(values, velocities=(lin, ang)):
+        return decide(short_scene, Config.from_values({**dead, **values}), velocities).imu
+
+    configured = imu({"noise.linear_velocity_sigma": 0.5, "noise.angular_velocity_sigma": 0.01})
+    assert configured.linear_source == configured.angular_source == "configured"
     np.testing.assert_array_equal(configured.linear_sigma, np.full(3, 0.5))
     np.testing.assert_array_equal(configured.angular_sigma, np.full(3, 0.01))
-    assert configured.linear_estimated is None and configured.angular_estimated is None
 
-    estimated = decide_imu_noise(lin, ang, None, None, 0.05, 0.002)
-    assert estimated.source == "estimated"
-    np.testing.assert_array_equal(estimated.linear_sigma, estimated.linear_estimated)  # above the floor: kept
-    np.testing.assert_array_equal(estimated.angular_sigma, estimated.angular_estimated)
+    estimated = imu({})
+    assert estimated.linear_source == estimated.angular_source == "white noise of the samples"
+    assert estimated.vision is None and not estimated.likelihood
+    np.testing.assert_array_equal(estimated.white_linear, estimate_white_noise(lin))  # the whole stream's (N1)
+    np.testing.assert_array_equal(estimated.white_angular, estimate_white_noise(ang))
+    np.testing.assert_array_equal(estimated.linear_sigma, estimated.white_linear)  # used as measured
+    np.testing.assert_array_equal(estimated.angular_sigma, estimated.white_angular)
     np.testing.assert_allclose(estimated.linear_sigma, 0.3, rtol=0.1)
     np.testing.assert_allclose(estimated.angular_sigma, 0.02, rtol=0.1)
-    raised = decide_imu_noise(lin, ang, None, None, 0.5, 0.05)  # floors above the white noise
-    np.testing.assert_array_equal(raised.linear_sigma, np.full(3, 0.5))
-    np.testing.assert_array_equal(raised.angular_sigma, np.full(3, 0.05))
 
-    mixed = decide_imu_noise(lin, ang, None, 0.01, 0.05, 0.002)
-    assert mixed.source == "mixed" and mixed.angular_estimated is None
-    assert set(mixed.as_dict()) >= {"linear_velocity_sigma", "angular_velocity_sigma", "source"}
+    mixed = imu({"noise.angular_velocity_sigma": 0.01})
+    assert (mixed.linear_source, mixed.angular_source) == ("white noise of the samples", "configured")
+    np.testing.assert_array_equal(mixed.linear_sigma, estimated.linear_sigma)
+    np.testing.assert_array_equal(mixed.angular_sigma, np.full(3, 0.01))
+    assert set(mixed.as_dict()) >= {"linear_velocity_sigma", "angular_velocity_sigma", "linear_decided_by",
+                                    "angular_decided_by", "white_noise_linear", "white_noise_angular"}
 
-    clean = decide_imu_noise(smooth_signal(), smooth_signal(), None, None, 0.05, 0.002)
-    np.testing.assert_array_equal(clean.linear_sigma, np.full(3, 0.05))  # the floor remains
+    clean = imu({}, (smooth_signal(), smooth_signal()))  # no floor: far below the old 0.05 m/s
+    np.testing.assert_array_equal(clean.white_linear, estimate_white_noise(smooth_signal()))
+    np.testing.assert_array_equal(clean.linear_sigma, np.maximum(clean.white_linear, 1e-6))
+    assert np.all(clean.linear_sigma < 1e-3)
+    # without imu_velocities: the sequence's own samples
+    own = decide(short_scene, Config.from_values(dead)).imu
+    np.testing.assert_array_equal(own.white_linear, estimate_white_noise(short_scene.linear_velocity))

@@ -22,9 +22,9 @@ from vislam.backend.estimator.layout import BIAS, CORE, POSE
 from vislam.backend.estimator.state import FilterState
 from vislam.backend.geometry import se3
 from helpers import THREE_ROWS, numeric_jacobian, observation_model, slots_of
-from test_ekf import CAMERA, IMU_T_CAM, NOISE, homogeneous, random_pose, random_spd, rel_err
+from test_ekf import CAMERA, IMU_T_CAM, NOISE, bare_config, homogeneous, random_pose, random_spd, rel_err
 
-CONFIG = Config.from_values({"estimator.error_model": "invariant", "landmarks.parametrization": "xyz"})
+CONFIG = bare_config({"estimator.error_model": "invariant", "landmarks.parametrization": "xyz"})
 
 
 @pytest.fixture(autouse=True)

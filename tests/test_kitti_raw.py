@@ -221,7 +221,9 @@ def test_run_on_a_raw_drive_evaluates_against_the_oxts_poses(real_drive, course,
     assert summary["steps"] == course["n"]
     assert any("ground truth: the OXTS poses" in note for note in summary["notes"])
     errors = summary["errors"]
-    assert errors["estimate"]["ate_rmse"] <= 0.5 * errors["dead_reckoning"]["ate_rmse"], errors
+    # SLAM 0.050 m; dead reckoning 0.069 m once the IMU's lever arm is removed (0.72 m with the velocities
+    # as given: conventions.velocity_correction=no), so vision adds less here than it did
+    assert errors["estimate"]["ate_rmse"] <= min(0.06, 0.8 * errors["dead_reckoning"]["ate_rmse"]), errors
     gt_t, gt = read_tum(out / "ground_truth.txt")
     assert gt_t.shape == (course["n"],)
     assert np.abs(gt[:, :3, 3] - (se3.inverse(course["gt"][0]) @ course["gt"])[:, :3, 3]).max() < 2e-3

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from vislam.backend.data.covariance import read_pose_covariance, write_pose_covariance
 from vislam.backend.data.files import atomic_write
 from vislam.backend.data.tum import read_tum, write_tum
 from vislam.backend.errors import InputError
@@ -196,6 +197,33 @@ def test_map_npz(tmp_path):
         np.testing.assert_array_equal(data["positions"], pos)
         np.testing.assert_array_equal(data["covariances"], cov)
     assert listing(tmp_path) == ["map.npz"]
+
+
+def test_pose_covariance_npz_round_trip(tmp_path):
+    """write_pose_covariance: exactly the two arrays, float64, read back unchanged; the exact name (no
+    ".npz" appended), an existing file replaced, nothing left on a refusal."""
+    rng = np.random.default_rng(4)
+    t = 1.3e9 + 0.1 * np.arange(30)
+    A = rng.standard_normal((30, 6, 6))
+    cov = A @ np.swapaxes(A, 1, 2)
+    path = tmp_path / "pose_covariance.npz"
+    path.write_text("old")
+    write_pose_covariance(path, t, cov.astype(np.float32).astype(np.float64))
+    write_pose_covariance(path, t, cov)
+    with np.load(path) as data:
+        assert sorted(data.files) == ["covariance", "time_stamps"]
+        assert data["time_stamps"].dtype == data["covariance"].dtype == np.float64
+    t_read, cov_read = read_pose_covariance(path)
+    np.testing.assert_array_equal(t_read, t)
+    np.testing.assert_array_equal(cov_read, cov)
+    write_pose_covariance(tmp_path / "cov.bin", t, cov)  # the exact name
+    np.testing.assert_array_equal(read_pose_covariance(tmp_path / "cov.bin")[1], cov)
+    bad = cov.copy()
+    bad[3, 0, 0] = np.nan
+    for stamps, matrices, match in ((t, cov[:, :, :5], "shape"), (t[:-1], cov, "shape"), (t, bad, "index 3")):
+        with pytest.raises(ValueError, match=match):
+            write_pose_covariance(tmp_path / "refused.npz", stamps, matrices)
+    assert listing(tmp_path) == ["cov.bin", "pose_covariance.npz"]
 
 
 def test_uncertainty_colors_monotonic():

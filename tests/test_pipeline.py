@@ -10,10 +10,11 @@ from vislam.backend.config import Config
 from vislam.backend.errors import InputError
 from vislam.backend.estimator.propagation import dead_reckoning
 from vislam.backend.geometry.camera import StereoCamera
-from vislam.backend.run.conventions import ConventionDecision, decide_conventions
-from vislam.backend.run.noise import decide_imu_noise
+from vislam.backend.run.conventions import decide_conventions
+from vislam.backend.run.decisions import decide
+from vislam.backend.run.noise import estimate_white_noise
 from vislam.backend.run.online import OnlineRun
-from vislam.backend.run.runner import decide, decide_online, decisive, run_sequence, run_stream
+from vislam.backend.run.runner import decide_online, decisive, run_sequence, run_stream
 from vislam.backend.run.stereo_offset import identify_stereo_offset
 from vislam.synth.scene import SceneConfig, make_scene
 
@@ -30,9 +31,16 @@ def long_scene():
 
 
 def _run(seq, velocity_index: str, config: Config) -> OnlineRun:
-    conventions = ConventionDecision(False, velocity_index, seq.imu_T_cam, {}, "configured", "configured")
-    noise = decide_imu_noise(seq.linear_velocity, seq.angular_velocity, None, None, 0.05, 0.002)
-    return OnlineRun(StereoCamera(seq.K, seq.baseline), conventions, noise, config)
+    """An OnlineRun with the extrinsic as given and ``velocity_index``, the IMU noise the white noise of
+    the samples (the decisions of a dead-reckoning run, which uses no vision)."""
+    decisions = decide(seq, Config.from_values({"estimator.mode": "dead-reckoning", "conventions.imu_flip": "no",
+                                                "conventions.velocity_index": velocity_index}))
+    c = decisions.conventions
+    assert (c.imu_flip, c.velocity_index, c.flip_source, c.velocity_source) == (False, velocity_index, "configured",
+                                                                                "configured")
+    np.testing.assert_array_equal(c.imu_T_cam, seq.imu_T_cam)
+    assert not decisions.velocity.active and not decisions.stereo_offset.active
+    return OnlineRun(StereoCamera(seq.K, seq.baseline), decisions, config)
 
 
 @pytest.mark.parametrize("velocity_index", ["this", "next"])
@@ -56,8 +64,7 @@ def test_online_run_equals_run_sequence(scene):
     config = Config.from_values({"noise.pixel_sigma": scene.config.pixel_sigma, "conventions.velocity_index": "this",
                                  "conventions.imu_flip": "no"})
     batch = run_sequence(seq, config)
-    run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.conventions, batch.imu_noise, config,
-                    tracker=seq.tracker)
+    run = OnlineRun(StereoCamera(seq.K, seq.baseline), batch.decisions, config)
     for k in range(seq.num_steps):
         run.step(seq.time_stamps[k], seq.linear_velocity[k], seq.angular_velocity[k], *seq.observations(k))
     result = run.result()
@@ -101,29 +108,44 @@ def test_repeats_previous_compares_the_shared_features_in_any_id_order():
         assert repeats_previous(now_ids[order], now_px[order], prev_ids, prev_px) is expected
 
 
-def _same_noise(a, b) -> bool:
-    return (np.array_equal(a.linear_sigma, b.linear_sigma) and np.array_equal(a.angular_sigma, b.angular_sigma)
-            and a.gyro_bias == b.gyro_bias)
+def _same_applied(a, b) -> bool:
+    """Two ``Decisions`` that the filter applies alike: the conventions, no offset or velocity
+    correction applied, the same IMU and pixel noise, drift and gyro bias."""
+    return ((a.conventions.imu_flip, a.conventions.velocity_index) == (b.conventions.imu_flip, b.conventions.velocity_index)
+            and np.array_equal(a.imu_T_cam, b.imu_T_cam)
+            and not (a.stereo_offset.active or b.stereo_offset.active)
+            and not (a.velocity.active or b.velocity.active)
+            and np.array_equal(a.imu.linear_sigma, b.imu.linear_sigma)
+            and np.array_equal(a.imu.angular_sigma, b.imu.angular_sigma)
+            and a.pixels.sigma == b.pixels.sigma and a.drift.drifting == b.drift.drifting
+            and a.gyro_bias.estimated == b.gyro_bias.estimated)
 
 
 def test_run_stream_with_online_conventions_equals_run_sequence(long_scene):
-    """``run_stream`` over ``seq.steps()`` with ``imu_velocities`` decides the conventions from the
-    first steps; when that decision is the whole file's (``run_sequence``), the trajectory is the
-    same: the steps read to decide are filtered too, none is lost."""
+    """``run_stream`` over ``seq.steps()`` with ``imu_velocities`` decides from the first steps; when
+    that decision is the whole file's (``run_sequence``), the trajectory is the same: the steps read
+    to decide are filtered too, none is lost. The IMU and pixel noise are configured (the scene's):
+    identified, they would be measured on fewer steps than the whole file's."""
     seq = long_scene.sequence
-    config = Config.from_values({"noise.pixel_sigma": long_scene.config.pixel_sigma})  # conventions: auto
+    config = Config.from_values({"noise.pixel_sigma": long_scene.config.pixel_sigma,  # conventions: auto
+                                 "noise.linear_velocity_sigma": long_scene.config.linear_sigma,
+                                 "noise.angular_velocity_sigma": long_scene.config.angular_sigma})
     batch = run_sequence(seq, config)
     said = []
     stream = run_stream(seq.steps(), StereoCamera(seq.K, seq.baseline), seq.imu_T_cam, config,
                         imu_velocities=(seq.linear_velocity, seq.angular_velocity), tracker=seq.tracker,
                         say=said.append)
-    first = [line for line in said if line.startswith("conventions from the first ")]
+    first = [line for line in said if line.startswith("decided from the first ")]
     assert len(first) == 1 and int(first[0].split()[4]) < seq.num_steps  # decided from part of the stream
+    assert stream.decisions.steps == int(first[0].split()[4]) and batch.decisions.steps == seq.num_steps
     online, whole = stream.conventions, batch.conventions
     assert online.errors_px and online.flip_source == "auto" == online.velocity_source  # a decision is made
     assert (online.imu_flip, online.velocity_index) == (whole.imu_flip, whole.velocity_index)
     np.testing.assert_array_equal(online.imu_T_cam, whole.imu_T_cam)
-    assert _same_noise(stream.imu_noise, batch.imu_noise)
+    assert _same_applied(stream.decisions, batch.decisions)
+    # the white noise (N1) is the whole stream's (imu_velocities), not that of the steps read
+    np.testing.assert_array_equal(stream.decisions.imu.white_linear, batch.decisions.imu.white_linear)
+    np.testing.assert_array_equal(stream.decisions.imu.white_angular, batch.decisions.imu.white_angular)
     np.testing.assert_array_equal(stream.time_stamps, seq.time_stamps)
     np.testing.assert_allclose(stream.world_T_imu, batch.world_T_imu, atol=1e-12)
     assert stream.stats.observations_used == batch.stats.observations_used > 0
@@ -162,17 +184,24 @@ def _assert_first_steps(read, steps):
             np.testing.assert_array_equal(a, b)
 
 
+#: Every noise configured: with the stereo offset off, the convention test is all decide_online waits for.
+CONFIGURED_NOISE = {"noise.pixel_sigma": 0.5, "noise.linear_velocity_sigma": 0.2, "noise.angular_velocity_sigma": 0.01}
+
+
 def test_decide_online_reads_until_decisive(long_scene):
-    """Without the stereo offset: from 20 steps on, every 10, the convention test runs on the
-    steps read so far; the first decisive one ends the reading. The decision is the test's on
-    those steps, the noise is from the whole stream's velocities, and the stream goes on at the
-    first step not read."""
+    """Without the stereo offset and with every noise configured: from 20 steps on, every 10, the
+    convention test runs on the steps read so far; the first decisive one ends the reading. The
+    decision is the test's on those steps, the white noise (N1) is from the whole stream's
+    velocities, and the stream goes on at the first step not read. With a noise left to identify,
+    the reading goes on to ``conventions.online_steps``."""
     seq = long_scene.sequence
-    config = Config.from_values({"conventions.stereo_offset": "off"})
+    config = Config.from_values({"conventions.stereo_offset": "off", **CONFIGURED_NOISE})
     steps = list(seq.steps())
-    (conventions, noise), read, stream = _decide_online(steps, seq, config)
+    decisions, read, stream = _decide_online(steps, seq, config)
+    conventions = decisions.conventions
     n = len(read)
     assert 30 <= n < config.conventions.online_steps and n % 10 == 0  # a test before it is not decisive
+    assert decisions.steps == n
     _assert_first_steps(read, steps)
     for k in range(20, n, 10):  # the earlier tests were not decisive
         assert not decisive(decide_conventions(seq.subset(k)).errors_px)
@@ -180,28 +209,30 @@ def test_decide_online_reads_until_decisive(long_scene):
     assert decisive(expected.errors_px)
     assert conventions.errors_px == expected.errors_px
     assert (conventions.imu_flip, conventions.velocity_index) == (expected.imu_flip, expected.velocity_index)
-    assert not conventions.stereo_offset.active and not conventions.stereo_offset.estimate
-    whole = decide(seq, config)[1]  # the white noise of the whole stream
-    assert np.array_equal(noise.linear_sigma, whole.linear_sigma)
-    assert np.array_equal(noise.angular_sigma, whole.angular_sigma)
+    assert not decisions.stereo_offset.active and not decisions.stereo_offset.estimate
+    # the white noise of the whole stream, not of the steps read
+    np.testing.assert_array_equal(decisions.imu.white_linear, estimate_white_noise(seq.linear_velocity))
+    np.testing.assert_array_equal(decisions.imu.white_angular, estimate_white_noise(seq.angular_velocity))
+    assert not np.array_equal(decisions.imu.white_linear, estimate_white_noise(seq.linear_velocity[:n]))
     assert next(stream)[0] == seq.time_stamps[n]  # nothing read beyond
+    for key in CONFIGURED_NOISE:  # a noise to identify needs the steps
+        unset = config.with_values({key: None})
+        assert len(_decide_online(steps, seq, unset)[1]) == unset.conventions.online_steps
 
 
 def test_decide_online_reads_online_steps_for_the_stereo_offset(long_scene):
     """With the stereo offset (the default) the reading goes on to ``conventions.online_steps``:
-    the conventions are those of the first decisive test, the offset is estimated from every step
-    read."""
+    the conventions are decided from every step read, and so is the offset."""
     seq = long_scene.sequence
     config = Config()
     steps = list(seq.steps())
-    (conventions, _), read, stream = _decide_online(steps, seq, config)
+    decisions, read, stream = _decide_online(steps, seq, config)
     n = config.conventions.online_steps
-    assert len(read) == n
+    assert len(read) == n and decisions.steps == n
     _assert_first_steps(read, steps)
-    first = next(k for k in range(20, n, 10) if decisive(decide_conventions(seq.subset(k)).errors_px))
-    assert conventions.errors_px == decide_conventions(seq.subset(first)).errors_px
-    expected = identify_stereo_offset(seq.subset(n), conventions.imu_T_cam)
-    assert conventions.stereo_offset.estimate == expected.estimate
+    assert decisions.conventions.errors_px == decide_conventions(seq.subset(n)).errors_px
+    expected = identify_stereo_offset(seq.subset(n), decisions.imu_T_cam)
+    assert decisions.stereo_offset.estimate == expected.estimate
     assert next(stream)[0] == seq.time_stamps[n]
 
 
@@ -210,8 +241,9 @@ def test_decide_online_reads_at_most_online_steps(scene):
     ``conventions.online_steps``, at the stream's ``num_steps``, or where the stream ends."""
     seq = scene.sequence
     still = [(t, np.zeros(3), np.zeros(3), ids, pixels) for t, _, _, ids, pixels in seq.steps()]
-    config = Config.from_values({"conventions.online_steps": 45})
-    (conventions, _), read, stream = _decide_online(still, seq, config)
+    config = Config.from_values({"conventions.online_steps": 45, "conventions.stereo_offset": "off", **CONFIGURED_NOISE})
+    decisions, read, stream = _decide_online(still, seq, config)
+    conventions = decisions.conventions
     assert len(read) == 45 and not decisive(conventions.errors_px)
     assert len(conventions.errors_px) == 4 and np.isfinite(list(conventions.errors_px.values())).all()
     _assert_first_steps(read, still)

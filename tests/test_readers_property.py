@@ -3,7 +3,8 @@ either in a clean one-line error naming the file (and the key at fault) or in a 
 in an uncaught exception or a NaN/inf in the output.
 
 Readers: the course .npz loader (``backend.data.npz.load_sequence``, dense and sparse layouts), the
-TUM trajectory reader (``backend.data.tum.read_tum``), TOML configuration files
+TUM trajectory reader (``backend.data.tum.read_tum``), a run's pose covariances
+(``backend.data.covariance.read_pose_covariance``), TOML configuration files
 (``backend.config.Config.load`` / ``Config.from_values``) and ``--set TABLE.KEY=VALUE`` assignments
 (``backend.options.parse_assignment``, ``tools.options.filter_config``).
 
@@ -34,6 +35,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from vislam.backend.config import Config
+from vislam.backend.data.covariance import read_pose_covariance
 from vislam.backend.data.npz import load_sequence, save_sequence
 from vislam.backend.data.sequence import validate_sequence
 from vislam.backend.data.tum import read_tum
@@ -212,6 +214,26 @@ def random_arrays(draw, shape=None):
     return a
 
 
+def _mutate(data, arrays: dict, key: str, op: str) -> None:
+    """One damage ``op`` to ``arrays[key]``: drop, replace (any shape, or the same shape), astype to
+    another native dtype, reshape, or NaN/inf/huge/negative values ("specials")."""
+    x = arrays[key]
+    if op == "drop":
+        del arrays[key]
+    elif op == "replace":
+        arrays[key] = data.draw(random_arrays(), label="value")
+    elif op == "replace-same-shape":
+        arrays[key] = data.draw(random_arrays(shape=x.shape), label="value")
+    elif op == "astype":
+        dtype = data.draw(st.sampled_from(NATIVE_DTYPES), label="dtype")
+        with np.errstate(all="ignore"):
+            arrays[key] = x.astype(dtype)
+    elif op == "reshape":
+        arrays[key] = _reshaped(data.draw, x)
+    else:
+        arrays[key] = _with_specials(data.draw, x, arrays)
+
+
 def _reshaped(draw, x: np.ndarray) -> np.ndarray:
     how = draw(st.sampled_from(["T", "add-axis", "flatten", "drop-last", "append", "swap-axes-0-last"]))
     if how == "T":
@@ -278,20 +300,7 @@ def test_npz_structural_corruption_property(data, layout, sparse, compressed):
         x = arrays[key]
         if x.dtype.kind in "US" and op in ("astype", "specials"):  # strings (an earlier change) hold no numbers
             op = "replace"
-        if op == "drop":
-            del arrays[key]
-        elif op == "replace":
-            arrays[key] = data.draw(random_arrays(), label="value")
-        elif op == "replace-same-shape":
-            arrays[key] = data.draw(random_arrays(shape=x.shape), label="value")
-        elif op == "astype":
-            dtype = data.draw(st.sampled_from(NATIVE_DTYPES), label="dtype")
-            with np.errstate(all="ignore"):
-                arrays[key] = x.astype(dtype)
-        elif op == "reshape":
-            arrays[key] = _reshaped(data.draw, x)
-        else:
-            arrays[key] = _with_specials(data.draw, x, arrays)
+        _mutate(data, arrays, key, op)
     with tempfile.TemporaryDirectory() as d:
         path = _write(Path(d) / "corrupt.npz", arrays, compressed)
         load_outcome(path, mutated, arrays)
@@ -851,6 +860,204 @@ def test_tum_huge_quaternion_regression(tmp_path):
     with np.errstate(all="ignore"):
         result = check_tum(path)  # a 180 deg turn about x (or a clean refusal)
     assert result is None or np.allclose(result[1][0, :3, :3], np.diag([1.0, -1.0, -1.0]))
+
+
+# ==============================================================================================
+# pose covariances (pose_covariance.npz)
+# ==============================================================================================
+
+COV_KEYS = ("time_stamps", "covariance")
+
+
+@functools.cache
+def _base_covariance(n: int = 5) -> dict[str, np.ndarray]:
+    """A valid file's arrays: the world frame's 1e-12 I, then random SPD matrices."""
+    rng = np.random.default_rng(11)
+    A = rng.standard_normal((n, 6, 6))
+    cov = 0.01 * A @ np.swapaxes(A, 1, 2)
+    cov[0] = 1e-12 * np.eye(6)
+    return {"time_stamps": 1.3e9 + 0.1 * np.arange(n), "covariance": cov}
+
+
+def covariance_arrays(n: int = 5) -> dict[str, np.ndarray]:
+    return {k: v.copy() for k, v in _base_covariance(n).items()}
+
+
+def assert_valid_covariance(t: np.ndarray, cov: np.ndarray) -> None:
+    """What read_pose_covariance returns: float64 stamps (N >= 1, strictly increasing) and (N,6,6)
+    finite, symmetric and positive semi-definite matrices (to 1e-9 of each one's largest entry)."""
+    assert t.dtype == cov.dtype == np.float64
+    assert t.ndim == 1 and t.size >= 1 and cov.shape == (t.size, 6, 6)
+    assert np.isfinite(t).all() and np.isfinite(cov).all()
+    assert (np.diff(t) > 0).all()
+    scale = np.abs(cov).max(axis=(1, 2))
+    unit = cov / np.where(scale > 0, scale, 1.0)[:, None, None]
+    assert (np.abs(unit - np.swapaxes(unit, 1, 2)) <= 1e-9).all()
+    assert (np.linalg.eigvalsh(0.5 * (unit + np.swapaxes(unit, 1, 2)))[:, 0] >= -1e-9).all()
+
+
+def covariance_outcome(path: Path, mutated: set[str] | None):
+    """Read ``path``: ((t, cov), None) after checking them, or (None, message) after checking the InputError
+    is one line naming the file and, with ``mutated``, a key at fault (the stamps give N: changing them may
+    blame the covariance's shape). Any other exception propagates and fails the test."""
+    try:
+        t, cov = read_pose_covariance(path)
+    except InputError as e:
+        msg = assert_clean_input_error(e, path)
+        if mutated is not None:
+            allowed = set(mutated) | ({"covariance"} if "time_stamps" in mutated else set())
+            assert named_key(msg, path) in allowed, f"names another key after changing {sorted(mutated)}: {msg}"
+        return None, msg
+    assert_valid_covariance(t, cov)
+    return (t, cov), None
+
+
+def _asymmetric(draw, x: np.ndarray) -> np.ndarray:
+    y = np.array(x, dtype=np.float64)
+    if y.ndim == 3 and y.shape[1:] == (6, 6) and y.shape[0]:
+        k, i, j = draw(st.integers(0, y.shape[0] - 1)), draw(st.integers(0, 5)), draw(st.integers(0, 5))
+        amount = draw(st.sampled_from([1e-15, 1e-10, 1e-6, 1e-3, 1.0, -1.0, 1e300]))
+        y[k, i, j] += amount * max(np.abs(y[k]).max(), 1e-300)
+    return y
+
+
+def _indefinite(draw, x: np.ndarray) -> np.ndarray:
+    y = np.array(x, dtype=np.float64)
+    if y.ndim == 3 and y.shape[1:] == (6, 6) and y.shape[0]:
+        k, i = draw(st.integers(0, y.shape[0] - 1)), draw(st.integers(0, 5))
+        amount = draw(st.sampled_from([1e-14, 1e-6, 1.0, 1e6]))
+        y[k, i, i] -= amount * np.abs(y[k]).max()
+    return y
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(data=st.data(), compressed=st.booleans())
+def test_pose_covariance_corruption_property(data, compressed):
+    """1-3 random changes of the two arrays before saving (drop one, add an unknown key, replace one by a
+    random array of any shape and dtype, convert its dtype, reshape it, put NaN/inf/huge/negative values
+    into it, make a matrix asymmetric or indefinite by a random amount): read_pose_covariance gives
+    finite, increasing stamps and symmetric PSD (N,6,6) matrices, or a one-line InputError naming the
+    file and a key at fault; never another exception. Unknown keys alone change nothing."""
+    arrays = covariance_arrays()
+    mutated: set[str] = set()
+    for _ in range(data.draw(st.integers(1, 3), label="changes")):
+        op = data.draw(st.sampled_from(["drop", "add-unknown", "replace", "replace-same-shape", "astype", "reshape",
+                                        "specials", "asymmetric", "indefinite"]), label="op")
+        if op == "add-unknown":
+            name = data.draw(st.from_regex(r"[a-z][a-z0-9_]{0,10}", fullmatch=True)
+                             .filter(lambda s: s not in COV_KEYS), label="new key")
+            arrays[name] = data.draw(random_arrays(), label="value")
+            continue
+        present = [k for k in COV_KEYS if k in arrays]
+        if not present:
+            continue
+        key = data.draw(st.sampled_from(present), label="key")
+        mutated.add(key)
+        x = arrays[key]
+        if x.dtype.kind in "USbc" and op in ("astype", "specials", "asymmetric", "indefinite"):
+            op = "replace"
+        if op == "asymmetric":
+            with np.errstate(all="ignore"):
+                arrays[key] = _asymmetric(data.draw, x)
+        elif op == "indefinite":
+            with np.errstate(all="ignore"):
+                arrays[key] = _indefinite(data.draw, x)
+        else:
+            _mutate(data, arrays, key, op)
+    with tempfile.TemporaryDirectory() as d:
+        path = _write(Path(d) / "pose_covariance.npz", arrays, compressed)
+        read, msg = covariance_outcome(path, mutated)
+    if not mutated:
+        assert msg is None, msg
+        base = _base_covariance()
+        assert np.array_equal(read[0], base["time_stamps"]) and np.array_equal(read[1], base["covariance"])
+
+
+@settings(max_examples=60, **SETTINGS)
+@given(data=st.data(), key=st.sampled_from(COV_KEYS))
+def test_pose_covariance_special_values_property(data, key):
+    """NaN/inf/huge/negative/subnormal values at random positions of one key: NaN or inf is refused naming
+    that key; finite values are read (as written) or refused naming that key or, for the stamps, the
+    covariance checked against them."""
+    arrays = covariance_arrays()
+    arrays[key] = _with_specials(data.draw, arrays[key], arrays)
+    nonfinite = not np.isfinite(arrays[key]).all()
+    with tempfile.TemporaryDirectory() as d:
+        path = _write(Path(d) / "specials.npz", arrays)
+        read, msg = covariance_outcome(path, {key})
+    if nonfinite:
+        assert read is None and named_key(msg, path) == key, msg
+    elif read is not None:
+        assert np.array_equal(read[0], arrays["time_stamps"]) and np.array_equal(read[1], arrays["covariance"])
+
+
+def _object_array() -> np.ndarray:
+    a = np.empty(5, dtype=object)
+    a[:] = [1.0, "x", None, [1], 2.0]
+    return a
+
+
+def _changed(arrays: dict, **changes) -> dict:
+    out = {**arrays, **changes}
+    return {k: v for k, v in out.items() if v is not None}
+
+
+@pytest.mark.parametrize("key, change, fragment", [
+    ("time_stamps", dict(time_stamps=None), "missing"),
+    ("covariance", dict(covariance=None), "missing"),
+    ("time_stamps", dict(time_stamps=np.zeros((1, 5)) + np.arange(5)), "expected shape (N,)"),
+    ("time_stamps", dict(time_stamps=np.zeros(0), covariance=np.zeros((0, 6, 6))), "no time stamp"),
+    ("time_stamps", dict(time_stamps=np.array([0.0, 0.1, 0.1, 0.3, 0.4])), "not strictly increasing: [2]"),
+    ("time_stamps", dict(time_stamps=np.array([0.0, 0.1, np.nan, 0.3, 0.4])), "non-finite value nan at index [2]"),
+    ("time_stamps", dict(time_stamps=_object_array()), "cannot read"),
+    ("time_stamps", dict(time_stamps=np.array(["a", "b", "c", "d", "e"])), "expected a numeric"),
+    ("covariance", dict(covariance=np.zeros((5, 6, 5))), "expected shape (5, 6, 6)"),
+    ("covariance", dict(covariance=np.zeros((4, 6, 6))), "expected shape (5, 6, 6)"),
+    ("covariance", dict(covariance=np.full((5, 6, 6), np.inf)), "non-finite value inf at index [0, 0, 0]"),
+    ("covariance", dict(covariance=np.zeros((5, 6, 6), dtype=complex)), "expected a numeric"),
+    ("covariance", dict(covariance=_object_array()), "cannot read"),
+    ("covariance", "asymmetric", "matrix 3 is not symmetric"),
+    ("covariance", "indefinite", "matrix 2 is not positive semi-definite"),
+])
+def test_pose_covariance_damage_is_one_line(tmp_path, key, change, fragment):
+    arrays = covariance_arrays()
+    if change == "asymmetric":
+        arrays["covariance"][3, 0, 5] += 1e-6 * np.abs(arrays["covariance"][3]).max()
+        change = {}
+    elif change == "indefinite":
+        arrays["covariance"][2] = 0.01 * np.diag([1.0, 1.0, -1.0, 1.0, 1.0, 1.0])  # eigenvalue -0.01
+        change = {}
+    path = tmp_path / "pose_covariance.npz"
+    with open(path, "wb") as fh:
+        np.savez(fh, **_changed(arrays, **change))  # object arrays are pickled by savez: the reader never unpickles
+    with pytest.raises(InputError) as e:
+        read_pose_covariance(path)
+    msg = assert_clean_input_error(e.value, path)
+    assert named_key(msg, path) == key and fragment in msg, msg
+
+
+def test_pose_covariance_unusable_files_are_one_line(tmp_path):
+    (tmp_path / "text.npz").write_text("not a zip")
+    (tmp_path / "dir.npz").mkdir()
+    for path, fragment in ((tmp_path / "text.npz", "not an .npz"), (tmp_path / "dir.npz", "not a regular file"),
+                           (tmp_path / "nope.npz", "does not exist")):
+        with pytest.raises(InputError) as e:
+            read_pose_covariance(path)
+        assert fragment in assert_clean_input_error(e.value, path)
+
+
+def test_pose_covariance_rounding_and_semi_definite_are_accepted(tmp_path):
+    """The filter's matrices: symmetric to rounding, zero (a pose held fixed), singular but PSD; int stamps."""
+    arrays = covariance_arrays()
+    cov = arrays["covariance"]
+    cov[1, 0, 1] *= 1 + 1e-14
+    cov[2] = 0.0
+    v = np.arange(1.0, 7.0)
+    cov[3] = np.outer(v, v)  # rank 1
+    arrays["time_stamps"] = np.arange(5, dtype=np.int64)
+    path = _write(tmp_path / "ok.npz", arrays)
+    (t, read), msg = covariance_outcome(path, None)
+    assert msg is None and np.array_equal(t, np.arange(5.0)) and np.array_equal(read, cov)
 
 
 # ==============================================================================================

@@ -14,9 +14,8 @@ from vislam.backend.config import Config
 from vislam.backend.evaluation.metrics import alignment_scale, trajectory_errors
 from vislam.backend.geometry import se3
 from vislam.backend.run.runner import run_sequence
-from vislam.backend.run.stereo_offset import (
-    SIGNIFICANCE, StereoOffset, _fit_step, _predict, camera_rate_y, identify_stereo_offset,
-)
+from vislam.backend.run.stereo_offset import SIGNIFICANCE, StereoOffset, camera_rate_y, identify_stereo_offset
+from vislam.backend.run.two_view import _predict, fit_pair
 from vislam.synth.scene import SceneConfig, make_scene
 from vislam.tools.cli import main
 
@@ -60,7 +59,8 @@ def test_two_view_model_reproduces_exact_pixels_and_fits_the_offset():
     frames; the fit recovers the offset from noisy pixels."""
     cam, T, p, za, zb, rng = _two_view_problem()
     np.testing.assert_allclose(_predict(T, -0.7, p, cam), np.concatenate([za, zb], axis=1), atol=1e-9)
-    beta, var = _fit_step(za + rng.normal(0, 0.3, za.shape), zb + rng.normal(0, 0.3, zb.shape), cam)
+    fit = fit_pair(za + rng.normal(0, 0.3, za.shape), zb + rng.normal(0, 0.3, zb.shape), cam, offset=True)
+    beta, var = fit.beta, fit.beta_variance
     assert abs(beta + 0.7) < 4 * np.sqrt(var) + 0.02
 
 
@@ -138,7 +138,7 @@ def test_removing_a_planted_offset_restores_the_scale():
         t = r.time_stamps
         results[setting] = (alignment_scale(t, r.world_T_imu, t, scene.world_T_imu_true),
                             trajectory_errors(t, r.world_T_imu, t, scene.world_T_imu_true).ate_rmse)
-        assert r.conventions.stereo_offset.active == (setting == "constant")
+        assert r.decisions.stereo_offset.active == (setting == "constant")
     assert abs(results["constant"][0] - 1) < 0.01
     assert abs(results["off"][0] - 1) > 2 * abs(results["constant"][0] - 1)
     assert results["constant"][1] < results["off"][1]
@@ -162,10 +162,12 @@ def test_real_kitti_frames_offset_found_and_scale_right(tmp_path):
     assert main(["run", str(IMAGES), "--imu", str(DATA_0042), "--out", str(out), "--gt", str(GT_0042), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 51 and summary["observations"]["valid"] / 51 >= 50
-    offset = summary["conventions"]["stereo_offset"]
+    offset = summary["decisions"]["stereo_offset"]
     assert offset["decided_by"] == "auto, constant" and -2.0 < offset["beta0_px"] < -0.9 and offset["kappa_px_per_rad_s"] == 0
     errors = summary["errors"]
-    assert errors["estimate"]["ate_rmse"] <= 0.5 * errors["dead_reckoning"]["ate_rmse"]
+    # SLAM 0.050 m; dead reckoning 0.069 m once the IMU's lever arm is removed (0.72 m with the velocities
+    # as given: conventions.velocity_correction=no), so vision adds less here than it did
+    assert errors["estimate"]["ate_rmse"] <= min(0.06, 0.8 * errors["dead_reckoning"]["ate_rmse"]), errors
     from vislam.backend.data.tum import read_tum
     scale = alignment_scale(*read_tum(out / "trajectory.txt"), *read_tum(GT_0042))
     assert abs(scale - 1) <= 0.015
@@ -181,21 +183,25 @@ def test_gross_outliers_are_not_taken_for_an_offset():
     assert planted.active and abs(planted.beta0_px + 1.0) < 0.1
 
 
-def test_an_offset_dead_reckoning_contradicts_is_not_removed():
-    """checked_offset: the IMU's reprojection test (C1) must not get worse with the offset removed."""
-    from vislam.backend.run.conventions import decide_conventions
-    from vislam.backend.run.runner import checked_offset
+def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
+    """The guard of ``decisions.decide``: the IMU's reprojection test (C1) must not get worse with the
+    offset removed. The offset estimated from a planted -1 px is kept; one of the opposite sign (put in
+    place of the estimate) is refused."""
+    from vislam.backend.run import decisions
 
     seq = _with_offset(_scene(3).sequence, -1.0)
-    conventions = decide_conventions(seq)
-    right = identify_stereo_offset(seq, conventions.imu_T_cam)
-    kept = checked_offset(seq, conventions, right, 3)
-    assert kept is right and kept.active
+    config = Config()
+    right = identify_stereo_offset(seq, decisions.decide_conventions(seq).imu_T_cam)
+    kept = decisions.decide(seq, config).stereo_offset
+    assert kept.active and (kept.beta0_px, kept.kappa_px_s) == (right.beta0_px, right.kappa_px_s)
     reprojection = kept.estimate["dead_reckoning_reprojection_px"]
     assert reprojection["with"] < reprojection["without"]
     wrong = StereoOffset(+1.0, 0.0, {"beta_mean_px": 1.0, "steps": 100}, "auto, constant")  # the opposite sign
-    refused = checked_offset(seq, conventions, wrong, 3)
+    monkeypatch.setattr(decisions, "offset_from_fits", lambda *args: wrong)
+    refused = decisions.decide(seq, config).stereo_offset
     assert not refused.active and "worse" in refused.estimate["rejected"] and "not removed" in refused.describe()
+    reprojection = refused.estimate["dead_reckoning_reprojection_px"]
+    assert reprojection["with"] > decisions.GUARD_TOLERANCE * reprojection["without"]
 
 
 def test_too_few_steps_is_said_not_estimated():

@@ -1,4 +1,5 @@
-"""Writing the files a vislam run produces (the trajectories' TUM text is ``backend.data.tum``).
+"""Writing the files a vislam run produces (the trajectories' TUM text is ``backend.data.tum``, the pose
+covariances' ``pose_covariance.npz`` ``backend.data.covariance``, beside its reader).
 
 Every writer goes through :func:`~vislam.backend.data.files.atomic_write`: the data is written to a temporary file in
 the target's directory and moved over the target only once it is complete, so an

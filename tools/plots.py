@@ -2,7 +2,8 @@
 
 ``vislam run``, ``vislam eval`` and ``vislam mc`` draw through this module only, so a curve kind
 has one look everywhere (:data:`COLORS`): estimate blue, dead reckoning orange, ground truth black
-dashed, landmarks light grey dots, start (o) and end (x) markers grey, each with its own legend entry.
+dashed, landmarks light grey dots, start (o) and end (x) markers grey, each with its own legend entry;
+NEES of the pose blue (as the estimate's), of the position brown (:data:`NEES_COLORS`).
 
 Only matplotlib's object-oriented API is used (``matplotlib.figure.Figure`` rendered by the
 Agg canvas); pyplot is never imported, so no display or GUI backend is needed, no global
@@ -29,6 +30,7 @@ __all__ = [
     "plot_trajectories_topdown",
     "plot_errors_over_time",
     "plot_consistency",
+    "plot_nees_over_time",
 ]
 
 DPI = 150
@@ -53,6 +55,8 @@ _LINES = {
     "dead reckoning": dict(linestyle="-", linewidth=1.0, zorder=3),
     "ground truth": dict(linestyle=(0, (4, 3)), linewidth=1.0, zorder=5),  # on top: the others show through
 }
+#: NEES curves: pose NEES as in :func:`plot_consistency`, position NEES in a colour no other curve has
+NEES_COLORS = {"pose": COLORS["estimate"], "position": "tab:brown"}
 _OTHER_COLORS = ("tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:red")
 
 
@@ -445,6 +449,61 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
     ax.set_ylabel("NIS / observation (4 dof)")
     ax.grid(True, linewidth=0.3)
     ax.legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_nees_over_time(path: str | os.PathLike, nees, title: str = ""):
+    """Position (3 dof) and pose (6 dof) NEES of one run over time (log y), each with its 95 % quantile
+    (dashed) and its expected value (dotted), in the curve's colour (:data:`NEES_COLORS`).
+
+    Parameters
+    ----------
+    path : path of the PNG
+    nees : ``backend.evaluation.consistency.TrajectoryNees``
+        Skipped steps (nan), zeros and inf are not drawn (log scale); the title counts the inf.
+    title : str
+        First title line.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    t = np.asarray(nees.time_stamps, dtype=float)
+    fig = _new_figure((9.0, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    t0 = t[0] if len(t) else 0.0
+    for what, values, summary in (("position", nees.position_nees, nees.position),
+                                  ("pose", nees.pose_nees, nees.pose)):
+        v = np.asarray(values, dtype=float)
+        drawn = np.where(np.isfinite(v) & (v > 0), v, np.nan)
+        color = NEES_COLORS[what]
+        ax.plot(t - t0, drawn, color=color, linewidth=1.0, label=f"{what} NEES ({summary.dof} dof)")
+        ax.axhline(summary.quantile_95, color=color, linestyle="--", linewidth=0.9,
+                   label=f"95 % quantile, {summary.dof} dof ({summary.quantile_95:.2f})")
+        ax.axhline(summary.expected, color=color, linestyle=":", linewidth=0.9,
+                   label=f"expected value, {summary.dof} dof ({summary.expected:g})")
+    ax.set_yscale("log")
+    ax.set_xlabel("time since the first matched pose [s]")
+    ax.set_ylabel("NEES [dimensionless]")
+    ax.grid(True, which="both", linewidth=0.3)
+
+    def stats(s) -> str:
+        if not s.steps:
+            return f"{s.dof} dof: no step (zero covariance)"
+        return f"{s.dof} dof: mean {s.mean:.2f}, {100 * s.share_inside_95:.0f} % inside the 95 % ellipsoid"
+
+    lines = [title] if title else []
+    lines.append(f"position {stats(nees.position)}; pose {stats(nees.pose)}")
+    extra = (f"{nees.position.steps} steps ({nees.position.skipped} skipped at the start: the reference pose, "
+             "zero covariances)")
+    infinite = max(nees.position.infinite, nees.pose.infinite)
+    if infinite:
+        extra += f"; {infinite} with a singular covariance (NEES inf, not drawn)"
+    lines.append(extra)
+    ax.set_title("\n".join(lines), fontsize="medium")
+    ax.legend(loc="best", fontsize="small", ncol=2)
     fig.tight_layout()
     _save(fig, path)
     return fig

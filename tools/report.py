@@ -4,12 +4,13 @@
 |---|---|
 | trajectory.txt | TUM `t tx ty tz qx qy qz qw`, world_T_imu, the data's own stamps (evo reads it) |
 | dead_reckoning.txt | the same for IMU-only dead reckoning |
+| pose_covariance.npz | `time_stamps` (N,), the trajectory's, and `covariance` (N,6,6) of xi = [rho; phi], world_T_imu = mu exp(xi^) (body frame) |
 | map.npz | `ids`, `positions` (K,3), `covariances` (K,3,3) |
 | map.ply | landmarks coloured by uncertainty (viridis on log10 of the largest sigma: dark = certain, yellow = uncertain) |
 | trajectory.ply | the path as a line set coloured by time |
 | trajectory.png | top-down plot: estimate, dead reckoning, landmarks; with ground truth each SE(3)-aligned to it (title: ATE RMSE) and the ground truth over the run's time span |
 | ate_over_time.png | with ground truth: position error of each pose after SE(3) alignment, estimate and dead reckoning |
-| summary.json | counts, timings, decisions, configuration and (with ground truth) errors |
+| summary.json | counts, timings, decisions, configuration and (with ground truth) errors: ATE, RPE, NEES |
 | config.toml | the configuration used (every table; [tracker] from images), loadable with --config |
 """
 
@@ -21,18 +22,22 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..backend.data.covariance import POSE_COVARIANCE_FILE, write_pose_covariance
 from ..backend.data.files import atomic_write
 from ..backend.data.tum import write_tum
+from ..backend.evaluation.consistency import trajectory_nees
 from ..backend.evaluation.metrics import ate_per_pose, trajectory_errors
 from ..backend.run.online import RunResult
 from . import outputs, plots
 
 
 def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
-    """ATE (SE(3)-aligned) and RPE of the estimate and of dead reckoning against ground truth."""
+    """ATE (SE(3)-aligned) and RPE of the estimate and of dead reckoning against ground truth, and the
+    NEES of the estimate's pose covariance (``backend.evaluation.consistency.trajectory_nees``)."""
     est = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt_poses)
     dr = trajectory_errors(result.time_stamps, result.dead_reckoning, gt_t, gt_poses)
-    return {"estimate": est.as_dict(), "dead_reckoning": dr.as_dict()}
+    nees = trajectory_nees(result.time_stamps, result.world_T_imu, result.pose_covariance, gt_t, gt_poses)
+    return {"estimate": est.as_dict(), "dead_reckoning": dr.as_dict(), "nees": nees.as_dict()}
 
 
 def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, tracker=None) -> dict:
@@ -56,7 +61,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
             "initialized": stats.landmarks_initialized,
             "dropped_as_outliers": stats.landmarks_dropped,
             "reanchored": stats.landmarks_reanchored,
-            "track_drift": stats.track_drift,
+            "frozen_steps": stats.frozen_steps,
             "mapped": stats.landmarks_mapped,
             "active_mean": stats.active_landmarks_mean,
             "active_max": stats.active_landmarks_max,
@@ -77,8 +82,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
             "real_time_factor": stats.real_time_factor,
             "step_ms": {"median": stats.step_ms_median, "p99": stats.step_ms_p99, "max": stats.step_ms_max},
         },
-        "conventions": result.conventions.as_dict(),
-        "imu_noise": result.imu_noise.as_dict(),
+        "decisions": result.decisions.as_dict(),
         "health": stats.health_messages,
         "config": config,
     }
@@ -104,6 +108,7 @@ def write_run_outputs(
                       header="world_T_imu estimated by vislam")
     write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
                       header="world_T_imu by IMU dead reckoning")
+    write_pose_covariance(out_dir / POSE_COVARIANCE_FILE, result.time_stamps, result.pose_covariance)
     outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
     if not outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances):
         notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
@@ -133,12 +138,33 @@ def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t:
     plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""))
 
 
+def nees_text(summary: dict, what: str) -> str:
+    """One line of a NEES summary (``NeesSummary.as_dict()``; ``what``: "position" or "pose")."""
+    dof, steps, skipped = summary["dof"], summary["steps"], summary["skipped_steps"]
+    head = f"{what} NEES ({dof} dof)"
+    if not steps:
+        return (f"{head}: no step to count: the pose covariance is zero at all {skipped} matched steps "
+                "(held fixed: dead reckoning or mapping)")
+    share = summary["share_inside_95"]
+    line = (f"{head}: mean {_number(summary['mean'])}, median {_number(summary['median'])}, "
+            f"{100 * share:.1f} % inside the 95 % ellipsoid (<= {summary['quantile_95']:.2f}); expected {dof} "
+            f"and 95 %; {steps} steps ({skipped} skipped at the start: the reference pose, zero covariances)")
+    if summary["infinite_steps"]:
+        line += f"; {summary['infinite_steps']} steps with a singular covariance (NEES inf)"
+    return line
+
+
+def _number(value) -> str:
+    """A mean or median read back from JSON, where inf became null."""
+    return "inf" if value is None else f"{value:.2f}"
+
+
 def _nis_text(mean_nis: float) -> str:
     return f"{mean_nis:.2f}" if math.isfinite(mean_nis) else "n/a (no observation used)"
 
 
 def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
-    """A few lines for the terminal."""
+    """A few lines for the terminal (the health warnings go apart, to stderr: :func:`print_health`)."""
     t = summary["timing"]
     obs = summary["observations"]
     lm = summary["landmarks"]
@@ -158,10 +184,19 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
             f"over {e['path_length']:.0f} m; RPE per {e['rpe_delta']:g} {e['rpe_unit']}: "
             f"{e['rpe_trans_rmse']:.2f} m / {e['rpe_rot_rmse_deg']:.2f} deg"
         )
-    for message in summary["health"]:
-        lines.append(f"warning: {message}")
+        if "nees" in summary["errors"]:
+            lines.append(nees_text(summary["errors"]["nees"]["position"], "position"))
     for note in summary.get("notes", []):
         lines.append(f"note: {note}")
     if out_dir is not None:
         lines.append(f"outputs in {out_dir}/")
     return "\n".join(lines)
+
+
+def print_health(summary: dict) -> None:
+    """The run's health warnings, a line each on stderr (shown with --quiet too: they say the result
+    is not what was asked for)."""
+    import sys
+
+    for message in summary["health"]:
+        print(f"warning: {message}", file=sys.stderr)

@@ -1,2 +1,3 @@
 """Data: the in-memory sequence and its validation (``sequence``), the course .npz format (``npz``),
-TUM trajectories (``tum``), line-oriented text input (``textio``) and the atomic writer (``files``)."""
+TUM trajectories (``tum``), a run's pose covariances (``covariance``), line-oriented text input
+(``textio``) and the atomic writer (``files``)."""

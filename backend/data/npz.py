@@ -325,13 +325,9 @@ def _keep_in_image(pixels: np.ndarray, image_wh: tuple[float, float]) -> tuple[n
     return ~(outside | nonpos), {"nonpositive_disparity": int(nonpos.sum()), "outside_image": int(outside.sum())}
 
 
-def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Sequence:
-    """Load a course .npz (either layout) without materializing the dense features array.
-
-    ``image_size=(width, height)`` bounds the pixels; if None it is inferred from K (see the
-    module docstring). Raises InputError (one line: file, key, problem) for unusable input.
-    """
-    path = Path(path)
+def open_npz(path: Path) -> "np.lib.npyio.NpzFile":
+    """``np.load(path, allow_pickle=False)`` of a user's file, or an InputError naming it: missing,
+    not a regular file, unreadable, not a zip archive, or a zip numpy cannot read."""
     src = str(path)
     if not path.exists():
         raise InputError(f"{src}: file does not exist")
@@ -344,11 +340,21 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         raise InputError(f"{src}: cannot read: {exc.strerror}") from None
     if not zipfile.is_zipfile(path):
         raise InputError(f"{src}: not an .npz (zip) file")
-
     try:
-        npz = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, zipfile.BadZipFile) as e:
+        return np.load(path, allow_pickle=False)
+    except Exception as e:  # zipfile's and numpy's parsers raise many kinds (BadZipFile, ValueError, ...)
         raise InputError(f"{src}: cannot open as .npz: {e}".replace("\n", " ")) from None
+
+
+def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Sequence:
+    """Load a course .npz (either layout) without materializing the dense features array.
+
+    ``image_size=(width, height)`` bounds the pixels; if None it is inferred from K (see the
+    module docstring). Raises InputError (one line: file, key, problem) for unusable input.
+    """
+    path = Path(path)
+    src = str(path)
+    npz = open_npz(path)
     with npz:
         keys = set(npz.files)
         have = sorted(keys)

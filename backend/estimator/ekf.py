@@ -43,6 +43,8 @@ from .update import select_and_update_inplace
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
 
 _NEVER = np.iinfo(np.int64).max  # re-anchoring limit meaning "never"
+#: Degrees of freedom of the Student-t innovation likelihood (L1)
+LIKELIHOOD_NU = 4.0
 
 
 @dataclass
@@ -58,6 +60,8 @@ class StepStats:
     reanchored: int = 0  # landmarks re-triangulated from their current observation (drifting tracks, R1)
     dropped: int = 0  # landmarks removed as repeatedly gated
     nis_sum: float = 0.0  # sum over used observations of their NIS (expectation 4 each, U4)
+    log_likelihood: float = 0.0  # sum over observations in front of the camera of their Student-t log-likelihood (L1)
+    tested: int = 0  # observations in that sum
     active: int = 0  # landmarks in the state after the step
 
 
@@ -182,6 +186,9 @@ class VisualInertialEKF:
             self.state.P[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
             if est.estimate_gyro_bias:
                 self.state.P[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+        if noise.pixel_sigma is None:
+            raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
+                              "(vislam.OnlineRun, vislam.run_sequence)")
         self._pixel_var = noise.pixel_sigma**2
         # drifting tracks: the point a track follows is not quite static (world xyz landmarks only)
         drifting = drift.track_drift != Choice.NO
@@ -195,6 +202,7 @@ class VisualInertialEKF:
         self.map = LandmarkMap()
         self.health = HealthMonitor(config.health.nis_window, config.health.nis_warn_factor)
         self.step_index = 0
+        self.track_likelihood = False  # fill StepStats.log_likelihood (L1): for identification runs
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
         self._blas_limit = _blas_controller().limit(limits=config.execution.blas_threads, user_api="blas")
 
@@ -229,6 +237,31 @@ class VisualInertialEKF:
         q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
         self.model.predict(self.state, dt * u, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
                            self._landmark_walk * dt)
+
+    def predict_frozen(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
+                       prior: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """A step into a frame that repeats the previous one (its content froze while the rig moved on):
+        the pose moves by the IMU's twist, fused with ``prior`` = (a twist tau u (6,), its sigmas (6,)),
+        a prediction of the step's motion from elsewhere (inverse-variance weights per axis); the
+        landmarks keep their body-frame points (I8). Error models that cannot carry landmarks through
+        (``ErrorModel.freezes``) end every track instead (A2): the IMU alone bridges the step."""
+        self.step_index += 1
+        u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.state.gyro_bias])
+        noise = self.imu_noise
+        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
+        twist = dt * u
+        weight = np.ones(6)
+        if prior is not None and self.estimate_pose:
+            w_imu, w_prior = 1.0 / np.maximum(q, 1e-300) ** 2, 1.0 / np.maximum(prior[1], 1e-300) ** 2
+            twist = (w_imu * twist + w_prior * prior[0]) / (w_imu + w_prior)
+            q = 1.0 / np.sqrt(w_imu + w_prior)
+            weight = w_imu / (w_imu + w_prior)
+        bias_walk = self.config.noise.gyro_bias_random_walk**2 * dt
+        if not self.model.freezes:
+            self.finish()
+            self.model.predict(self.state, twist, q, dt, bias_walk, self._landmark_walk * dt)
+            return
+        self.model.predict_frozen(self.state, twist, q, dt, bias_walk, self._landmark_walk * dt, weight[3:6])
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -280,10 +313,33 @@ class VisualInertialEKF:
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(inn.nis[use].sum())
+        if self.track_likelihood:
+            stats.log_likelihood, stats.tested = self._log_likelihood(inn)
         bad = st.gated_run >= upd.max_consecutive_gated
         if bad.any():
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
+
+    def _log_likelihood(self, inn) -> tuple[float, int]:
+        """(L1) the prior innovations' log-likelihood, observation by observation (their 4 rows: the
+        3x3 block of S and the off row's sigma^2), heavy-tailed so that a gross outlier does not decide
+        a comparison yet an overconfident model still pays for its residuals (a multivariate Student-t
+        of ``LIKELIHOOD_NU`` degrees of freedom and scale S_ii; constants dropped):
+
+            sum_i -1/2 ((nu + 4) log(1 + NIS_i / nu) + log det S_ii + log sigma^2)
+
+        over the observations in front of the camera."""
+        front = np.flatnonzero(inn.in_front)
+        if not front.size:
+            return 0.0, 0
+        rows = 3 * front[:, None] + np.arange(3)
+        blocks = inn.S[rows[:, :, None], rows[:, None, :]]
+        sign, logdet = np.linalg.slogdet(blocks)
+        ok = sign > 0
+        nu = LIKELIHOOD_NU
+        nis = inn.nis[front][ok]
+        total = -0.5 * float(np.sum((nu + 4.0) * np.log1p(nis / nu) + logdet[ok] + np.log(self._pixel_var)))
+        return total, int(ok.sum())
 
     # ------------------------------------------------------------------ landmarks
     def _initialize(self, ids: np.ndarray, pixels: np.ndarray, stats: StepStats,

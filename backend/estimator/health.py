@@ -64,9 +64,16 @@ class HealthMonitor:
         bad = not in_band or gated_share > 0.5
         if bad and not self._inconsistent:
             nis = f"mean NIS per observation {mean:.2f} (expected about 4)" if total else "no observation used"
+            if not total or gated_share > 0.5 or mean > 4.0:
+                advice = ("the data moved away from the noise the run identified (a change of scene, a tracker "
+                          "losing lock): check the frames around it; a larger noise.pixel_sigma or IMU noise trades "
+                          "accuracy for consistency")
+            else:
+                advice = ("the observations agree better than the noise model says: the reported covariance is "
+                          "larger than it needs to be (a smaller configured noise.pixel_sigma would tighten it)")
             self.report(
-                f"step {step}: filter inconsistent: {nis} and {100 * gated_share:.0f} % gated over the last "
-                f"{self.window} steps; tune pixel_sigma or the IMU noise"
+                f"step {step}: filter inconsistent with its noise model: {nis} and {100 * gated_share:.0f} % gated "
+                f"over the last {self.window} steps; {advice}"
             )
             self._inconsistent = True
         elif self._inconsistent:  # the episode ends well inside the band (hysteresis: no flapping at its edge)

@@ -33,6 +33,15 @@ does not depend on the estimate:
   (:func:`retract_inplace`)
 - World covariance of a landmark:  dm = zeta - m_hat^ phi  (:func:`world_covariances`).          (I6)
 - Body-frame (right) pose error  xi_body = Ad(T_hat^-1) (rho, phi)  (:func:`body_pose_covariance`). (I7)
+- A frozen step (the frame repeats the previous one; the content moved with the camera): the pose
+  is predicted by (I2) while each landmark keeps its body-frame point s = T^-1 m. To first order
+  s = s_hat + R_hat^T (zeta - rho) (the rotation error cancels), so s_k = s_k-1 gives
+
+      zeta_k = dR zeta_k-1 + (I - dR) rho_k-1 + (rho_k - rho_k-1),   dR = R_hat_k R_hat_k-1^T,
+      m_hat_k = T_hat_k T_hat_k-1^-1 m_hat_k-1                                                     (I8)
+
+  with rho_k - rho_k-1 the translation rows of (I2)'s bias and noise terms; P <- F P F^T + G Q G^T
+  applied as a row map twice (O(D^2)). (:func:`predict_frozen`)
 
 The prediction, the innovation, the initialization and the correction are each one compiled call.
 """
@@ -117,6 +126,48 @@ def predict_step(world_T_imu, P, points, twist, q, dt, bias, bias_walk_var, land
             P[i, i] += landmark_walk_var
     G_pose = se3.small_matmul(se3.adjoint(mu), se3.right_jacobian_se3(twist))
     predict_covariance_inplace(P, G_pose, np.ascontiguousarray(G_pose[3:6]), points, q, dt, bias, bias_walk_var)
+    return mu
+
+
+def predict_frozen(world_T_imu: np.ndarray, P: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray,
+                   dt: float, bias: bool, bias_walk_var: float, landmark_walk_var: float,
+                   bias_weight: np.ndarray | None = None) -> np.ndarray:
+    """(I8) one frozen step: returns mu_next = mu exp(twist^); P and the world ``points`` (K,3) change in
+    place. ``q`` (6,): the twist's noise sigmas; ``bias_weight`` (3,): the share of the rotation that
+    came from the gyro (1: all; less when the twist fuses another prediction), scaling its bias column."""
+    mu = world_T_imu @ se3.exp_se3(twist)
+    D = P.shape[0]
+    K = (D - CORE) // 3
+    G = se3.adjoint(mu) @ se3.right_jacobian_se3(twist)  # (6,6) body twist error -> (rho, phi)
+    g = -dt * G[:, 3:6] * (np.ones(3) if bias_weight is None else bias_weight)[None, :] if bias else np.zeros((6, 3))
+    dR = mu[:3, :3] @ world_T_imu[:3, :3].T
+    I_dR = np.eye(3) - dR
+
+    def rows(M: np.ndarray) -> np.ndarray:
+        """F M for the linear map F of (I8) on the rows of M (D, n)."""
+        out = M.copy()
+        out[POSE] += g @ M[6:9]
+        if K:
+            lm = M[CORE:].reshape(K, 3, -1)
+            out[CORE:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
+        return out
+
+    FP = rows(P)
+    new = rows(np.ascontiguousarray(FP.T))
+    N = np.zeros((D, 6))
+    N[POSE] = G * q[None, :]
+    if K:
+        N[CORE:] = np.tile(G[0:3] * q[None, :], (K, 1))
+    new += N @ N.T
+    if bias:
+        new[np.arange(6, 9), np.arange(6, 9)] += bias_walk_var
+    if landmark_walk_var and K:
+        diag = np.arange(CORE, D)
+        new[diag, diag] += landmark_walk_var
+    P[...] = 0.5 * (new + new.T)
+    if K:
+        step = mu @ se3.inverse(world_T_imu)
+        points[...] = points @ step[:3, :3].T + step[:3, 3]
     return mu
 
 
@@ -274,6 +325,15 @@ def body_pose_covariance(world_T_imu: np.ndarray, P_pose: np.ndarray) -> np.ndar
 # ---------------------------------------------------------------- the model
 class InvariantModel(ErrorModel):
     """The right-invariant error (module docstring); world-xyz landmarks only."""
+
+    freezes = True
+
+    def predict_frozen(self, state, twist, q, dt, bias_walk_var, landmark_walk_var, bias_weight=None) -> None:
+        if not self.estimate_pose:  # mapping: the poses are held, the landmarks move with them
+            q = np.zeros(6)
+        state.mu = predict_frozen(state.mu, state.P, state.theta, twist, q, dt,
+                                  self.estimate_bias and self.estimate_pose, bias_walk_var, landmark_walk_var,
+                                  bias_weight)
 
     def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
         if not self.estimate_pose:

@@ -74,6 +74,16 @@ class ErrorModel(abc.ABC):
     def pose_covariance(self, state: FilterState) -> np.ndarray:
         """6x6 covariance of the right perturbation world_T_imu = mu exp(xi^)."""
 
+    #: the model carries landmarks through a frozen step (:meth:`predict_frozen`); else the filter ends their tracks
+    freezes: bool = False
+
+    def predict_frozen(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float, bias_walk_var: float,
+                       landmark_walk_var: float, bias_weight: np.ndarray | None = None) -> None:
+        """A step whose frame repeats the previous one: the pose moves by ``twist`` as in :meth:`predict`
+        while the landmarks keep their coordinates in the body frame (the content froze: the world
+        moved with the camera). Only models with ``freezes`` implement it."""
+        raise NotImplementedError(f"{type(self).__name__} does not carry landmarks through a frozen step")
+
     def predict_mean_only(self, state: FilterState, step: np.ndarray, landmark_walk_var: float) -> None:
         """(P1) mu <- mu step for step = exp(tau u^), and the landmarks' random walk
         (``landmark_walk_var`` added to their variances); P of the pose untouched."""

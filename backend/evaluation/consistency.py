@@ -15,6 +15,22 @@ Kirubarajan 2001, ch. 5.4). Over R independent runs on the same scene:
   average over all used observations. The observations that pass the chi-square gate (and the
   1-point RANSAC) are a truncated sample, so a consistent filter gives a little less than 4.    (E3)
 
+One run against ground truth (:func:`trajectory_nees`; real data has one run, so each step's NEES is
+one sample): estimate and truth are matched by nearest stamp (``metrics.associate_indices``, evo)
+and expressed relative to their first matched pose (estimate ``mu_0^-1 mu_k``, truth ``T_0^-1 T_k``:
+the filter's world is its first pose, the truth's world any frame). Per step, with P the 6x6
+covariance of the right perturbation ``xi = [rho; phi]``:
+
+* position NEES (3 dof): e^T P_rho^-1 e with e = R_mu^T (p_true - p_mu) (= rho to first order) and
+  P_rho the top-left 3x3 block (:func:`position_nees`);
+* pose NEES (6 dof): xi^T P^-1 xi with xi = log(mu^-1 T_true) (:func:`pose_nees`).
+
+Each is chi2(dof) for a consistent filter: mean dof, 95 % of the steps inside the 95 % ellipsoid
+NEES <= chi2.ppf(0.95, dof) (7.815 for 3 dof, 12.59 for 6). The leading steps whose covariance is
+numerically zero (every variance <= :data:`ZERO_POSE_VARIANCE`: the first pose is the world frame)
+are skipped and counted apart, and so is always the first matched step, whose relative error is
+zero by construction; a later singular covariance gives NEES inf, counted.                      (E4)
+
 The scenes come from a *scene factory*: ``factory(noise_seed, gyro_bias=None)`` returns a scene
 with ``sequence``, ``world_T_imu_true`` (N,4,4) and ``landmark_positions`` (K,3) by track id, whose
 geometry is the factory's and whose noise (pixels, track cuts, outliers, IMU) is that of the
@@ -45,6 +61,7 @@ from ..data.sequence import Sequence
 from ..errors import ConfigError, VislamError
 from ..geometry import se3
 from ..run.runner import run_sequence
+from .metrics import associate_indices
 
 
 class Scene(Protocol):
@@ -63,6 +80,11 @@ SKIP_STEPS = 10
 BAND_PROBABILITY = 0.95
 #: Random stream (of the noise seed) of the per-run gyro bias, apart from synth's streams.
 GYRO_BIAS_STREAM = 9001
+#: A pose covariance whose every variance (m^2, rad^2) is at most this is numerically zero (the first
+#: pose, the world frame: noise.initial_pose_sigma = 1e-6 gives 1e-12; one step of prediction > 1e-6).
+ZERO_POSE_VARIANCE = 1e-10
+#: The probability of the chi-square ellipsoid a step's NEES is counted inside of (E4)
+INSIDE_PROBABILITY = 0.95
 
 
 # ---------------------------------------------------------------------------------------- NEES
@@ -79,6 +101,28 @@ def pose_nees(mu: np.ndarray, P_pose: np.ndarray, T_true: np.ndarray) -> float:
     except np.linalg.LinAlgError:
         return float("inf")
     w = np.linalg.solve(L, xi)
+    return float(w @ w)
+
+
+def position_nees(mu: np.ndarray, P_pose: np.ndarray, T_true: np.ndarray) -> float:
+    """e^T P_rho^-1 e with e = R_mu^T (p_true - p_mu) (3 dof; ``rho`` of T = mu exp(xi^) to first order).
+
+    Parameters
+    ----------
+    mu, T_true : (4, 4) arrays, the estimate and the true pose
+    P_pose : (6, 6) array, covariance of xi = [rho; phi]; its top-left 3x3 block is used
+
+    Returns
+    -------
+    float, inf when that block is singular
+    """
+    mu = np.asarray(mu, dtype=float)
+    e = mu[:3, :3].T @ (np.asarray(T_true, dtype=float)[:3, 3] - mu[:3, 3])
+    try:
+        L = np.linalg.cholesky(np.asarray(P_pose, dtype=float)[:3, :3])
+    except np.linalg.LinAlgError:
+        return float("inf")
+    w = np.linalg.solve(L, e)
     return float(w @ w)
 
 
@@ -108,6 +152,119 @@ def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) ->
     return (float(chdtri(dof * count, 1.0 - tail) / count), float(chdtri(dof * count, tail) / count))
 
 
+def chi2_quantile(dof: int, probability: float = INSIDE_PROBABILITY) -> float:
+    """chi2.ppf(probability, dof): 7.815 for 3 dof and 12.59 for 6 at 0.95 (scipy.special, not scipy.stats)."""
+    return float(chdtri(dof, 1.0 - probability))
+
+
+# ---------------------------------------------------------------------------------------- one trajectory, NEES
+
+
+@dataclass
+class NeesSummary:
+    """NEES of the counted steps of one run against chi2(``dof``) (module docstring, E4)."""
+
+    dof: int
+    mean: float  # over the counted steps (inf when one is inf; expectation dof); nan without steps
+    median: float
+    share_inside_95: float  # share of the counted steps with NEES <= quantile_95 (expectation 0.95)
+    quantile_95: float  # chi2.ppf(0.95, dof)
+    steps: int  # counted
+    skipped: int  # leading steps not counted (numerically zero covariance, the first matched step)
+    infinite: int  # counted steps whose covariance is singular (NEES inf)
+
+    @property
+    def expected(self) -> float:
+        return float(self.dof)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"dof": self.dof, "expected": self.expected, "mean": self.mean, "median": self.median,
+                "share_inside_95": self.share_inside_95, "quantile_95": self.quantile_95, "steps": self.steps,
+                "skipped_steps": self.skipped, "infinite_steps": self.infinite}
+
+
+def summarize_nees(values: np.ndarray, dof: int, skipped: int = 0) -> NeesSummary:
+    """Mean, median and share inside the 95 % ellipsoid of the counted steps' NEES ``values`` (M,)."""
+    v = np.asarray(values, dtype=float).reshape(-1)
+    quantile = chi2_quantile(dof)
+    if v.size == 0:
+        return NeesSummary(dof, float("nan"), float("nan"), float("nan"), quantile, 0, int(skipped), 0)
+    return NeesSummary(dof=dof, mean=float(np.mean(v)), median=float(np.median(v)),
+                       share_inside_95=float(np.mean(v <= quantile)), quantile_95=quantile, steps=int(v.size),
+                       skipped=int(skipped), infinite=int(np.sum(np.isinf(v))))
+
+
+@dataclass
+class TrajectoryNees:
+    """Per-step NEES of a run's pose covariance against ground truth (module docstring, E4)."""
+
+    time_stamps: np.ndarray  # (M,) s, the estimate's stamps of the steps matched to the ground truth
+    estimate_index: np.ndarray  # (M,) int, those steps' indices into the estimate
+    position_nees: np.ndarray  # (M,) 3 dof; nan at the skipped steps
+    pose_nees: np.ndarray  # (M,) 6 dof; nan at the skipped steps
+    position: NeesSummary
+    pose: NeesSummary
+
+    @property
+    def skipped(self) -> int:
+        return self.position.skipped
+
+    def as_dict(self) -> dict[str, Any]:
+        """The summaries (not the per-step values)."""
+        return {"matched_steps": int(self.time_stamps.shape[0]), "skipped_steps": self.skipped,
+                "position": self.position.as_dict(), "pose": self.pose.as_dict()}
+
+
+def trajectory_nees(est_t: Any, world_T_imu: Any, pose_covariance: Any, gt_t: Any, gt_world_T_imu: Any, *,
+                    max_diff: float = 0.01) -> TrajectoryNees:
+    """Position and pose NEES of each step of one run against ground truth (module docstring, E4).
+
+    Parameters
+    ----------
+    est_t : (N,) array, seconds, strictly increasing
+    world_T_imu : (N, 4, 4) array, the estimate
+    pose_covariance : (N, 6, 6) array, covariance of the right perturbation xi = [rho; phi] of each pose
+    gt_t : (G,) array, seconds, strictly increasing
+    gt_world_T_imu : (G, 4, 4) array, the ground truth (any world frame)
+    max_diff : float
+        Largest stamp difference (s) of a matched pair (nearest stamp, ``metrics.associate_indices``).
+
+    Returns
+    -------
+    TrajectoryNees
+        Raises ``InputError`` when fewer than 3 steps match.
+    """
+    t = np.asarray(est_t, dtype=float)
+    mu = np.asarray(world_T_imu, dtype=float)
+    P = np.asarray(pose_covariance, dtype=float)
+    truth = np.asarray(gt_world_T_imu, dtype=float)
+    if mu.ndim != 3 or mu.shape[1:] != (4, 4) or t.shape != (mu.shape[0],):
+        raise ValueError(f"estimate: stamps (N,) and poses (N, 4, 4) expected, got {t.shape} and {mu.shape}")
+    if P.shape != (mu.shape[0], 6, 6):
+        raise ValueError(f"pose_covariance must have shape ({mu.shape[0]}, 6, 6), got {P.shape}")
+    if truth.ndim != 3 or truth.shape[1:] != (4, 4) or np.shape(gt_t) != (truth.shape[0],):
+        raise ValueError(f"ground truth: stamps (G,) and poses (G, 4, 4) expected, got {np.shape(gt_t)} and "
+                         f"{truth.shape}")
+    for what, a in (("estimate", mu), ("pose_covariance", P), ("ground truth", truth)):
+        if not np.isfinite(a).all():
+            index = int(np.flatnonzero(~np.isfinite(a).all(axis=(1, 2)))[0])
+            raise ValueError(f"{what}: non-finite value at index {index}")
+    i, j = associate_indices(t, gt_t, max_diff)
+    mu_rel = se3.inverse(mu[i[0]]) @ mu[i]
+    true_rel = se3.inverse(truth[j[0]]) @ truth[j]
+    P = P[i]
+    zero = np.all(np.diagonal(P, axis1=1, axis2=2) <= ZERO_POSE_VARIANCE, axis=1)
+    skipped = max(1, int(np.argmin(zero)) if not zero.all() else zero.size)
+    position = np.full(i.size, np.nan)
+    pose = np.full(i.size, np.nan)
+    for k in range(skipped, i.size):
+        position[k] = position_nees(mu_rel[k], P[k], true_rel[k])
+        pose[k] = pose_nees(mu_rel[k], P[k], true_rel[k])
+    return TrajectoryNees(time_stamps=t[i], estimate_index=i, position_nees=position, pose_nees=pose,
+                          position=summarize_nees(position[skipped:], 3, skipped),
+                          pose=summarize_nees(pose[skipped:], 6, skipped))
+
+
 # ---------------------------------------------------------------------------------------- one run
 
 
@@ -125,7 +282,7 @@ class RunTrace:
     ate_estimate: float
     ate_dead_reckoning: float
     observations_gated: int = 0
-    conventions: str = ""  # decided by backend.run.runner.decide, e.g. "flip=no,velocity=this"
+    conventions: str = ""  # decided by backend.run.decisions.decide, e.g. "flip=no,velocity=this"
     health_messages: list = field(default_factory=list)
     wall_seconds: float = 0.0
 
@@ -181,7 +338,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
         result = run_sequence(scene.sequence, config, observer=record)  # one BLAS thread by config
         # scene.landmark_ids is arange(K): an id is its row of landmark_positions
         lm_nees = landmark_nees(result.map_positions, result.map_covariances, scene.landmark_positions[result.map_ids])
-    conventions = result.conventions
+    conventions = result.decisions.conventions
     return RunTrace(
         noise_seed=seed,
         pose_nees=nees,

@@ -26,7 +26,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["TrajectoryErrors", "associate", "trajectory_errors", "ate_per_pose", "alignment_scale", "require_matches"]
+__all__ = ["TrajectoryErrors", "associate", "associate_indices", "trajectory_errors", "ate_per_pose", "alignment_scale",
+           "require_matches"]
 
 MIN_MATCHES = 3
 FALLBACK_DELTA_FRAMES = 10
@@ -96,29 +97,65 @@ def _evo_trajectory(t: np.ndarray, poses: np.ndarray, name: str):
     return PoseTrajectory3D(timestamps=t.copy(), poses_se3=[p.copy() for p in poses], name=name)
 
 
+def _matching_indices(et: np.ndarray, gt: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
+    """evo's nearest-stamp association (``evo.core.sync.associate_trajectories``: from the trajectory
+    with fewer poses, each stamp to the nearest of the other within ``max_diff``), as indices."""
+    from evo.core.sync import matching_time_indices
+
+    if len(gt) > len(et):
+        est_index, gt_index = matching_time_indices(et, gt, max_diff)
+    else:
+        gt_index, est_index = matching_time_indices(gt, et, max_diff)
+    matched = len(est_index)
+    if matched < MIN_MATCHES:
+        raise InputError(
+            f"only {matched} estimated pose(s) match a ground-truth time stamp within "
+            f"{max_diff} s; at least {MIN_MATCHES} are needed"
+        )
+    return np.asarray(est_index, dtype=np.int64), np.asarray(gt_index, dtype=np.int64)
+
+
 def _associated(est_t, est_poses, gt_t, gt_poses, max_diff: float):
     """evo trajectories (est, gt) of the time-matched poses."""
-    from evo.core.sync import SyncException, associate_trajectories
-
     et, ep = _check(est_t, est_poses, "estimate")
     gt, gp = _check(gt_t, gt_poses, "ground truth")
     if len(et) == 0 or len(gt) == 0:
         raise InputError(
             f"too few poses to compare: estimate {len(et)}, ground truth {len(gt)}"
         )
-    est = _evo_trajectory(et, ep, "estimate")
-    ref = _evo_trajectory(gt, gp, "ground truth")
-    try:
-        est_sync, ref_sync = associate_trajectories(est, ref, max_diff=max_diff)
-        matched = est_sync.num_poses
-    except SyncException:
-        matched = 0
-    if matched < MIN_MATCHES:
-        raise InputError(
-            f"only {matched} estimated pose(s) match a ground-truth time stamp within "
-            f"{max_diff} s; at least {MIN_MATCHES} are needed"
-        )
-    return est_sync, ref_sync
+    i, j = _matching_indices(et, gt, max_diff)
+    return _evo_trajectory(et[i], ep[i], "estimate"), _evo_trajectory(gt[j], gp[j], "ground truth")
+
+
+def associate_indices(est_t: Any, gt_t: Any, max_diff: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs :func:`associate` matches, as indices: nearest time stamp within ``max_diff`` s (evo).
+
+    Parameters
+    ----------
+    est_t : (N,) array, seconds, strictly increasing
+    gt_t : (G,) array, seconds, strictly increasing
+    max_diff : float
+        Largest stamp difference (s) of a pair; a TUM file's stamps (``%.6f``) differ from the data's
+        by up to 5e-7 s.
+
+    Returns
+    -------
+    est_index, gt_index : (M,) int64 arrays
+        ``est_t[est_index]`` and ``gt_t[gt_index]`` are the matched stamps. Raises :class:`InputError`
+        if fewer than 3 match.
+    """
+    et = np.array(est_t, dtype=float)
+    gt = np.array(gt_t, dtype=float)
+    for what, stamps in (("estimate", et), ("ground truth", gt)):
+        if stamps.ndim != 1:
+            raise ValueError(f"{what} time stamps must have shape (N,), got {stamps.shape}")
+        if not np.all(np.isfinite(stamps)):
+            raise InputError(f"{what}: non-finite time stamp")
+        if len(stamps) > 1 and not np.all(np.diff(stamps) > 0):
+            raise InputError(f"{what}: time stamps are not strictly increasing")
+    if len(et) == 0 or len(gt) == 0:
+        raise InputError(f"too few poses to compare: estimate {len(et)}, ground truth {len(gt)}")
+    return _matching_indices(et, gt, max_diff)
 
 
 def associate(

@@ -18,7 +18,7 @@ with the median pixel error e of each variant. The variant with the smaller erro
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,7 +27,6 @@ from ..geometry import se3
 from ..geometry.camera import StereoCamera
 from ..estimator.propagation import dead_reckoning
 from ..data.sequence import Sequence
-from .stereo_offset import StereoOffset
 
 IMU_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -112,7 +111,6 @@ class ConventionDecision:
     errors_px: dict[str, float]  # "flip=no,velocity=this" -> median px, every variant tested
     flip_source: str  # "auto" | "configured"
     velocity_source: str
-    stereo_offset: StereoOffset = field(default_factory=StereoOffset)  # the disparity offset model (backend.run.stereo_offset), set by the run
 
     @property
     def chosen_error_px(self) -> float | None:
@@ -127,7 +125,6 @@ class ConventionDecision:
             "velocity_index_decided_by": self.velocity_source,
             "reprojection_median_px": self.errors_px,
             "imu_T_cam_used": self.imu_T_cam.tolist(),
-            "stereo_offset": self.stereo_offset.as_dict(),
         }
 
     def describe(self) -> str:

@@ -1,23 +1,65 @@
-"""The IMU noise: white noise per axis estimated from the velocities themselves, and the decision
-of what the filter uses (configured, estimated, or raised to a floor) with the gyro-bias decision."""
+"""The noise a run's filter uses, identified from the data: pixels, IMU, and the IMU's offsets.
+
+Pixel noise (N2). The two-view fits of step pairs (D2, ``backend.run.two_view``) leave residuals
+that are the tracks' own error once motion and points are fitted: white noise, and for drifting
+tracks whatever accumulated between the two frames. Their pooled RMS (residuals within
+``TRIM_PX``, over the degrees of freedom) over the gaps h = 1 .. h_max the filter's landmarks live
+through keeps the heavy tail of real tracks that a robust scale leaves out:
+
+    sigma_px^2 = sum_pairs sum_{|r| <= trim} r^2 / sum_pairs dof                                    (N2)
+
+Without such pairs (too few tracks a step) the stereo rows give a floorless fallback, the robust
+std of (vL - vR) / sqrt 2 (on a rectified pair both rows see the same point).
+
+IMU white noise (N1): per axis from the second differences of the velocity samples,
+
+    sigma = 1.4826 MAD(x_{k+1} - 2 x_k + x_{k-1}) / sqrt(6),
+
+blind to errors that are smooth (scale, misalignment, the GPS/INS solution the velocities came from).
+
+IMU against vision (N3). Each gap-1 fit is a camera motion; through the extrinsic it is the IMU
+frame's twist u_vis = log(imu_T_cam (c_k+1_T_c_k)^-1 cam_T_imu) / tau, with covariance
+Ad C Ad^T / tau^2 from the fit. The IMU's sample of that step (the velocity timing) relates to it as
+
+    v_imu = v_vis + omega x r + c + n_v,   omega_imu = omega_vis + b + n_w                           (N3)
+
+r: where the IMU's velocity is measured, relative to the frame the extrinsic defines (a lever arm
+the file does not state); c: a constant velocity offset; b: the gyro bias. (r, c) come from a
+generalized least squares with Huber weights and a weak prior (``LEVER_PRIOR_M``,
+``OFFSET_PRIOR_M_S``: components the motion does not excite stay near zero), the noise per axis
+from the residuals' robust variance less the vision twist's own. The correction
+v <- v - omega x r - c is applied when (r, c) is significant (chi-square) and changes the
+velocities by a visible amount (``backend.run.decisions`` also checks it against dead reckoning).
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import chdtri
 
-from ..config import Config
+from ..data.sequence import Sequence
+from ..geometry import se3
+from .two_view import TRIM_PX, TwoViewFit
+
+__all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "ImuVsVision", "imu_vs_vision",
+           "ImuNoise", "VelocityCorrection"]
+
+#: Prior standard deviations of the lever arm (m) and of the velocity offset (m/s) in (N3).
+LEVER_PRIOR_M = 2.0
+OFFSET_PRIOR_M_S = 1.0
+#: (N3) needs at least this many step pairs, each fitted from this many points or more.
+MIN_PAIRS = 30
+MIN_POINTS = 12
+#: A correction is applied when its chi-square exceeds the quantile of this probability ...
+CORRECTION_PROBABILITY = 1.0 - 1e-6
+#: ... and changes the velocities by more than this share of their white noise (RMS over the pairs).
+MIN_EFFECT = 0.25
+
 
 def estimate_white_noise(signal: np.ndarray) -> np.ndarray:
-    """Per-axis sigma of white noise on a smooth signal (N,3), from its second differences.
-
-    For x_k = s_k + n_k with smooth s and white n of std sigma, the second difference
-    x_{k+1} - 2 x_k + x_{k-1} has std sqrt(6) sigma; a robust scale (1.4826 MAD) keeps real
-    manoeuvres from inflating the estimate:
-
-        sigma = 1.4826 MAD(x_{k+1} - 2 x_k + x_{k-1}) / sqrt(6)                                (N1)
-    """
+    """(N1) per-axis sigma of white noise on a smooth signal (N,3), from its second differences."""
     if signal.shape[0] < 5:
         return np.zeros(signal.shape[1])
     d2 = signal[2:] - 2.0 * signal[1:-1] + signal[:-2]
@@ -25,98 +67,206 @@ def estimate_white_noise(signal: np.ndarray) -> np.ndarray:
     return 1.4826 * mad / np.sqrt(6.0)
 
 
-@dataclass
-class NoiseDecision:
-    """Process noise used, and where it came from (for the summary)."""
+def rows_sigma(seq: Sequence, max_row_px: float = 2.0) -> float:
+    """Robust std (px) of (vL - vR) / sqrt 2 over the observations whose rows agree within
+    ``max_row_px`` (the rest are mismatches, not noise); nan without observations."""
+    d = seq.obs_pixels[:, 1] - seq.obs_pixels[:, 3]
+    d = d[np.abs(d) <= max_row_px]
+    if d.size < 10:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+# ------------------------------------------------------------------------------------------ pixels
+@dataclass(frozen=True)
+class PixelNoise:
+    """The pixel noise used (N2), with the measurements behind it."""
+
+    sigma: float  # px per coordinate, used
+    source: str  # "configured" | "two-view fits" | "stereo rows"
+    gaps: tuple = ()  # (gap, pairs, robust scale px, RMS px) per gap measured
+    rows_px: float = float("nan")  # the stereo rows' robust std
+    used_gaps: int = 0  # the RMS pooled over gaps 1 .. used_gaps
+
+    def as_dict(self) -> dict:
+        return {"sigma_px": self.sigma, "decided_by": self.source, "stereo_rows_px": self.rows_px,
+                "pooled_over_gaps": self.used_gaps,
+                "two_view": [{"gap": g, "pairs": n, "robust_px": s, "rms_px": r} for g, n, s, r in self.gaps]}
+
+    def describe(self) -> str:
+        if self.source == "configured":
+            return f"pixel noise: {self.sigma:.3g} px (configured)"
+        if self.source == "stereo rows":
+            return (f"pixel noise: {self.sigma:.3g} px, the stereo rows' spread (too few tracks seen twice for "
+                    "two-view fits)")
+        rms = ", ".join(f"{r:.2f}" for g, n, s, r in self.gaps if g <= self.used_gaps)
+        return (f"pixel noise: {self.sigma:.3g} px, the RMS of two-view fit residuals over step gaps 1-{self.used_gaps} "
+                f"({rms} px; stereo rows {self.rows_px:.2f} px)")
+
+
+def gap_statistics(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple:
+    """((gap, pairs, median robust scale, pooled RMS) for each gap with fits), from (D2) fits."""
+    out = []
+    for gap in sorted(fits_by_gap):
+        fits = fits_by_gap[gap]
+        if not fits:
+            continue
+        ssq = sum(f.mean_square(TRIM_PX)[0] for f in fits)
+        dof = sum(f.mean_square(TRIM_PX)[1] for f in fits)
+        out.append((gap, len(fits), float(np.median([f.robust_scale() for f in fits])),
+                    float(np.sqrt(ssq / dof)) if dof > 0 else float("nan")))
+    return tuple(out)
+
+
+def pixel_noise(seq: Sequence, gaps: tuple, used_gaps: int, configured: float | None) -> PixelNoise:
+    """(N2) the pooled RMS over the ``gaps`` statistics (:func:`gap_statistics`) up to ``used_gaps``;
+    the stereo rows without fits; ``configured`` (not None) wins."""
+    rows = rows_sigma(seq)
+    if configured is not None:
+        return PixelNoise(float(configured), "configured", gaps, rows, used_gaps)
+    used = [(n, r) for g, n, s, r in gaps if g <= used_gaps and np.isfinite(r)]
+    if used:
+        weights = np.array([n for n, _ in used], dtype=float)
+        sigma = float(np.sqrt(np.sum(weights * np.array([r for _, r in used]) ** 2) / weights.sum()))
+        return PixelNoise(sigma, "two-view fits", gaps, rows, used_gaps)
+    if np.isfinite(rows) and rows > 0:
+        return PixelNoise(rows, "stereo rows", gaps, rows, used_gaps)
+    return PixelNoise(1.0, "no observations to measure it: 1 px", gaps, rows, used_gaps)
+
+
+# ------------------------------------------------------------------------------------------ IMU
+@dataclass(frozen=True)
+class VelocityCorrection:
+    """v <- v - omega x lever_arm - offset (N3): the IMU's velocity moved to the frame the extrinsic
+    defines."""
+
+    lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m, IMU frame
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m/s
+
+    @property
+    def active(self) -> bool:
+        return bool(np.any(self.lever_arm) or np.any(self.offset))
+
+    def correct(self, linear_velocity: np.ndarray, angular_velocity: np.ndarray) -> np.ndarray:
+        """The corrected linear velocities, (3,) or (N,3) like the inputs."""
+        if not self.active:
+            return linear_velocity
+        return linear_velocity - np.cross(angular_velocity, self.lever_arm) - self.offset
+
+
+@dataclass(frozen=True)
+class ImuVsVision:
+    """(N3): the IMU's samples against the motion the two-view fits give."""
+
+    pairs: int
+    lever_arm: np.ndarray  # (3,) m
+    offset: np.ndarray  # (3,) m/s
+    covariance: np.ndarray  # (6,6) of (lever_arm, offset)
+    chi2: float  # of (lever_arm, offset) against 0
+    effect_rms: np.ndarray  # (3,) m/s, RMS of omega x r + c over the pairs
+    linear_sigma: np.ndarray  # (3,) m/s white noise of the IMU, vision's own part removed
+    angular_sigma: np.ndarray  # (3,) rad/s
+    gyro_bias: np.ndarray  # (3,) rad/s, the mean difference
+    vision_share: float  # the share of the residual variance that is vision's (median over axes)
+
+    def as_dict(self) -> dict:
+        se = np.sqrt(np.diag(self.covariance))
+        return {"pairs": self.pairs, "lever_arm_m": self.lever_arm.tolist(), "lever_arm_se_m": se[:3].tolist(),
+                "velocity_offset_m_s": self.offset.tolist(), "velocity_offset_se_m_s": se[3:].tolist(),
+                "chi2": self.chi2, "effect_rms_m_s": self.effect_rms.tolist(),
+                "linear_sigma_m_s": self.linear_sigma.tolist(), "angular_sigma_rad_s": self.angular_sigma.tolist(),
+                "gyro_bias_rad_s": self.gyro_bias.tolist(), "vision_share": self.vision_share}
+
+    def significant(self, white_linear: np.ndarray) -> bool:
+        """The correction is shown (chi-square beyond ``CORRECTION_PROBABILITY``) and matters (RMS effect
+        beyond ``MIN_EFFECT`` of the white noise on some axis)."""
+        return bool(self.chi2 > chdtri(6, 1.0 - CORRECTION_PROBABILITY)
+                    and np.any(self.effect_rms > MIN_EFFECT * np.maximum(white_linear, 1e-3)))
+
+
+def _robust_var(x: np.ndarray) -> np.ndarray:
+    return (1.4826 * np.median(np.abs(x - np.median(x, axis=0)), axis=0)) ** 2
+
+
+def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str) -> ImuVsVision | None:
+    """(N3) from the gap-1 ``fits`` of ``seq`` with the extrinsic and velocity timing decided; None
+    with fewer than ``MIN_PAIRS`` fits of ``MIN_POINTS`` points or more."""
+    fits = [f for f in fits if f.gap == 1 and f.points >= MIN_POINTS]
+    if len(fits) < MIN_PAIRS:
+        return None
+    cam_T_imu = se3.inverse(imu_T_cam)
+    Ad = se3.adjoint(imu_T_cam)
+    shift = 1 if velocity_index == "next" else 0
+    n = len(fits)
+    u_vis = np.empty((n, 6))
+    var_vis = np.empty((n, 6))
+    v_imu = np.empty((n, 3))
+    w_imu = np.empty((n, 3))
+    for i, f in enumerate(fits):
+        tau = seq.time_stamps[f.step + 1] - seq.time_stamps[f.step]
+        M = imu_T_cam @ se3.inverse(f.b_T_a) @ cam_T_imu
+        u_vis[i] = se3.log_se3(M) / tau
+        var_vis[i] = np.diag(Ad @ f.motion_covariance @ Ad.T) / tau**2
+        v_imu[i] = seq.linear_velocity[f.step + shift]
+        w_imu[i] = seq.angular_velocity[f.step + shift]
+    # angular: a constant bias and the white noise
+    dw = w_imu - u_vis[:, 3:]
+    bias = np.median(dw, axis=0)
+    vis_w = np.median(var_vis[:, 3:], axis=0)
+    ang = np.sqrt(np.maximum(_robust_var(dw) - vis_w, 0.0))
+    # linear: e = v_imu - v_vis = [omega]x r + c + noise, GLS with Huber weights and a weak prior
+    e = v_imu - u_vis[:, :3]
+    A = np.zeros((n, 3, 6))
+    A[:, :, :3] = np.array([se3.hat3(w) for w in u_vis[:, 3:]])
+    A[:, :, 3:] = np.eye(3)
+    vis_v = np.median(var_vis[:, :3], axis=0)
+    noise_var = np.maximum(_robust_var(e) - vis_v, 1e-6)
+    prior = np.diag(np.r_[np.full(3, LEVER_PRIOR_M**-2), np.full(3, OFFSET_PRIOR_M_S**-2)])
+    theta = np.zeros(6)
+    huber = np.ones((n, 3))
+    for _ in range(5):
+        w = huber / (var_vis[:, :3] + noise_var)  # (n,3) diagonal weights
+        H = np.einsum("nai,na,naj->ij", A, w, A) + prior
+        g = np.einsum("nai,na,na->i", A, w, e)
+        cov = np.linalg.inv(H)
+        theta = cov @ g
+        res = e - np.einsum("nai,i->na", A, theta)
+        noise_var = np.maximum(_robust_var(res) - vis_v, 1e-6)
+        z = np.abs(res) / np.sqrt(var_vis[:, :3] + noise_var)
+        huber = np.where(z <= 1.345, 1.0, 1.345 / np.maximum(z, 1e-12))
+    effect = np.sqrt(np.mean(np.einsum("nai,i->na", A, theta) ** 2, axis=0))
+    chi2 = float(theta @ np.linalg.solve(cov, theta))
+    total = _robust_var(res)
+    share = float(np.median(vis_v / np.maximum(total, 1e-12)))
+    return ImuVsVision(n, theta[:3].copy(), theta[3:].copy(), cov, chi2, effect, np.sqrt(noise_var), ang, bias, share)
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """The IMU noise the filter uses, per axis, and where each number came from."""
 
     linear_sigma: np.ndarray  # (3,) m/s, used
     angular_sigma: np.ndarray  # (3,) rad/s, used
-    linear_estimated: np.ndarray | None  # (3,) white noise estimated from the data, if estimated
-    angular_estimated: np.ndarray | None
-    source: str  # "estimated" | "configured" | "mixed"
-    gyro_bias: bool = True  # the filter estimates the gyro bias
-    gyro_bias_reason: str = ""  # why not, when it does not
+    linear_source: str  # "configured" | "IMU against vision" | "innovation likelihood" | "white noise"
+    angular_source: str
+    white_linear: np.ndarray  # (3,) N1
+    white_angular: np.ndarray  # (3,)
+    vision: ImuVsVision | None = None  # N3, where measured
+    likelihood: dict = field(default_factory=dict)  # candidate linear sigma -> log-likelihood per observation
 
     def as_dict(self) -> dict:
-        def fmt(a):
-            return None if a is None else [float(x) for x in a]
-
         return {
-            "linear_velocity_sigma": fmt(self.linear_sigma),
-            "angular_velocity_sigma": fmt(self.angular_sigma),
-            "linear_velocity_sigma_estimated": fmt(self.linear_estimated),
-            "angular_velocity_sigma_estimated": fmt(self.angular_estimated),
-            "source": self.source,
-            "gyro_bias_estimated": self.gyro_bias,
-            "gyro_bias_reason": self.gyro_bias_reason,
+            "linear_velocity_sigma": self.linear_sigma.tolist(), "linear_decided_by": self.linear_source,
+            "angular_velocity_sigma": self.angular_sigma.tolist(), "angular_decided_by": self.angular_source,
+            "white_noise_linear": self.white_linear.tolist(), "white_noise_angular": self.white_angular.tolist(),
+            "against_vision": None if self.vision is None else self.vision.as_dict(),
+            "likelihood_per_observation": dict(self.likelihood),
         }
 
     def describe(self) -> str:
         def fmt(a):
             return "[" + ", ".join(f"{x:.3g}" for x in a) + "]"
 
-        text = f"IMU noise ({self.source}): linear {fmt(self.linear_sigma)} m/s, angular {fmt(self.angular_sigma)} rad/s"
-        if self.linear_estimated is not None or self.angular_estimated is not None:
-            parts = []
-            if self.linear_estimated is not None:
-                parts.append(f"linear {fmt(self.linear_estimated)} m/s")
-            if self.angular_estimated is not None:
-                parts.append(f"angular {fmt(self.angular_estimated)} rad/s")
-            text += "; white noise estimated from the data: " + ", ".join(parts)
-        if not self.gyro_bias:
-            text += f"\ngyro bias: not estimated ({self.gyro_bias_reason})"
-        return text
-
-
-def decide_imu_noise(
-    linear_velocity: np.ndarray,
-    angular_velocity: np.ndarray,
-    linear_sigma: float | None,
-    angular_sigma: float | None,
-    linear_floor: float,
-    angular_floor: float,
-    estimate_gyro_bias: bool = True,
-    observations_per_step: float = float("inf"),
-    gyro_bias_min_observations: float = 0.0,
-) -> NoiseDecision:
-    """Configured sigmas are used as given; unset ones are estimated and raised to the floor:
-    sigma = max(sigma_white, floor). The floor stands for the error a velocity signal carries
-    without showing it in its step-to-step roughness (scale, misalignment, the GPS/INS solution
-    it came from): clean-looking velocities are not believed beyond it, while a file whose white
-    noise already exceeds it keeps its estimate.
-
-    The gyro bias is estimated (if configured) only where vision can tell it from track errors:
-    with fewer than ``gyro_bias_min_observations`` stereo observations per step on average, a
-    handful of far points' slow track drift reads as a rotation rate and the bias state absorbs it.
-    """
-    lin_est = ang_est = None
-    if linear_sigma is None:
-        lin_est = estimate_white_noise(linear_velocity)
-        lin = np.maximum(lin_est, linear_floor)
-    else:
-        lin = np.full(3, float(linear_sigma))
-    if angular_sigma is None:
-        ang_est = estimate_white_noise(angular_velocity)
-        ang = np.maximum(ang_est, angular_floor)
-    else:
-        ang = np.full(3, float(angular_sigma))
-    estimated = (lin_est is not None) + (ang_est is not None)
-    source = {0: "configured", 1: "mixed", 2: "estimated"}[estimated]
-    bias, reason = bool(estimate_gyro_bias), ""
-    if not estimate_gyro_bias:
-        reason = "estimate_gyro_bias = false"
-    elif observations_per_step < gyro_bias_min_observations:
-        bias = False
-        reason = (f"{observations_per_step:.1f} observations per step < gyro_bias_min_observations = "
-                  f"{gyro_bias_min_observations:g}")
-    return NoiseDecision(lin, ang, lin_est, ang_est, source, bias, reason)
-
-
-def decide_noise(config: Config, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
-                 observations_per_step: float) -> NoiseDecision:
-    """:func:`decide_imu_noise` with the settings of ``config`` (``noise``, ``estimator``)."""
-    noise, est = config.noise, config.estimator
-    return decide_imu_noise(linear_velocity, angular_velocity, noise.linear_velocity_sigma,
-                            noise.angular_velocity_sigma, noise.linear_velocity_sigma_floor,
-                            noise.angular_velocity_sigma_floor, est.estimate_gyro_bias, observations_per_step,
-                            est.gyro_bias_min_observations)
+        return (f"IMU noise: linear {fmt(self.linear_sigma)} m/s ({self.linear_source}), angular "
+                f"{fmt(self.angular_sigma)} rad/s ({self.angular_source}); white noise of the samples alone "
+                f"{fmt(self.white_linear)} m/s, {fmt(self.white_angular)} rad/s")

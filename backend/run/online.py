@@ -1,9 +1,11 @@
-"""The filter over a stream of time stamps: what a run adds to the online API, step by step.
+"""The filter over a stream of time stamps: the online API, with what a run decided applied.
 
 :class:`OnlineRun` steps :class:`~vislam.backend.estimator.ekf.VisualInertialEKF` once per time
-stamp with the run's decisions (velocity timing, stereo disparity offset, repeated frames, track drift), keeps dead
-reckoning alongside and collects the run's statistics; :meth:`OnlineRun.result` returns the
-:class:`RunResult`. The loop over a stream is ``backend.run.runner``.
+stamp with a run's :class:`~vislam.backend.run.decisions.Decisions` (extrinsic, velocity timing,
+the IMU velocity correction, the stereo disparity offset, noise, track drift, repeated frames),
+keeps dead reckoning alongside and collects the run's statistics and every step's pose
+covariance; :meth:`OnlineRun.result` returns the :class:`RunResult`. The loop over a stream is
+``backend.run.runner``.
 """
 
 from __future__ import annotations
@@ -21,10 +23,8 @@ from ..estimator.health import vision_check
 from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
 from ..geometry.camera import StereoCamera
-from .conventions import ConventionDecision
-from .drift import decide_track_drift
-from .noise import NoiseDecision
-from .timing import repeats_previous
+from .decisions import Decisions
+from .timing import MotionPrior, repeats_previous
 
 
 @dataclass
@@ -40,7 +40,7 @@ class RunStats:
     landmarks_initialized: int = 0
     landmarks_dropped: int = 0  # removed after repeated gating
     landmarks_reanchored: int = 0  # re-triangulated after reanchor_observations (tracker drift)
-    track_drift: str = ""  # the decision and why (decide_track_drift)
+    frozen_steps: int = 0  # repeated frames carried through with their landmarks (repeated_frames = freeze)
     landmarks_mapped: int = 0
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
@@ -85,6 +85,7 @@ class RunStats:
 class RunResult:
     time_stamps: np.ndarray  # (N,)
     world_T_imu: np.ndarray  # (N,4,4) the estimate
+    pose_covariance: np.ndarray  # (N,6,6) of the right perturbation world_T_imu = mu exp(xi^), xi = [rho; phi]
     dead_reckoning: np.ndarray  # (N,4,4) IMU only, same conventions
     map_ids: np.ndarray  # (K,)
     map_positions: np.ndarray  # (K,3) world frame
@@ -92,9 +93,13 @@ class RunResult:
     gyro_bias: np.ndarray  # (3,) final estimate
     stats: RunStats
     step_seconds: np.ndarray  # (N,) wall seconds of each step (predict + update)
-    conventions: ConventionDecision
-    imu_noise: NoiseDecision
-    config: Config
+    decisions: Decisions  # what the run decided from the data
+    config: Config  # the configuration with the decided values (Decisions.config_for)
+
+    @property
+    def conventions(self):
+        """The extrinsic and velocity timing decided (``decisions.conventions``)."""
+        return self.decisions.conventions
 
 
 class OnlineRun:
@@ -102,44 +107,44 @@ class OnlineRun:
     over it for files, image streams and the API alike).
 
     ``step(t, v, w, ids, pixels)`` takes the IMU sample stamped t and the stereo observations of
-    the frame at t. It applies the velocity timing of ``conventions`` (the sample stamped k
-    ("this") or k+1 ("next") drives the step k -> k+1: both are known once step k+1 arrives), the
-    repeated-frame policy (``backend.run.timing``), records dead reckoning alongside, and collects the
-    run statistics. :meth:`result` marginalizes what is left and returns the :class:`RunResult`.
-    ``tracker`` names what made the tracks (``Sequence.tracker``; "" unknown) for
-    ``drift.track_drift = "auto"`` (:func:`~vislam.backend.run.drift.decide_track_drift`).
+    the frame at t, and applies the ``decisions``: the IMU velocity correction (N3), the velocity
+    timing (the sample stamped k ("this") or k+1 ("next") drives the step k -> k+1: both are known
+    once step k+1 arrives), the stereo disparity offset (D1), the repeated-frame policy
+    (``backend.run.timing``: with "freeze" a repeated frame's step is predicted by
+    ``VisualInertialEKF.predict_frozen`` with the motion prior T2), and the decided noise and drift
+    through the filter's configuration (:meth:`Decisions.config_for`). It records dead reckoning
+    alongside and collects the run statistics; :meth:`result` marginalizes what is left and
+    returns the :class:`RunResult`.
     """
 
     def __init__(
         self,
         camera: StereoCamera,
-        conventions: ConventionDecision,
-        noise: NoiseDecision,
+        decisions: Decisions,
         config: Config,
         expected_landmarks: int | None = None,
         observer: Optional[Callable[[int, VisualInertialEKF, Optional[StepStats]], None]] = None,
-        tracker: str = "",
     ) -> None:
-        config.validate()
-        if noise.gyro_bias != config.estimator.estimate_gyro_bias:
-            config = config.with_values({"estimator.estimate_gyro_bias": noise.gyro_bias})
-        config, track_drift = decide_track_drift(config, tracker)
+        config = decisions.config_for(config.validate())
         self.config = config
-        self.conventions = conventions
-        self.noise = noise
-        self.ekf = VisualInertialEKF(camera, conventions.imu_T_cam, config,
-                                     ImuNoise(noise.linear_sigma, noise.angular_sigma),
+        self.decisions = decisions
+        imu = decisions.imu
+        self.ekf = VisualInertialEKF(camera, decisions.imu_T_cam, config, ImuNoise(imu.linear_sigma, imu.angular_sigma),
                                      expected_landmarks=expected_landmarks)
         self.observer = observer
-        self.stats = RunStats(track_drift=track_drift, kernel_seconds=self.ekf.kernel_seconds)
-        self._next = VELOCITY_INDEX_OFFSET[conventions.velocity_index] == 1
-        self._offset = conventions.stereo_offset
-        self._R_cam_imu = np.asarray(conventions.imu_T_cam, dtype=float)[:3, :3].T
+        self.stats = RunStats(kernel_seconds=self.ekf.kernel_seconds)
+        self._next = VELOCITY_INDEX_OFFSET[decisions.conventions.velocity_index] == 1
+        self._offset = decisions.stereo_offset
+        self._velocity = decisions.velocity
+        self._R_cam_imu = np.asarray(decisions.imu_T_cam, dtype=float)[:3, :3].T
+        self._policy = config.conventions.repeated_frames
+        self._motion = MotionPrior(np.concatenate([imu.linear_sigma, imu.angular_sigma]))
         self._t: list[float] = []
         self._poses: list[np.ndarray] = []
+        self._pose_covariances: list[np.ndarray] = []
         self._dr_twists: list[np.ndarray] = []  # dead reckoning, composed in result()
         self._prev_sample = None  # (t, v, w) of the previous step
-        self._prev_frame = None  # (ids, pixels) of the last step that was not a repeat
+        self._prev_frame = None  # (ids, pixels) of the last step that was not a repeat, as given
         self._active_sum = 0
         self._nis_sum = 0.0
         self._wall = 0.0
@@ -152,27 +157,40 @@ class OnlineRun:
     def step(self, t: float, linear_velocity, angular_velocity, ids, pixels) -> Optional[StepStats]:
         """Predict into t (from the second call on), then use the observations (ids (n,), pixels (n,4))."""
         t0 = time.perf_counter()
-        v = np.asarray(linear_velocity, dtype=float)
         w = np.asarray(angular_velocity, dtype=float)
+        v = self._velocity.correct(np.asarray(linear_velocity, dtype=float), w)
+        ids = np.asarray(ids, dtype=np.int64)
+        pixels = np.asarray(pixels, dtype=float).reshape(-1, 4)
         k = len(self._t)
+        repeated = self._prev_frame is not None and repeats_previous(ids, pixels, *self._prev_frame)
+        if not repeated:
+            self._prev_frame = (ids, pixels)
         if k:
             t_prev, v_prev, w_prev = self._prev_sample
             dt = float(t) - t_prev
             if not dt > 0:
                 raise InputError(f"step {k}: time stamp {t!r} does not increase (previous {t_prev!r})")
             v_step, w_step = (v, w) if self._next else (v_prev, w_prev)
-            self.ekf.predict(dt, v_step, w_step)
+            if repeated and self._policy == RepeatedFrames.FREEZE and self.ekf.use_vision:
+                prior = self._motion.predict(dt) if self.ekf.estimate_pose else None
+                self.ekf.predict_frozen(dt, v_step, w_step, prior)
+                self.stats.frozen_steps += 1
+            else:
+                self.ekf.predict(dt, v_step, w_step)
             self._dr_twists.append(dt * np.concatenate([v_step, w_step]))
+            imu_velocity = np.concatenate([v_step, w_step - self.ekf.gyro_bias])
         t1 = time.perf_counter()
         self._prev_sample = (float(t), v, w)
-        pixels = np.asarray(pixels, dtype=float).reshape(-1, 4)
         if self._offset.active:  # D1: the stereo pair's disparity offset at this step's rate
             pixels = self._offset.correct(pixels, float(self._R_cam_imu[1] @ w))
-        step_stats = self._observe(np.asarray(ids, dtype=np.int64), pixels)
+        step_stats = self._observe(ids, pixels, repeated)
         if self.observer is not None:
             self.observer(k, self.ekf, step_stats)
+        if k:
+            self._motion.add(self._poses[-1], self.ekf.world_T_imu, float(t) - self._t[-1], imu_velocity, repeated)
         self._t.append(float(t))
         self._poses.append(self.ekf.world_T_imu.copy())
+        self._pose_covariances.append(self.ekf.pose_covariance)
         t2 = time.perf_counter()
         self.stats.seconds_predict += t1 - t0
         self.stats.seconds_update += t2 - t1
@@ -180,20 +198,16 @@ class OnlineRun:
         self._step_seconds.append(t2 - t0)
         return step_stats
 
-    def _observe(self, ids: np.ndarray, pixels: np.ndarray) -> Optional[StepStats]:
+    def _observe(self, ids: np.ndarray, pixels: np.ndarray, repeated: bool) -> Optional[StepStats]:
         """Use a frame's observations as the repeated-frame policy says (``backend.run.timing``)."""
         stats = self.stats
         stats.observations += ids.size
-        repeated = self._prev_frame is not None and repeats_previous(ids, pixels, *self._prev_frame)
         if repeated:
             stats.repeated_frames += 1
-        else:
-            self._prev_frame = (ids, pixels)
-        policy = self.config.conventions.repeated_frames
-        if repeated and policy != RepeatedFrames.USE:
-            if policy == RepeatedFrames.CUT:
-                self.ekf.finish()  # no track bridges a stalled camera
-            return None
+            if self._policy != RepeatedFrames.USE:
+                if self._policy == RepeatedFrames.CUT:
+                    self.ekf.finish()  # no track bridges a stalled camera
+                return None
         step_stats = self.ekf.update(ids, pixels)
         stats.observations_used += step_stats.used
         stats.observations_gated += step_stats.gated
@@ -237,6 +251,7 @@ class OnlineRun:
         return RunResult(
             time_stamps=np.array(self._t),
             world_T_imu=np.array(self._poses),
+            pose_covariance=np.array(self._pose_covariances),
             dead_reckoning=compose_steps(se3.exp_se3_batch(np.array(self._dr_twists).reshape(-1, 6))),
             map_ids=map_ids,
             map_positions=map_pos,
@@ -244,7 +259,6 @@ class OnlineRun:
             gyro_bias=self.ekf.gyro_bias.copy(),
             stats=stats,
             step_seconds=step_ms / 1e3,
-            conventions=self.conventions,
-            imu_noise=self.noise,
+            decisions=self.decisions,
             config=self.config,
         )

@@ -2,13 +2,11 @@
 
 A run decides what the data does not say reliably, then steps the filter once per time stamp:
 
-1. the data conventions (``backend.run.conventions``: the extrinsic's flip, the velocity
-   timing; ``backend.run.stereo_offset``: the stereo pair's disparity offset, kept only if dead
-   reckoning does not contradict it, :func:`checked_offset`) and the IMU noise
-   (``backend.run.noise``), recorded with their numbers; for a file from the whole file
-   (:func:`decide`), for a stream from its first frames (:func:`decide_online`);
-2. the track drift (``backend.run.drift``), from what made the tracks;
-3. :class:`~vislam.backend.run.online.OnlineRun` over every step (:func:`run_stream`).
+1. :func:`~vislam.backend.run.decisions.decide` (conventions, repeated frames, stereo offset, IMU
+   velocity correction and noise, pixel noise, track drift, gyro bias), one frozen ``Decisions``
+   with the numbers behind each: for a file from the whole file, for a stream from its first
+   frames (:func:`decide_online`);
+2. :class:`~vislam.backend.run.online.OnlineRun` over every step (:func:`run_stream`).
 
 :func:`run_sequence` is that for a loaded :class:`~vislam.backend.data.sequence.Sequence`.
 What a run says (its decisions, that kernels are compiling) goes to ``say``; the compiled
@@ -30,9 +28,8 @@ from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
 from ..geometry.camera import StereoCamera
-from .conventions import ConventionDecision, decide_conventions, reprojection_error
-from .noise import NoiseDecision, decide_noise
-from .stereo_offset import StereoOffset, identify_stereo_offset
+from .conventions import decide_conventions
+from .decisions import Decisions, decide
 from .online import OnlineRun, RunResult
 
 __all__ = ["run_sequence", "run_stream", "decide", "decide_online", "decisive", "Step"]
@@ -66,44 +63,6 @@ class _Timed:
             self.seconds += time.perf_counter() - t0
 
 
-def decide(seq: Sequence, config: Config) -> tuple[ConventionDecision, NoiseDecision]:
-    """The extrinsic, the velocity timing and the IMU noise for a whole sequence."""
-    c = config.conventions
-    conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
-    offset = identify_stereo_offset(seq, conventions.imu_T_cam, _offset_model(config))
-    conventions.stereo_offset = checked_offset(seq, conventions, offset, c.horizon,
-                                               without=conventions.chosen_error_px)  # C1 ran on this very sequence
-    noise = decide_noise(config, seq.linear_velocity, seq.angular_velocity,
-                         seq.num_observations / max(seq.num_steps, 1))
-    return conventions, noise
-
-
-def _offset_model(config: Config) -> str:
-    """The stereo offset model to estimate: none for dead reckoning, which uses no vision."""
-    return "off" if config.estimator.mode == Mode.DEAD_RECKONING else str(config.conventions.stereo_offset)
-
-
-def checked_offset(seq: Sequence, conventions: ConventionDecision, offset: StereoOffset, horizon: int,
-                   tolerance: float = 1.05, without: float | None = None) -> StereoOffset:
-    """``offset``, unless removing it makes the convention test's reprojection (C1: points carried
-    by dead reckoning, the IMU alone) worse by more than ``tolerance``: then none, and the estimate
-    says why. An independent check: vision found the offset, the IMU must not contradict it.
-    ``without``: the error without the offset when already measured on ``seq`` (the convention test's)."""
-    if not offset.active:
-        return offset
-    if without is None:
-        without = reprojection_error(seq, conventions.imu_T_cam, conventions.velocity_index, horizon)
-    errors = [without, reprojection_error(offset.corrected(seq, conventions.imu_T_cam), conventions.imu_T_cam,
-                                          conventions.velocity_index, horizon)]
-    offset.estimate["dead_reckoning_reprojection_px"] = {"without": errors[0], "with": errors[1]}
-    if np.isfinite(errors[0]) and np.isfinite(errors[1]) and errors[1] > tolerance * errors[0]:
-        estimate = dict(offset.estimate, rejected=(
-            f"an estimated offset of {offset.estimate['beta_mean_px']:+.2f} px made dead reckoning's reprojection worse "
-            f"({errors[0]:.2f} -> {errors[1]:.2f} px), so it is not removed"))
-        return StereoOffset(0.0, 0.0, estimate, offset.source)
-    return offset
-
-
 def decisive(errors_px: dict, margin: float = 1.1) -> bool:
     """True when the convention test has nothing to choose (one variant) or its best variant fits at
     least ``margin`` times better than every other."""
@@ -113,51 +72,35 @@ def decisive(errors_px: dict, margin: float = 1.1) -> bool:
 
 def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.ndarray, config: Config,
                   imu_velocities: tuple[np.ndarray, np.ndarray], num_steps: int | None = None, tracker: str = ""):
-    """The decisions of :func:`decide` from the first steps of a stream, read from ``steps`` as needed.
+    """:func:`~vislam.backend.run.decisions.decide` from the first steps of a stream, read from ``steps``.
 
-    The convention test runs from 20 steps on, every 10, until it is :func:`decisive` or
-    ``conventions.online_steps`` steps (or the ``num_steps`` of the stream, or all it has) are in;
-    the stereo offset (unless ``conventions.stereo_offset = "off"``) is identified from all of those.
-    The white noise comes from ``imu_velocities``, (linear (N,3), angular (N,3)) of the whole
-    stream. Returns ((conventions, noise), the steps read, the seconds the decisions took).
+    ``conventions.online_steps`` steps (or the ``num_steps`` of the stream, or all it has) are read,
+    fewer when only the convention test is wanted (``conventions.stereo_offset = "off"`` and every
+    noise configured): then the test runs from 20 steps on, every 10, until it is :func:`decisive`.
+    The white noise (N1) comes from ``imu_velocities``, (linear (N,3), angular (N,3)) of the whole
+    stream. Returns (decisions, the steps read, the seconds the decisions took).
     """
     limit = config.conventions.online_steps if num_steps is None else min(config.conventions.online_steps, num_steps)
-    # the stereo offset wants every step up to the limit; the convention test stops once decisive
-    read_all = _offset_model(config) != "off"
+    noise = config.noise
+    read_all = (str(config.conventions.stereo_offset) != "off" or noise.pixel_sigma is None
+                or noise.linear_velocity_sigma is None or noise.angular_velocity_sigma is None)
     read: list[Step] = []
-    seconds = 0.0
-    conventions = None
     c = config.conventions
     for step in steps:
         read.append(step)
         k = len(read)
-        last = k >= limit
-        if conventions is not None and not last:
-            continue
-        if not last and (k < 20 or k % 10):
-            continue
-        if conventions is None or not decisive(conventions.errors_px):
-            t0 = time.perf_counter()
-            conventions = decide_conventions(_as_sequence(read, camera, imu_T_cam, tracker), c.imu_flip,
-                                             c.velocity_index, c.horizon)
-            seconds += time.perf_counter() - t0
-            if not decisive(conventions.errors_px) and not last:
-                conventions = None
-        if last or (conventions is not None and not read_all):
+        if k >= limit:
             break
+        if not read_all and k >= 20 and k % 10 == 0:
+            test = decide_conventions(_as_sequence(read, camera, imu_T_cam, tracker), c.imu_flip, c.velocity_index,
+                                      c.horizon)
+            if decisive(test.errors_px):
+                break
     if not read:
         raise InputError("no steps: nothing to estimate")
-    warm = _as_sequence(read, camera, imu_T_cam, tracker)
-    if conventions is None:
-        t0 = time.perf_counter()
-        conventions = decide_conventions(warm, c.imu_flip, c.velocity_index, c.horizon)
-        seconds += time.perf_counter() - t0
     t0 = time.perf_counter()
-    offset = identify_stereo_offset(warm, conventions.imu_T_cam, _offset_model(config))
-    conventions.stereo_offset = checked_offset(warm, conventions, offset, c.horizon)
-    noise = decide_noise(config, *imu_velocities, warm.num_observations / warm.num_steps)
-    seconds += time.perf_counter() - t0
-    return (conventions, noise), read, seconds
+    decisions = decide(_as_sequence(read, camera, imu_T_cam, tracker), config, imu_velocities)
+    return decisions, read, time.perf_counter() - t0
 
 
 def _as_sequence(steps: Seq[Step], camera: StereoCamera, imu_T_cam: np.ndarray, tracker: str) -> Sequence:
@@ -172,7 +115,7 @@ def run_stream(
     imu_T_cam: np.ndarray,
     config: Config,
     *,
-    decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
+    decisions: Decisions | None = None,
     imu_velocities: tuple[np.ndarray, np.ndarray] | None = None,
     num_steps: int | None = None,
     tracker: str = "",
@@ -186,7 +129,7 @@ def run_stream(
     """The filter over every step of ``steps`` (:data:`Step` s) with the ``decisions`` given, or
     decided from the stream's first steps (:func:`decide_online`, which needs ``imu_velocities``).
 
-    ``num_steps``: the stream's length, when known; ``tracker``: what made the tracks (``drift``);
+    ``num_steps``: the stream's length, when known; ``tracker``: what made the tracks (reported);
     the seconds spent producing the steps (an image stream's tracking) are counted as
     ``RunStats.input_seconds``, in the real-time factor;
     ``expected_landmarks``: for the full-state size check; ``setup_seconds`` / ``load_seconds``:
@@ -205,14 +148,9 @@ def run_stream(
                                                      tracker)
             setup_seconds += seconds
             steps = itertools.chain(read, steps)
-            say(f"conventions from the first {len(read)} steps: " + decisions[0].describe())
-        else:
-            say(decisions[0].describe())
-        say(decisions[0].stereo_offset.describe())
-        say(decisions[1].describe())
-        run = OnlineRun(camera, *decisions, config, expected_landmarks=expected_landmarks, observer=observer,
-                        tracker=tracker)
-        say(run.stats.track_drift)
+            say(f"decided from the first {len(read)} steps:")
+        say(decisions.describe(decisions.config_for(config)))
+        run = OnlineRun(camera, decisions, config, expected_landmarks=expected_landmarks, observer=observer)
         for k, step in enumerate(steps):
             run.step(*step)
             if progress is not None:
@@ -224,7 +162,7 @@ def run_sequence(
     seq: Sequence,
     config: Config | None = None,
     *,
-    decisions: tuple[ConventionDecision, NoiseDecision] | None = None,
+    decisions: Decisions | None = None,
     load_seconds: float = 0.0,
     progress: Optional[Callable[[int], None]] = None,
     observer: Optional[Observer] = None,

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..data.sequence import Sequence
-from ..geometry import se3
+from .two_view import fit_pairs
 
 __all__ = ["StereoOffset", "identify_stereo_offset", "camera_rate_y"]
 
@@ -57,15 +57,10 @@ MIN_EFFECT_PX = 0.05
 MAX_STEPS = 300
 #: The offset is estimated from at least this many step pairs, else not at all.
 MIN_STEPS = 10
-#: A step needs this many points seen at k and k+1 with a disparity above MIN_DISPARITY.
+#: A step needs this many points seen at k and k+1 (``backend.run.two_view``).
 MIN_POINTS = 12
-MIN_DISPARITY = 1.0
-#: Huber threshold (px) of the per-step fit.
-HUBER_PX = 1.0
-#: A pair is used only if its rows agree within this (px) in both frames ...
-ROW_PX = 2.0
-#: ... and, after a first fit, every one of its eight residuals is within this (px).
-TRIM_PX = 3.0
+#: Pairs fitted again with added noise to measure the noise's own bias (D4).
+SIMEX_PAIRS = 100
 
 
 @dataclass
@@ -137,148 +132,12 @@ def camera_rate_y(angular_velocity: np.ndarray, imu_T_cam: np.ndarray) -> np.nda
     return np.asarray(angular_velocity, dtype=float).reshape(-1, 3) @ R_cam_imu[1]
 
 
-def _predict(T: np.ndarray, beta: float, p: np.ndarray, cam, jacobians: bool = False):
-    """Predicted pixels (n,8), ``uL vL uR vR`` at k then at k+1, of the points ``p`` (n,3) = (u, v,
-    true disparity) at k moved by ``T`` (4,4, camera k -> k+1) and seen with the offset ``beta``
-    (D1-D2). With ``jacobians``: also d/dp (n,8,3) and d/d(delta, beta) (n,8,7), where
-    ``T <- exp(delta^) T``, ``delta = (rho, phi)`` (so dq/drho = I, dq/dphi = -q^)."""
-    fx, fy, cx, cy, baseline = cam
-    fb = fx * baseline
-    n = p.shape[0]
-    depth = fb / p[:, 2]
-    x = np.stack([(p[:, 0] - cx) * depth / fx, (p[:, 1] - cy) * depth / fy, depth], axis=1)
-    q = x @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(q[:, 2], 1e-6)
-    u = fx * q[:, 0] / z + cx
-    v = fy * q[:, 1] / z + cy
-    pred = np.stack([p[:, 0], p[:, 1], p[:, 0] - p[:, 2] - beta, p[:, 1],
-                     u, v, u - fb / z - beta, v], axis=1)
-    if not jacobians:
-        return pred
-    Jp = np.zeros((n, 8, 3))
-    Jp[:, 0, 0] = Jp[:, 2, 0] = 1.0
-    Jp[:, 1, 1] = Jp[:, 3, 1] = 1.0
-    Jp[:, 2, 2] = -1.0
-    # d pi / d q for the rows uL, vL, uR, vR at k+1
-    iz = 1.0 / z
-    P = np.zeros((n, 4, 3))
-    P[:, 0, 0] = P[:, 2, 0] = fx * iz
-    P[:, 0, 2] = -fx * q[:, 0] * iz * iz
-    P[:, 2, 2] = P[:, 0, 2] + fb * iz * iz
-    P[:, 1, 1] = P[:, 3, 1] = fy * iz
-    P[:, 1, 2] = P[:, 3, 2] = -fy * q[:, 1] * iz * iz
-    dx_dp = np.zeros((n, 3, 3))
-    dx_dp[:, 0, 0] = depth / fx
-    dx_dp[:, 1, 1] = depth / fy
-    dx_dp[:, :, 2] = -x / p[:, 2:3]
-    Jp[:, 4:, :] = P @ (T[:3, :3] @ dx_dp)
-    Jg = np.zeros((n, 8, 7))
-    Jg[:, 4:, 0:3] = P
-    hat = np.zeros((n, 3, 3))
-    hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
-    hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
-    Jg[:, 4:, 3:6] = -P @ hat
-    Jg[:, 2, 6] = Jg[:, 6, 6] = -1.0
-    return pred, Jp, Jg
-
-
-def _fit_step(za: np.ndarray, zb: np.ndarray, cam) -> tuple[float, float] | None:
-    """(beta_k, its variance) of one step pair, or None (D2): :func:`_bundle_adjust` of the pairs
-    whose rows agree (|vL - vR| <= ``ROW_PX`` in both frames), then again from the start on the
-    points whose eight residuals all stay within ``TRIM_PX`` (gross mismatches removed, not only
-    down-weighted); None when fewer than ``MIN_POINTS`` remain or a third of them is trimmed."""
-    rows = (np.abs(za[:, 1] - za[:, 3]) <= ROW_PX) & (np.abs(zb[:, 1] - zb[:, 3]) <= ROW_PX)
-    za, zb = za[rows], zb[rows]
-    if za.shape[0] < MIN_POINTS:
-        return None
-    first = _bundle_adjust(za, zb, cam)
-    if first is None:
-        return None
-    keep = np.abs(first[2]).max(axis=1) <= TRIM_PX
-    if keep.sum() < max(MIN_POINTS, 2 * za.shape[0] / 3):
-        return None
-    second = _bundle_adjust(za[keep], zb[keep], cam)
-    if second is None or np.abs(second[2]).max() > TRIM_PX:
-        return None
-    return second[0], second[1]
-
-
-def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, iterations: int = 8):
-    """(beta, its variance, residuals (n,8)) or None: the two-view bundle adjustment (D2) over the
-    motion, the offset and every point's (u, v, disparity) at k, Huber-weighted Gauss-Newton with
-    the points eliminated (Schur complement). Both frames' pixels are measurements, so noise in
-    either does not bias beta (triangulating at k and fitting k+1 alone would: errors in variables)."""
-    z = np.concatenate([za, zb], axis=1)  # (n,8)
-    T = np.eye(4)
-    beta = 0.0
-    p = np.stack([za[:, 0], za[:, 1], za[:, 0] - za[:, 2]], axis=1)
-    for _ in range(iterations):
-        pred, Jp, Jg = _predict(T, beta, p, cam, jacobians=True)
-        r = pred - z
-        if not np.all(np.isfinite(r)):
-            return None
-        a = np.abs(r)
-        w = np.where(a <= HUBER_PX, 1.0, HUBER_PX / np.maximum(a, 1e-12))
-        JpW = (Jp * w[:, :, None]).transpose(0, 2, 1)  # (n,3,8)
-        Hpp = JpW @ Jp + 1e-9 * np.eye(3)
-        Hpg = JpW @ Jg  # (n,3,7)
-        Jg2 = Jg.reshape(-1, 7)
-        Hgg = Jg2.T @ (Jg2 * w.reshape(-1, 1))
-        bp = (JpW @ r[:, :, None])[:, :, 0]
-        bg = Jg2.T @ (w * r).reshape(-1)
-        try:
-            Hpp_inv = np.linalg.inv(Hpp)
-            HgpHinv = Hpg.transpose(0, 2, 1) @ Hpp_inv  # (n,7,3)
-            S = Hgg - (HgpHinv @ Hpg).sum(axis=0)
-            rhs = bg - (HgpHinv @ bp[:, :, None]).sum(axis=0)[:, 0]
-            dg = -np.linalg.solve(S + 1e-9 * np.eye(7), rhs)
-        except np.linalg.LinAlgError:
-            return None
-        dp = -(Hpp_inv @ (bp + Hpg @ dg)[:, :, None])[:, :, 0]
-        T = se3.exp_se3(dg[:6]) @ T
-        beta += dg[6]
-        p += dp
-        p[:, 2] = np.maximum(p[:, 2], 1e-3)
-        if abs(dg[6]) < 1e-4 and np.all(np.abs(dg[:6]) < 1e-6):
-            break
-    r = _predict(T, beta, p, cam) - z
-    inliers = np.abs(r) <= 3 * HUBER_PX
-    dof = int(inliers.sum()) - 3 * z.shape[0] - 7
-    if dof < 20 or not np.all(np.isfinite(r)):
-        return None
-    sigma2 = float(np.sum(r[inliers] ** 2) / dof)
-    try:
-        var = float(np.linalg.inv(S)[6, 6]) * sigma2
-    except np.linalg.LinAlgError:
-        return None
-    if not (np.isfinite(beta) and np.isfinite(var) and var > 0 and abs(beta) < 20):
-        return None
-    return float(beta), var, r
-
-
 def step_offsets(seq: Sequence, max_steps: int = MAX_STEPS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(steps k, beta_k, var(beta_k)) of up to ``max_steps`` step pairs spread over ``seq``  (D2)."""
-    K = seq.K
-    cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
-    n = seq.num_steps
-    candidates = np.arange(n - 1)
-    if candidates.size > max_steps:
-        candidates = np.unique(np.linspace(0, n - 2, max_steps).round().astype(np.int64))
-    ks, betas, variances = [], [], []
-    for k in candidates:
-        ids_a, za = seq.observations(k)
-        ids_b, zb = seq.observations(k + 1)
-        common, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
-        za, zb = za[ia], zb[ib]
-        keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
-        if keep.sum() < MIN_POINTS:
-            continue
-        fit = _fit_step(za[keep], zb[keep], cam)
-        if fit is not None:
-            ks.append(int(k))
-            betas.append(fit[0])
-            variances.append(fit[1])
-    return np.array(ks, dtype=np.int64), np.array(betas), np.array(variances)
+    """(steps k, beta_k, var(beta_k)) of up to ``max_steps`` step pairs spread over ``seq``: the
+    two-view bundle adjustments with the offset (D2, ``backend.run.two_view``)."""
+    fits = fit_pairs(seq, 1, max_steps, offset=True, min_points=MIN_POINTS)
+    return (np.array([f.step for f in fits], dtype=np.int64), np.array([f.beta for f in fits]),
+            np.array([f.beta_variance for f in fits]))
 
 
 def _regress(A: np.ndarray, beta: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -302,13 +161,49 @@ def _regress(A: np.ndarray, beta: np.ndarray, var: np.ndarray) -> tuple[np.ndarr
 def identify_stereo_offset(seq: Sequence, imu_T_cam: np.ndarray, model: str = "constant",
                            max_steps: int = MAX_STEPS) -> StereoOffset:
     """The offset (D1) of ``seq`` with the extrinsic ``imu_T_cam``, estimated (D2-D3) and applied as
-    ``model`` says: "constant" the weighted mean of beta_k, "rate" beta_0 + kappa omega_y (the
-    rate term only where it is significant, else the constant), each only where it is significant
+    ``model`` says (:func:`offset_from_fits`); "off" estimates nothing."""
+    if str(model) == "off":
+        return StereoOffset(source="off")
+    return offset_from_fits(seq, imu_T_cam, model, fit_pairs(seq, 1, max_steps, offset=True, min_points=MIN_POINTS))
+
+
+def noise_bias(seq: Sequence, fits: list, pairs: int = SIMEX_PAIRS) -> tuple[float, float]:
+    """(D4) the part of beta_k that pixel noise itself makes, and its standard error: with a point's
+    depth among the unknowns of every pair the fit is not unbiased at finite noise (the incidental
+    parameter problem), most where depth and forward motion are hard to tell apart. SIMEX: up to
+    ``pairs`` of the fitted pairs are fitted again with white noise of the fits' own scale s added to
+    every pixel; the bias, quadratic in the noise, doubles, so the paired change of beta_k is the
+    bias at s, removed from the estimate:
+
+        b = mean_k (beta_k(s sqrt 2) - beta_k(s)),   beta <- beta - b                                  (D4)
+
+    (0, 0) with fewer than ``MIN_STEPS`` refitted pairs."""
+    subset = fits[:: max(1, len(fits) // pairs)][:pairs]
+    scale = float(np.median([f.robust_scale() for f in subset])) if subset else 0.0
+    if len(subset) < MIN_STEPS or not scale > 0:
+        return 0.0, 0.0
+    refits = {f.step: f for f in fit_pairs(seq, 1, offset=True, min_points=MIN_POINTS,
+                                           steps=np.array([f.step for f in subset]), extra_noise=scale)}
+    diff = np.array([refits[f.step].beta - f.beta for f in subset if f.step in refits])
+    var = np.array([refits[f.step].beta_variance + f.beta_variance for f in subset if f.step in refits])
+    if diff.size < MIN_STEPS:
+        return 0.0, 0.0
+    (b,), (b_se,) = _regress(np.ones((diff.size, 1)), diff, var)
+    return float(b), float(b_se)
+
+
+def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: list) -> StereoOffset:
+    """(D3) from the gap-1 two-view fits with the offset (D2) of ``seq`` that hold ``MIN_POINTS``
+    points or more: "constant" the weighted mean of beta_k, "rate" beta_0 + kappa omega_y (the rate
+    term only where it is significant, else the constant), each only where it is significant
     (``SIGNIFICANCE`` standard errors and ``MIN_EFFECT_PX``); "off" estimates nothing."""
     model = str(model)
     if model == "off":
         return StereoOffset(source="off")
-    ks, beta, var = step_offsets(seq, max_steps)
+    fits = [f for f in fits if f.gap == 1 and f.points >= MIN_POINTS and np.isfinite(f.beta_variance)]
+    ks = np.array([f.step for f in fits], dtype=np.int64)
+    beta = np.array([f.beta for f in fits])
+    var = np.array([f.beta_variance for f in fits])
     source = f"auto, {model}"
     if ks.size < MIN_STEPS:
         return StereoOffset(estimate={"steps": int(ks.size)}, source=source)
@@ -316,11 +211,15 @@ def identify_stereo_offset(seq: Sequence, imu_T_cam: np.ndarray, model: str = "c
     g = 0.5 * (omega[ks] + omega[np.minimum(ks + 1, omega.size - 1)])
     spread = float(np.std(g))
     (mean,), (mean_se,) = _regress(np.ones_like(g)[:, None], beta, var)
+    bias, bias_se = noise_bias(seq, fits)
+    mean, mean_se = mean - bias, float(np.hypot(mean_se, bias_se))
     estimate = {"beta_mean_px": float(mean), "beta_mean_se": float(mean_se), "steps": int(ks.size),
-                "omega_y_std": spread, "fx": float(seq.K[0, 0])}
+                "omega_y_std": spread, "fx": float(seq.K[0, 0]), "noise_bias_px": bias, "noise_bias_se": bias_se}
     coef, se = np.array([mean, 0.0]), np.array([mean_se, np.inf])
     if spread >= 1e-3:
         coef, se = _regress(np.stack([np.ones_like(g), g], axis=1), beta, var)
+        coef[0] -= bias
+        se[0] = float(np.hypot(se[0], bias_se))
     estimate.update(beta0_px=float(coef[0]), beta0_se=float(se[0]), kappa_px_s=float(coef[1]), kappa_se=float(se[1]))
     rate_shown = np.isfinite(se[1]) and abs(coef[1]) > max(SIGNIFICANCE * se[1], MIN_EFFECT_PX / max(spread, 1e-12))
     if model == "rate" and rate_shown:

@@ -16,24 +16,19 @@ def main(args: argparse.Namespace) -> int:
 
     from ...backend.config import Config
     from ...backend.data.npz import load_sequence
-    from ...backend.run.drift import decide_track_drift
-    from ...backend.run.runner import decide
-    from ...backend.run.timing import repeated_steps
+    from ...backend.run.decisions import decide
 
     seq = load_sequence(args.data)
     defaults = Config()
-    decision, noise = decide(seq, defaults)
+    decisions = decide(seq, defaults)
     per_step = np.diff(seq.obs_ptr)
     print(f"{args.data}: {seq.layout} layout, {seq.num_steps} steps over "
           f"{seq.time_stamps[-1] - seq.time_stamps[0]:.1f} s, {seq.num_features} features, "
           f"{seq.num_observations} observations ({per_step.mean():.1f} per step, max {per_step.max()})")
-    print(f"dropped by the loader: {seq.dropped}; steps repeating the previous frame: {int(repeated_steps(seq).sum())}")
+    print(f"dropped by the loader: {seq.dropped}; steps repeating the previous frame: {decisions.repeated_frames}")
     print("reprojection test (median px, triangulated at k, dead reckoning to k+"
           f"{defaults.conventions.horizon}):")
-    for key, value in decision.errors_px.items():
+    for key, value in decisions.conventions.errors_px.items():
         print(f"  {key:<28} {value:8.2f}")
-    print(decision.describe())
-    print(decision.stereo_offset.describe())
-    print(noise.describe())
-    print(decide_track_drift(defaults, seq.tracker)[1])
+    print(decisions.describe(decisions.config_for(defaults)))
     return 0

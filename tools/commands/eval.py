@@ -1,4 +1,5 @@
-"""``vislam eval``: ATE and RPE of a TUM trajectory against ground truth (evo), with plots."""
+"""``vislam eval``: ATE and RPE of a TUM trajectory against ground truth (evo), with plots; with the
+run's pose covariance (``pose_covariance.npz``) also the NEES of position and pose."""
 
 from __future__ import annotations
 
@@ -6,20 +7,33 @@ import argparse
 import contextlib
 import math
 from pathlib import Path
+from typing import Optional
 
-from ...backend.errors import ConfigError
+import numpy as np
+
+from ...backend.errors import ConfigError, InputError
 from .. import outputs
+
+#: Largest difference (s) between a covariance stamp and the estimate's: TUM text holds 6 decimals
+#: (5e-7 s), float64 stamps near 1.7e9 s are spaced 2.4e-7 s
+COVARIANCE_STAMP_TOLERANCE = 1e-5
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth (evo)")
+    p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth (evo); NEES with "
+                                    "the run's pose covariance")
     p.add_argument("estimate")
     p.add_argument("ground_truth")
     p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
     p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
-    p.add_argument("--json", help="write the numbers as JSON (with alignment_scale: 1 for SE(3))")
+    p.add_argument("--covariance", metavar="FILE",
+                   help="the estimate's pose covariance (pose_covariance.npz of vislam run, the estimate's stamps) "
+                        "for the position and pose NEES; default: pose_covariance.npz beside the estimate when it "
+                        "exists; 'none': no NEES")
+    p.add_argument("--json", help="write the numbers as JSON (with alignment_scale: 1 for SE(3); with a covariance "
+                                  "also nees)")
     p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
-                   "estimate's time span) and ate_over_time.png")
+                   "estimate's time span), ate_over_time.png and, with a covariance, nees_over_time.png")
     p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
     p.set_defaults(func=main)
 
@@ -36,17 +50,50 @@ def main(args: argparse.Namespace) -> int:
     est_t, est = read_tum(args.estimate)
     gt_t, gt = read_tum(args.ground_truth)
     require_matches(est_t, gt_t, args.ground_truth)
+    covariance = _read_covariance(args, est_t)
     with output_directory(args.out, args.force) if args.out is not None else contextlib.nullcontext() as staging:
-        _evaluate(args, est_t, est, gt_t, gt, staging)
+        _evaluate(args, est_t, est, gt_t, gt, covariance, staging)
     if args.out is not None:
-        print(f"outputs in {args.out}/ (eval.json, trajectories.png, ate_over_time.png)")
+        names = "eval.json, trajectories.png, ate_over_time.png" + (", nees_over_time.png" if covariance else "")
+        print(f"outputs in {args.out}/ ({names})")
     return 0
 
 
-def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, out: Path | None) -> None:
+def covariance_file(estimate: str, option: Optional[str]) -> Optional[Path]:
+    """The pose covariance to read: ``option`` (``--covariance``; "none": no file), by default
+    ``pose_covariance.npz`` beside the estimate when it exists."""
+    from ...backend.data.covariance import POSE_COVARIANCE_FILE
+
+    if option is None:
+        beside = Path(estimate).parent / POSE_COVARIANCE_FILE
+        return beside if beside.exists() else None
+    return None if option == "none" else Path(option)
+
+
+def _read_covariance(args: argparse.Namespace, est_t: np.ndarray) -> Optional[tuple[Path, np.ndarray]]:
+    """(file, covariance (N,6,6)) of the estimate's N stamps, or None; InputError naming the file when
+    its stamps are not the estimate's."""
+    from ...backend.data.covariance import read_pose_covariance
+
+    path = covariance_file(args.estimate, args.covariance)
+    if path is None:
+        return None
+    cov_t, cov = read_pose_covariance(path)
+    if cov_t.shape != est_t.shape:
+        raise InputError(f"{path}: key 'time_stamps': {cov_t.size} stamps, the estimate {args.estimate} has "
+                         f"{est_t.size}: not the covariance of that trajectory")
+    gap = np.abs(cov_t - est_t)
+    if gap.max() > COVARIANCE_STAMP_TOLERANCE:
+        k = int(np.argmax(gap > COVARIANCE_STAMP_TOLERANCE))
+        raise InputError(f"{path}: key 'time_stamps': [{k}] = {cov_t[k]:.6f} differs from the estimate's "
+                         f"{est_t[k]:.6f} ({args.estimate}) by {gap[k]:.3g} s: not the covariance of that trajectory")
+    return path, cov
+
+
+def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: Path | None) -> None:
     from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
-    from ..plots import plot_trajectories_topdown
-    from ..report import write_error_plot
+    from ..plots import plot_nees_over_time, plot_trajectories_topdown
+    from ..report import nees_text, write_error_plot
 
     errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
     d = errors.as_dict()
@@ -57,10 +104,22 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, out: Path | None) 
     if args.sim3:
         print(f"Sim(3) scale {d['alignment_scale']:.12g} (applied to the estimate; < 1: its path is longer "
               "than the ground truth's)")
+    nees = None
+    if covariance is not None:
+        from ...backend.evaluation.consistency import trajectory_nees
+
+        path, cov = covariance
+        nees = trajectory_nees(est_t, est, cov, gt_t, gt)
+        d["nees"] = {"covariance_file": str(path), **nees.as_dict()}
+        print(nees_text(d["nees"]["position"], "position"))
+        print(nees_text(d["nees"]["pose"], "pose"))
     if args.json is not None:
         outputs.write_json(args.json, d)
     if out is not None:
+        title = f"{Path(args.estimate).name} vs {Path(args.ground_truth).name}"
         plot_trajectories_topdown(out / "trajectories.png", {"estimate": (est_t, est)}, (gt_t, gt), sim3=args.sim3,
-                                  title=f"{Path(args.estimate).name} vs {Path(args.ground_truth).name}")
+                                  title=title)
         write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
+        if nees is not None:
+            plot_nees_over_time(out / "nees_over_time.png", nees, title=title)
         outputs.write_json(out / "eval.json", d)

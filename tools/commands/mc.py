@@ -3,9 +3,9 @@
 ``vislam mc --scenario street --runs 20 --steps 300 --out DIR`` runs the filter on ``runs`` noise
 realizations of one scene (``backend.evaluation.consistency``) and writes ``consistency.json`` and
 ``nees.png``; a warning line is printed when the landmark NEES mean lies outside the 95 % band of
-the run average (:func:`landmark_nees_check`). The filter's noise defaults to the scene's (the
-filter on its own model); ``--config`` and ``--set TABLE.KEY=VALUE`` change the filter as for
-``vislam run``.
+the run average (:func:`landmark_nees_check`). The filter decides its noise from each run's data,
+as ``vislam run`` does (``--true-noise``: told the scene's own noise instead, the filter on its own
+model); ``--config`` and ``--set TABLE.KEY=VALUE`` change the filter as for ``vislam run``.
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ def add_parser(sub) -> None:
     p.add_argument("--landmark-density", type=float, default=1.0, help="scales the scene's landmark density")
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: every core)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
+    p.add_argument("--true-noise", dest="true_noise", action="store_true",
+                   help="tell the filter the scene's pixel and velocity noise (default: identified from each run's data)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     options.add_config_options(p)
@@ -46,8 +48,8 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     scene_config = SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed,
                                landmark_density=args.landmark_density)
-    # the scene's noise (pixel, velocity; its tracks are exact: tracker "synthetic") < --config < --set
-    config = options.filter_config(args, base=scene_config.filter_config())
+    # the noise identified from the data (or the scene's own, --true-noise) < --config < --set
+    config = options.filter_config(args, base=scene_config.filter_config() if args.true_noise else None)
     check_scene_size(scene_config)  # memory bounds, before any work
     with output_directory(args.out, args.force) as staging:  # checked before any work
         result = _monte_carlo(args, scene_config, config)

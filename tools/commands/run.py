@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -52,7 +51,7 @@ OUTPUT_SPACE = 32 * 2**20
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ...backend.data.tum import read_tum, write_tum
-    from ..report import format_summary, write_run_outputs
+    from ..report import format_summary, print_health, write_run_outputs
 
     images = Path(args.data).is_dir()
     if not images:
@@ -88,9 +87,7 @@ def main(args: argparse.Namespace) -> int:
                 write_kitti_poses(staging / f"{name}_kitti.txt", poses, result.conventions.imu_T_cam)
     if not args.quiet:
         print(format_summary(summary, out))
-    else:  # nothing but errors, and the warnings that say the result is not what was asked for
-        for message in summary["health"]:
-            print(f"warning: {message}", file=sys.stderr)
+    print_health(summary)  # with --quiet too: nothing but errors and the warnings that say the result is not what was asked for
     return 0
 
 

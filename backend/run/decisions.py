@@ -1,0 +1,263 @@
+"""Everything a run decides from the data before its first step: one frozen :class:`Decisions`.
+
+:func:`decide` looks at a sequence (a whole file, or the first frames of a stream) and answers,
+each by a test whose numbers it keeps:
+
+1. the extrinsic's axes and the velocity timing (C1, ``backend.run.conventions``);
+2. which steps repeat the previous frame (``backend.run.timing``);
+3. two-view fits of step pairs at gaps 1-3 (D2, ``backend.run.two_view``), from which
+   - the stereo pair's disparity offset (D1, D3, ``backend.run.stereo_offset``), removed only if
+     dead reckoning's reprojection (C1) does not get worse;
+   - whether the tracks drift (T1, ``backend.run.drift``);
+   - the pixel noise (N2, ``backend.run.noise``), over the gaps the filter's landmarks live through;
+   - the IMU against vision (N3): the lever arm and velocity offset of the IMU's velocities,
+     removed when significant and dead reckoning agrees, and the IMU's noise per axis;
+4. the IMU noise: configured, else against vision (N3) where enough step pairs exist, else the
+   filter's own innovation likelihood over the first steps (sparse tracks), with the white noise
+   of the samples (N1) as the smallest candidate: no floor is set by hand;
+5. whether the gyro bias is estimated (enough stereo observations a step to tell it from drift).
+
+:class:`~vislam.backend.run.online.OnlineRun` applies the record; ``decisions.describe()`` says
+it, a line per decision, and ``as_dict()`` goes to summary.json. The configuration's explicit
+values always win over the data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import Choice, Config, Mode
+from ..data.sequence import Sequence
+from .conventions import ConventionDecision, decide_conventions, reprojection_error
+from .drift import DriftDecision, decide_track_drift
+from .noise import (
+    ImuNoise, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, imu_vs_vision,
+    pixel_noise,
+)
+from .stereo_offset import StereoOffset, offset_from_fits
+from .timing import repeated_steps
+from .two_view import fit_pairs
+
+__all__ = ["Decisions", "GyroBias", "decide"]
+
+#: Two-view fits per gap: gap 1 serves the offset and the IMU test, gaps 2-3 the drift test.
+PAIRS_GAP1 = 300
+PAIRS_LONGER = 100
+#: The noise and drift tests take pairs down to this many points (the offset needs 12).
+NOISE_MIN_POINTS = 5
+#: A correction must not make dead reckoning's reprojection (C1) worse by more than this factor.
+GUARD_TOLERANCE = 1.05
+
+
+@dataclass(frozen=True)
+class GyroBias:
+    """Whether the filter estimates the gyro bias, and why."""
+
+    estimated: bool
+    reason: str = ""
+
+    def as_dict(self) -> dict:
+        return {"estimated": self.estimated, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Decisions:
+    """What a run decided from the data (module docstring), applied by ``OnlineRun``."""
+
+    conventions: ConventionDecision
+    stereo_offset: StereoOffset
+    velocity: VelocityCorrection
+    imu: ImuNoise
+    pixels: PixelNoise
+    drift: DriftDecision
+    gyro_bias: GyroBias
+    repeated_frames: int  # steps repeating the previous frame in the data decided on
+    steps: int  # steps the decisions were made from
+    velocity_guard: dict = field(default_factory=dict)  # dead reckoning's reprojection with and without the correction
+
+    @property
+    def imu_T_cam(self) -> np.ndarray:
+        return self.conventions.imu_T_cam
+
+    def config_for(self, config: Config) -> Config:
+        """``config`` with the decided values the filter reads (pixel noise, drift, gyro bias)."""
+        values = {"noise.pixel_sigma": self.pixels.sigma,
+                  "drift.track_drift": Choice.YES if self.drift.drifting else Choice.NO,
+                  "estimator.estimate_gyro_bias": self.gyro_bias.estimated}
+        return config.with_values(values)
+
+    def describe(self, config: Config | None = None) -> str:
+        lines = [self.conventions.describe(), self.stereo_offset.describe(), self._velocity_text(),
+                 self.imu.describe(), self.pixels.describe(), self.drift.describe(config)]
+        if not self.gyro_bias.estimated:
+            lines.append(f"gyro bias: not estimated ({self.gyro_bias.reason})")
+        if self.repeated_frames:
+            lines.append(f"repeated frames: {self.repeated_frames} of the first {self.steps} steps repeat the previous "
+                         "frame exactly")
+        return "\n".join(lines)
+
+    def _velocity_text(self) -> str:
+        v = self.imu.vision
+        if v is None:
+            return "IMU lever arm and velocity offset: not tested (too few step pairs with enough tracks)"
+        r, c = self.velocity.lever_arm, self.velocity.offset
+        est = (f"lever arm [{', '.join(f'{x:+.2f}' for x in v.lever_arm)}] m, offset "
+               f"[{', '.join(f'{x:+.3f}' for x in v.offset)}] m/s (chi2 {v.chi2:.0f}, {v.pairs} step pairs)")
+        if self.velocity.active:
+            guard = self.velocity_guard
+            extra = (f"; dead reckoning's reprojection {guard['without']:.2f} -> {guard['with']:.2f} px"
+                     if guard else "")
+            return f"IMU velocities corrected (v - omega x r - c): {est}{extra}"
+        why = self.velocity_guard.get("rejected", "not significant")
+        return f"IMU velocities as given ({why}): estimated {est}"
+
+    def as_dict(self) -> dict:
+        return {
+            "steps_decided_from": self.steps,
+            "conventions": self.conventions.as_dict(),
+            "stereo_offset": self.stereo_offset.as_dict(),
+            "velocity_correction": {"lever_arm_m": self.velocity.lever_arm.tolist(),
+                                    "offset_m_s": self.velocity.offset.tolist(), "applied": self.velocity.active,
+                                    "dead_reckoning_reprojection_px": self.velocity_guard},
+            "imu_noise": self.imu.as_dict(),
+            "pixel_noise": self.pixels.as_dict(),
+            "track_drift": self.drift.as_dict(),
+            "gyro_bias": self.gyro_bias.as_dict(),
+            "repeated_frames": self.repeated_frames,
+        }
+
+
+def _offset_model(config: Config) -> str:
+    """The stereo offset model to estimate: none for dead reckoning, which uses no vision."""
+    return "off" if config.estimator.mode == Mode.DEAD_RECKONING else str(config.conventions.stereo_offset)
+
+
+def _guarded(seq: Sequence, conventions: ConventionDecision, horizon: int, without: float | None,
+             corrected: Sequence) -> tuple[bool, dict]:
+    """Dead reckoning's reprojection (C1) with and without a correction: (keep it, the numbers)."""
+    if without is None:
+        without = reprojection_error(seq, conventions.imu_T_cam, conventions.velocity_index, horizon)
+    with_ = reprojection_error(corrected, conventions.imu_T_cam, conventions.velocity_index, horizon)
+    numbers = {"without": float(without), "with": float(with_)}
+    keep = not (np.isfinite(without) and np.isfinite(with_) and with_ > GUARD_TOLERANCE * without)
+    return keep, numbers
+
+
+def _velocity_correction(seq: Sequence, conventions: ConventionDecision, vision: ImuVsVision | None,
+                         white: np.ndarray, config: Config) -> tuple[VelocityCorrection, dict]:
+    setting = config.conventions.velocity_correction
+    if vision is None or setting == Choice.NO or config.estimator.mode == Mode.DEAD_RECKONING:
+        return VelocityCorrection(), {}
+    if setting == Choice.AUTO and not vision.significant(white):
+        return VelocityCorrection(), {}
+    correction = VelocityCorrection(vision.lever_arm.copy(), vision.offset.copy())
+    corrected = dataclasses.replace(seq, linear_velocity=correction.correct(seq.linear_velocity, seq.angular_velocity))
+    keep, numbers = _guarded(seq, conventions, config.conventions.horizon, conventions.chosen_error_px, corrected)
+    if keep or setting == Choice.YES:
+        return correction, numbers
+    numbers["rejected"] = (f"the correction made dead reckoning's reprojection worse ({numbers['without']:.2f} -> "
+                           f"{numbers['with']:.2f} px)")
+    return VelocityCorrection(), numbers
+
+
+def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray, vision: ImuVsVision | None) -> ImuNoise:
+    """Configured values win; else (N3) where vision is the smaller part of the scatter; else (N1)."""
+    noise = config.noise
+    usable = vision is not None and vision.vision_share < 0.5
+    lin, lin_src = ((np.full(3, float(noise.linear_velocity_sigma)), "configured") if noise.linear_velocity_sigma
+                    else (np.maximum(vision.linear_sigma, white_lin), "IMU against vision") if usable
+                    else (white_lin, "white noise of the samples"))
+    ang, ang_src = ((np.full(3, float(noise.angular_velocity_sigma)), "configured") if noise.angular_velocity_sigma
+                    else (np.maximum(vision.angular_sigma, white_ang), "IMU against vision") if usable
+                    else (white_ang, "white noise of the samples"))
+    return ImuNoise(np.maximum(lin, 1e-6), np.maximum(ang, 1e-7), lin_src, ang_src, white_lin, white_ang, vision)
+
+
+def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.ndarray] | None = None) -> Decisions:
+    """The decisions (module docstring) from ``seq``; ``imu_velocities`` (linear (N,3), angular (N,3)):
+    the whole stream's samples for the white noise (N1) when ``seq`` holds only its first frames."""
+    c = config.conventions
+    conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
+    repeated = repeated_steps(seq)
+    vision_used = config.estimator.mode != Mode.DEAD_RECKONING
+    fits = {1: fit_pairs(seq, 1, PAIRS_GAP1, offset=True, min_points=NOISE_MIN_POINTS, skip=repeated)} if vision_used else {}
+    if vision_used:
+        for gap in (2, 3):
+            fits[gap] = fit_pairs(seq, gap, PAIRS_LONGER, offset=True, min_points=NOISE_MIN_POINTS, skip=repeated)
+    # the stereo offset (D1-D3) from the gap-1 fits with enough points, kept only if dead reckoning agrees
+    offset = offset_from_fits(seq, conventions.imu_T_cam, _offset_model(config), fits.get(1, []))
+    if offset.active:
+        keep, numbers = _guarded(seq, conventions, c.horizon, conventions.chosen_error_px,
+                                 offset.corrected(seq, conventions.imu_T_cam))
+        offset.estimate["dead_reckoning_reprojection_px"] = numbers
+        if not keep:
+            offset = StereoOffset(0.0, 0.0, dict(offset.estimate, rejected=(
+                f"an estimated offset of {offset.estimate['beta_mean_px']:+.2f} px made dead reckoning's reprojection "
+                f"worse ({numbers['without']:.2f} -> {numbers['with']:.2f} px), so it is not removed")), offset.source)
+    drift = decide_track_drift(config, fits, seq.tracker)
+    gaps = gap_statistics(fits)
+    reanchor = config.drift.reanchor_observations
+    pixels = pixel_noise(seq, gaps, min(max(reanchor, 1), 3) if drift.drifting else 1, config.noise.pixel_sigma)
+    lin, ang = (seq.linear_velocity, seq.angular_velocity) if imu_velocities is None else imu_velocities
+    white_lin, white_ang = estimate_white_noise(np.asarray(lin)), estimate_white_noise(np.asarray(ang))
+    vision = imu_vs_vision(fits.get(1, []), seq, conventions.imu_T_cam, conventions.velocity_index) if vision_used else None
+    velocity, guard = _velocity_correction(seq, conventions, vision, white_lin, config)
+    imu = _imu_noise(config, white_lin, white_ang, vision)
+    per_step = seq.num_observations / max(seq.num_steps, 1)
+    est = config.estimator
+    if not est.estimate_gyro_bias:
+        bias = GyroBias(False, "estimator.estimate_gyro_bias = false")
+    elif per_step < est.gyro_bias_min_observations:
+        bias = GyroBias(False, f"{per_step:.1f} observations per step < estimator.gyro_bias_min_observations = "
+                               f"{est.gyro_bias_min_observations:g}: too few to tell a bias from track drift")
+    else:
+        bias = GyroBias(True)
+    decisions = Decisions(conventions, offset, velocity, imu, pixels, drift, bias, int(repeated.sum()), seq.num_steps,
+                          guard)
+    if vision_used and (imu.linear_source != "configured" or imu.angular_source != "configured") and vision is None:
+        decisions = _imu_by_likelihood(seq, decisions, config)
+    return decisions
+
+
+#: Candidate IMU sigmas of (L2): the white noise times these factors, up to the caps.
+LIKELIHOOD_FACTORS = 3.0 ** np.arange(0, 9)
+LINEAR_CAP_M_S, ANGULAR_CAP_RAD_S = 5.0, 0.5
+
+
+def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> Decisions:
+    """Where vision cannot measure the IMU (N3: too few tracks a step), the IMU sigmas that maximize
+    the filter's own innovation likelihood (L2) over the first steps: first the linear sigma over
+    the white noise (N1) times 1, 3, 9, ..., then the angular one at that linear sigma; a configured
+    value is kept. The smallest candidate is the samples' own white noise: no floor by hand."""
+    from .likelihood import log_likelihood, with_imu
+
+    imu = decisions.imu
+    table: dict = {}
+    best = decisions
+
+    def search(kind: str, white: np.ndarray, cap: float) -> Decisions:
+        nonlocal best
+        base = np.maximum(white, 1e-4 if kind == "linear" else 1e-5)
+        scores = []
+        for f in LIKELIHOOD_FACTORS:
+            sigma = np.minimum(base * f, cap)
+            candidate = with_imu(best, **{f"{kind}_sigma": sigma})
+            score, _ = log_likelihood(seq, candidate, config)
+            table[f"{kind} x{f:g}"] = score
+            scores.append((score, candidate))
+            if sigma.max() >= cap:
+                break
+        return max(scores, key=lambda x: x[0])[1]
+
+    if imu.linear_source != "configured":
+        best = search("linear", imu.white_linear, LINEAR_CAP_M_S)
+    if imu.angular_source != "configured":
+        best = search("angular", imu.white_angular, ANGULAR_CAP_RAD_S)
+    new = best.imu
+    return dataclasses.replace(best, imu=dataclasses.replace(
+        new, likelihood=table,
+        linear_source=imu.linear_source if imu.linear_source == "configured" else "innovation likelihood",
+        angular_source=imu.angular_source if imu.angular_source == "configured" else "innovation likelihood"))

@@ -1,0 +1,188 @@
+"""Accuracy and honesty of the filter: ATE, position NEES and NIS on the real drives, on draws of
+0027's velocity noise and on the synthetic grid (BENCHMARKS.md, "An honest filter").
+
+Honesty is the pose covariance a run reports against ground truth: the position NEES (3 dof) of
+every step relative to the first pose (``backend.evaluation.consistency.trajectory_nees``), whose
+mean is 3 and whose share inside the 95 % ellipsoid is 0.95 for a consistent filter.
+
+Tables:
+1. the three shared drives (03 has no ground truth: its largest tilt of the IMU's z axis) with
+   the defaults and alternatives (each row sets the options shown);
+2. 0027's feature tracks with velocities rebuilt from ground truth and six new draws of its noise
+   (``benchmarks/noise_draws.py``'s model);
+3. the synthetic grid (``synth.grid``): every scene with the defaults, the tuning and held-out parts
+   apart, against dead reckoning.
+
+Usage: python benchmarks/honesty.py [--tables 1,2,3] [--workers 2] [--shared ../shared]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+from vislam.backend.config import Config
+from vislam.backend.data.npz import load_sequence
+from vislam.backend.data.tum import read_tum
+from vislam.backend.evaluation.consistency import trajectory_nees
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.run.runner import run_sequence
+
+ALTERNATIVES = {
+    "defaults": [],
+    "repeated frames used as frames (conventions.repeated_frames=use)": ["conventions.repeated_frames=use"],
+    "repeated frames cut (conventions.repeated_frames=cut)": ["conventions.repeated_frames=cut"],
+    "no IMU velocity correction (conventions.velocity_correction=no)": ["conventions.velocity_correction=no"],
+    "pixel noise 1.5 px (noise.pixel_sigma=1.5)": ["noise.pixel_sigma=1.5"],
+    "no stereo offset (conventions.stereo_offset=off)": ["conventions.stereo_offset=off"],
+    "the previous defaults (pixel 1.5 px, IMU 0.5 m/s, repeated frames used, no velocity correction)":
+        ["noise.pixel_sigma=1.5", "noise.linear_velocity_sigma=0.5", "conventions.repeated_frames=use",
+         "conventions.velocity_correction=no"],
+}
+DRIVES = ("ece276a_0027", "ece276a2019_0042", "ece276a_03")
+
+
+def max_tilt_deg(poses: np.ndarray) -> float:
+    z0 = poses[0, :3, 2]
+    return float(np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1.0, 1.0))).max())
+
+
+def evaluate(seq, config: Config, gt) -> dict:
+    """ATE, dead reckoning's ATE, position NEES (mean, share inside), NIS, seconds of one run."""
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        result = run_sequence(seq, config)
+    out = {"seconds": time.perf_counter() - t0, "nis": result.stats.mean_nis, "tilt": max_tilt_deg(result.world_T_imu),
+           "tilt_dr": max_tilt_deg(result.dead_reckoning), "pixel_sigma": result.decisions.pixels.sigma}
+    if gt is not None:
+        out["ate"] = trajectory_errors(result.time_stamps, result.world_T_imu, *gt).ate_rmse
+        out["dr"] = trajectory_errors(result.time_stamps, result.dead_reckoning, *gt).ate_rmse
+        nees = trajectory_nees(result.time_stamps, result.world_T_imu, result.pose_covariance, *gt).position
+        out["nees"], out["inside"] = nees.mean, nees.share_inside_95
+    return out
+
+
+def _drive_job(args):
+    name, assignments, shared = args
+    seq = load_sequence(shared / "data" / f"{name}.npz")
+    gt_path = shared / "data" / "gt" / f"{name}_gt_tum.txt"
+    gt = read_tum(gt_path) if gt_path.exists() else None
+    return evaluate(seq, Config().with_assignments(assignments), gt)
+
+
+def _draw_job(args):
+    seed, assignments, shared = args
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from noise_draws import ANGULAR_SIGMA, BIAS_SIGMA, LINEAR_SIGMA, true_velocities
+
+    seq = load_sequence(shared / "data" / "ece276a_0027.npz")
+    gt = read_tum(shared / "data" / "gt" / "ece276a_0027_gt_tum.txt")
+    lin, ang = true_velocities(seq, gt[1])
+    rng = np.random.default_rng(seed)
+    lin = lin + rng.normal(0.0, LINEAR_SIGMA, lin.shape)
+    ang = ang + rng.normal(0.0, ANGULAR_SIGMA, ang.shape) + rng.normal(0.0, BIAS_SIGMA, 3)
+    noisy = dataclasses.replace(seq, linear_velocity=lin, angular_velocity=ang)
+    return evaluate(noisy, Config().with_assignments(assignments), gt)
+
+
+def _grid_job(args):
+    from vislam.synth.grid import GRID
+    from vislam.synth.scene import make_scene
+
+    name, assignments = args
+    spec = next(s for s in GRID if s.name == name)
+    scene = make_scene(spec.scene_config())
+    out = evaluate(scene.sequence, Config().with_assignments(assignments),
+                   (scene.sequence.time_stamps, scene.world_T_imu_true))
+    out["part"] = spec.part
+    return out
+
+
+def _fmt(x, digits=2):
+    return "" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
+
+
+def table_drives(pool, shared: Path) -> None:
+    print("| configuration | 0027 ATE m (DR) | 0027 NEES mean / inside | 0042 ATE m (DR) | 0042 NEES mean / inside "
+          "| 03 max tilt deg (DR) | NIS 0027 / 0042 / 03 | seconds |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, assignments in ALTERNATIVES.items():
+        jobs = [(name, assignments, shared) for name in DRIVES]
+        a, b, c = pool.map(_drive_job, jobs)
+        print(f"| {label} | {_fmt(a['ate'])} ({_fmt(a['dr'])}) | {_fmt(a['nees'], 1)} / {100 * a['inside']:.0f} % "
+              f"| {_fmt(b['ate'])} ({_fmt(b['dr'])}) | {_fmt(b['nees'], 1)} / {100 * b['inside']:.0f} % "
+              f"| {_fmt(c['tilt'], 1)} ({_fmt(c['tilt_dr'], 1)}) | {_fmt(a['nis'])} / {_fmt(b['nis'])} / {_fmt(c['nis'])} "
+              f"| {a['seconds'] + b['seconds'] + c['seconds']:.0f} |", flush=True)
+
+
+def table_draws(pool, shared: Path, draws: int = 6) -> None:
+    print("| draw (seed) | dead reckoning ATE m | defaults: ATE m, NEES mean / inside | previous defaults: ATE m, NEES mean / inside |")
+    print("|---|---|---|---|")
+    old = ALTERNATIVES["the previous defaults (pixel 1.5 px, IMU 0.5 m/s, repeated frames used, no velocity correction)"]
+    new = list(pool.map(_draw_job, [(s, [], shared) for s in range(draws)]))
+    prev = list(pool.map(_draw_job, [(s, old, shared) for s in range(draws)]))
+    for s, (a, b) in enumerate(zip(new, prev)):
+        print(f"| {s} | {_fmt(a['dr'])} | {_fmt(a['ate'])}, {_fmt(a['nees'], 1)} / {100 * a['inside']:.0f} % "
+              f"| {_fmt(b['ate'])}, {_fmt(b['nees'], 1)} / {100 * b['inside']:.0f} % |")
+    for label, rows in (("defaults", new), ("previous defaults", prev)):
+        ate = np.array([r["ate"] for r in rows])
+        nees = np.array([r["nees"] for r in rows])
+        inside = np.array([r["inside"] for r in rows])
+        print(f"\n{label}: ATE mean {ate.mean():.2f} m (min {ate.min():.2f}, max {ate.max():.2f}); NEES mean of means "
+              f"{nees.mean():.1f}; steps inside the 95 % ellipsoid {100 * inside.mean():.0f} % on average")
+
+
+def table_grid(pool) -> None:
+    from vislam.synth.grid import GRID
+
+    names = [s.name for s in GRID]
+    rows = list(pool.map(_grid_job, [(n, []) for n in names]))
+    print("| scene | part | ATE m | dead reckoning m | ratio | NIS | position NEES mean / inside |")
+    print("|---|---|---|---|---|---|---|")
+    for name, r in zip(names, rows):
+        print(f"| {name} | {r['part']} | {r['ate']:.3f} | {r['dr']:.3f} | {r['ate'] / r['dr']:.2f} | {_fmt(r['nis'])} "
+              f"| {_fmt(r['nees'], 1)} / {100 * r['inside']:.0f} % |")
+    for part in ("tuning", "held_out"):
+        sel = [r for r in rows if r["part"] == part]
+        ratio = np.array([r["ate"] / r["dr"] for r in sel])
+        nees = np.array([r["nees"] for r in sel])
+        print(f"\n{part} ({len(sel)} scenes): ATE / dead reckoning median {np.median(ratio):.2f}, worse than dead "
+              f"reckoning on {int((ratio > 1).sum())}; position NEES mean <= 9 on {int((nees <= 9).sum())}, median "
+              f"{np.median(nees):.1f}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tables", default="1,2,3")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--shared", type=Path, default=ROOT.parent / "shared")
+    args = parser.parse_args()
+    tables = {int(t) for t in args.tables.split(",")}
+    if {1, 2} & tables and not (args.shared / "data").is_dir():
+        print(f"{args.shared / 'data'} is missing: tables 1 and 2 need the shared drives", file=sys.stderr)
+        return 2
+    with ProcessPoolExecutor(args.workers) as pool:
+        if 1 in tables:
+            print("\n## Table 1: the shared drives\n")
+            table_drives(pool, args.shared)
+        if 2 in tables:
+            print("\n## Table 2: 0027 over draws of its velocity noise\n")
+            table_draws(pool, args.shared)
+        if 3 in tables:
+            print("\n## Table 3: the synthetic grid\n")
+            table_grid(pool)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

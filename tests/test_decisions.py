@@ -1,0 +1,144 @@
+"""What a run decides from the data (backend.run.decisions and the tests it runs): each decision
+recovers what was planted in a synthetic scene, configured values win, and the record is applied
+by OnlineRun as the whole-file run applies it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from vislam.backend.config import Config
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.geometry.camera import StereoCamera
+from vislam.backend.run.decisions import decide
+from vislam.backend.run.drift import drift_test
+from vislam.backend.run.likelihood import log_likelihood, with_imu
+from vislam.backend.run.noise import VelocityCorrection, imu_vs_vision
+from vislam.backend.run.online import OnlineRun
+from vislam.backend.run.runner import run_sequence
+from vislam.backend.run.two_view import fit_pairs
+from vislam.synth.scene import SceneConfig, make_scene
+from vislam.synth.track_errors import TrackErrors
+
+
+def _scene(seed=3, steps=250, **errors):
+    return make_scene(SceneConfig(steps=steps, seed=seed, track_errors=TrackErrors(**errors)))
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return _scene(pixel_sigma=0.5)
+
+
+@pytest.fixture(scope="module")
+def clean_decisions(clean):
+    return decide(clean.sequence, Config())
+
+
+def test_pixel_noise_is_the_white_noise_on_clean_tracks(clean_decisions):
+    """N2: 0.5 px of white noise is measured as 0.5 px (within 5 %), from two-view fits."""
+    px = clean_decisions.pixels
+    assert px.source == "two-view fits"
+    assert px.sigma == pytest.approx(0.5, rel=0.05)
+
+
+def test_clean_tracks_do_not_drift_and_drifting_ones_do(clean_decisions):
+    """T1: the residual RMS does not grow with the gap on white noise (ratio within 5 % of 1, no
+    drift decided); with drifting tracks it grows and drift is decided."""
+    d = clean_decisions.drift
+    assert d.source == "test" and not d.drifting
+    assert d.ratio == pytest.approx(1.0, abs=0.05)
+    drifting = _scene(pixel_sigma=0.3, drift_share=0.7, drift_median=0.15, drift_walk=0.1, bad_share=0.02)
+    fits = {g: fit_pairs(drifting.sequence, g, 100, offset=True, min_points=5) for g in (1, 2, 3)}
+    ratio, se, _ = drift_test(fits)
+    assert ratio > 1.1 + 4 * se
+    assert decide(drifting.sequence, Config()).drift.drifting
+
+
+def test_imu_noise_from_vision_recovers_the_scene_noise(clean_decisions):
+    """N3: the IMU's white noise against the two-view motions is the scene's 0.2 m/s and 0.01 rad/s
+    per axis (within 20 %); no lever arm or offset where none was planted."""
+    imu = clean_decisions.imu
+    assert imu.linear_source == "IMU against vision"
+    np.testing.assert_allclose(imu.linear_sigma, 0.2, rtol=0.2)
+    np.testing.assert_allclose(imu.angular_sigma, 0.01, rtol=0.2)
+    assert not clean_decisions.velocity.active
+
+
+def test_planted_lever_arm_and_offset_are_found_and_removed(clean):
+    """N3: velocities measured at a point 1.5 m left of and 1 m behind the frame the extrinsic defines,
+    with a 0.3 m/s offset, give back that lever arm (0.3 m) and offset (0.1 m/s) in x and y, the
+    correction is applied, and it brings SLAM back within 25 % of the clean run, while the
+    uncorrected velocities are at least 1.5 times worse than the corrected ones."""
+    seq = clean.sequence
+    r, c = np.array([-1.0, 1.5, 0.0]), np.array([0.3, 0.0, 0.0])
+    planted = dataclasses.replace(seq, linear_velocity=seq.linear_velocity + np.cross(seq.angular_velocity, r) + c)
+    decisions = decide(planted, Config())
+    assert decisions.velocity.active
+    np.testing.assert_allclose(decisions.velocity.lever_arm[:2], r[:2], atol=0.3)
+    np.testing.assert_allclose(decisions.velocity.offset[:2], c[:2], atol=0.1)
+    gt = (seq.time_stamps, clean.world_T_imu_true)
+    fixed = run_sequence(planted, decisions=decisions)
+    plain = run_sequence(seq)
+    ate = trajectory_errors(fixed.time_stamps, fixed.world_T_imu, *gt).ate_rmse
+    assert ate <= 1.25 * trajectory_errors(plain.time_stamps, plain.world_T_imu, *gt).ate_rmse
+    raw = run_sequence(planted, Config().with_assignments(["conventions.velocity_correction=no"]))
+    assert trajectory_errors(raw.time_stamps, raw.world_T_imu, *gt).ate_rmse > 1.5 * ate
+
+
+def test_velocity_correction_is_the_lever_arm_formula():
+    """v <- v - w x r - c, row by row."""
+    corr = VelocityCorrection(np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]))
+    v, w = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(corr.correct(v, w), v - np.cross(w, [1.0, 2.0, 3.0]) - [0.1, 0.2, 0.3])
+
+
+def test_too_few_tracks_leave_the_imu_to_the_likelihood():
+    """With a handful of tracks a step N3 has no pairs; the IMU noise is chosen by the innovation
+    likelihood (L2), and the chosen linear sigma is within a factor 3 of the true 0.2 m/s."""
+    sparse = make_scene(SceneConfig(steps=200, seed=4, landmark_density=0.04, track_errors=TrackErrors(pixel_sigma=0.5)))
+    decisions = decide(sparse.sequence, Config())
+    assert decisions.imu.vision is None
+    assert decisions.imu.linear_source == "innovation likelihood"
+    assert 0.2 / 3 <= np.median(decisions.imu.linear_sigma) <= 0.2 * 3
+
+
+def test_likelihood_prefers_the_true_imu_noise(clean, clean_decisions):
+    """L2: the Student-t innovation likelihood is higher at the true 0.2 m/s than at 0.02 or 2 m/s."""
+    scores = {s: log_likelihood(clean.sequence, with_imu(clean_decisions, linear_sigma=np.full(3, s)), Config(),
+                                steps=150)[0] for s in (0.02, 0.2, 2.0)}
+    assert scores[0.2] > scores[0.02] and scores[0.2] > scores[2.0]
+
+
+def test_configured_values_win(clean):
+    """noise.pixel_sigma and the IMU sigmas set in the configuration are used as given."""
+    config = Config().with_assignments(["noise.pixel_sigma=0.8", "noise.linear_velocity_sigma=0.3",
+                                        "noise.angular_velocity_sigma=0.02", "drift.track_drift=yes"])
+    d = decide(clean.sequence, config)
+    assert d.pixels.sigma == 0.8 and d.pixels.source == "configured"
+    np.testing.assert_array_equal(d.imu.linear_sigma, 0.3)
+    np.testing.assert_array_equal(d.imu.angular_sigma, 0.02)
+    assert d.drift.drifting and d.drift.source == "configured"
+    filt = d.config_for(config)
+    assert filt.noise.pixel_sigma == 0.8 and str(filt.drift.track_drift) == "yes"
+
+
+def test_record_is_serializable_and_says_each_decision(clean_decisions):
+    """as_dict() is JSON; describe() has a line for each decision with its numbers."""
+    json.dumps(clean_decisions.as_dict())
+    text = clean_decisions.describe()
+    for word in ("extrinsic", "stereo disparity offset", "IMU velocities", "IMU noise", "pixel noise", "track drift"):
+        assert word in text
+
+
+def test_online_run_with_the_decisions_is_the_whole_file_run(clean, clean_decisions):
+    """OnlineRun stepped by hand with decide()'s record gives run_sequence's trajectory exactly."""
+    seq = clean.sequence
+    run = OnlineRun(StereoCamera(seq.K, seq.baseline), clean_decisions, Config())
+    for step in seq.steps():
+        run.step(*step)
+    whole = run_sequence(seq, decisions=clean_decisions)
+    np.testing.assert_allclose(run.result().world_T_imu, whole.world_T_imu, atol=1e-12)
