@@ -232,11 +232,15 @@ class VisualInertialEKF:
         """Move the estimate by the IMU velocities over ``dt`` seconds: (P1) and the error model's
         covariance prediction (I2 or B1)."""
         self.step_index += 1
+        twist, q = self._imu_twist(dt, linear_velocity, angular_velocity)
+        self.model.predict(self.state, twist, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
+                           self._landmark_walk * dt)
+
+    def _imu_twist(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray):
+        """(the step's body twist tau (v, w - b) (6,), its noise sigmas times tau (6,)) from the IMU sample."""
         u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.state.gyro_bias])
         noise = self.imu_noise
-        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
-        self.model.predict(self.state, dt * u, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
-                           self._landmark_walk * dt)
+        return dt * u, np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
 
     def predict_frozen(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray,
                        prior: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -246,10 +250,7 @@ class VisualInertialEKF:
         landmarks keep their body-frame points (I8). Error models that cannot carry landmarks through
         (``ErrorModel.freezes``) end every track instead (A2): the IMU alone bridges the step."""
         self.step_index += 1
-        u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.state.gyro_bias])
-        noise = self.imu_noise
-        q = np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
-        twist = dt * u
+        twist, q = self._imu_twist(dt, linear_velocity, angular_velocity)
         weight = np.ones(6)
         if prior is not None and self.estimate_pose:
             w_imu, w_prior = 1.0 / np.maximum(q, 1e-300) ** 2, 1.0 / np.maximum(prior[1], 1e-300) ** 2

@@ -34,7 +34,7 @@ from ..data.sequence import Sequence
 from .conventions import ConventionDecision, decide_conventions, reprojection_error
 from .drift import DriftDecision, decide_track_drift
 from .noise import (
-    ImuNoise, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, imu_vs_vision,
+    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, imu_vs_vision,
     pixel_noise,
 )
 from .stereo_offset import StereoOffset, offset_from_fits
@@ -70,7 +70,7 @@ class Decisions:
     conventions: ConventionDecision
     stereo_offset: StereoOffset
     velocity: VelocityCorrection
-    imu: ImuNoise
+    imu: ImuNoiseDecision
     pixels: PixelNoise
     drift: DriftDecision
     gyro_bias: GyroBias
@@ -163,17 +163,23 @@ def _velocity_correction(seq: Sequence, conventions: ConventionDecision, vision:
     return VelocityCorrection(), numbers
 
 
-def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray, vision: ImuVsVision | None) -> ImuNoise:
-    """Configured values win; else (N3) where vision is the smaller part of the scatter; else (N1)."""
-    noise = config.noise
+def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray,
+               vision: ImuVsVision | None) -> ImuNoiseDecision:
+    """Per kind (linear, angular): the configured value wins; else (N3) where vision is the smaller part
+    of the scatter, at least the white noise; else the white noise (N1)."""
     usable = vision is not None and vision.vision_share < 0.5
-    lin, lin_src = ((np.full(3, float(noise.linear_velocity_sigma)), "configured") if noise.linear_velocity_sigma
-                    else (np.maximum(vision.linear_sigma, white_lin), "IMU against vision") if usable
-                    else (white_lin, "white noise of the samples"))
-    ang, ang_src = ((np.full(3, float(noise.angular_velocity_sigma)), "configured") if noise.angular_velocity_sigma
-                    else (np.maximum(vision.angular_sigma, white_ang), "IMU against vision") if usable
-                    else (white_ang, "white noise of the samples"))
-    return ImuNoise(np.maximum(lin, 1e-6), np.maximum(ang, 1e-7), lin_src, ang_src, white_lin, white_ang, vision)
+
+    def one(configured, measured, white) -> tuple[np.ndarray, str]:
+        if configured:
+            return np.full(3, float(configured)), "configured"
+        if usable:
+            return np.maximum(measured, white), "IMU against vision"
+        return white, "white noise of the samples"
+
+    lin, lin_src = one(config.noise.linear_velocity_sigma, vision and vision.linear_sigma, white_lin)
+    ang, ang_src = one(config.noise.angular_velocity_sigma, vision and vision.angular_sigma, white_ang)
+    return ImuNoiseDecision(np.maximum(lin, 1e-6), np.maximum(ang, 1e-7), lin_src, ang_src, white_lin, white_ang,
+                            vision)
 
 
 def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.ndarray] | None = None) -> Decisions:
@@ -183,10 +189,8 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
     conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
     repeated = repeated_steps(seq)
     vision_used = config.estimator.mode != Mode.DEAD_RECKONING
-    fits = {1: fit_pairs(seq, 1, PAIRS_GAP1, offset=True, min_points=NOISE_MIN_POINTS, skip=repeated)} if vision_used else {}
-    if vision_used:
-        for gap in (2, 3):
-            fits[gap] = fit_pairs(seq, gap, PAIRS_LONGER, offset=True, min_points=NOISE_MIN_POINTS, skip=repeated)
+    fits = {gap: fit_pairs(seq, gap, PAIRS_GAP1 if gap == 1 else PAIRS_LONGER, offset=True,
+                           min_points=NOISE_MIN_POINTS, skip=repeated) for gap in (1, 2, 3)} if vision_used else {}
     # the stereo offset (D1-D3) from the gap-1 fits with enough points, kept only if dead reckoning agrees
     offset = offset_from_fits(seq, conventions.imu_T_cam, _offset_model(config), fits.get(1, []))
     if offset.active:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Choice, Config
-from .two_view import TRIM_PX, TwoViewFit
+from .two_view import TwoViewFit, pooled_mean_square
 
 __all__ = ["DriftDecision", "drift_test", "decide_track_drift"]
 
@@ -73,15 +73,6 @@ class DriftDecision:
         return text
 
 
-def _pooled(fits: list[TwoViewFit]) -> tuple[float, float]:
-    """(pooled mean square of the residuals within TRIM_PX, its standard error) over ``fits``."""
-    ms = np.array([f.mean_square(TRIM_PX) for f in fits], dtype=float)  # (ssq, dof) per pair
-    ssq, dof = ms[:, 0], np.maximum(ms[:, 1], 1.0)
-    M = ssq.sum() / dof.sum()
-    se = np.sqrt(np.sum(dof**2 * (ssq / dof - M) ** 2)) / dof.sum()
-    return float(M), float(se)
-
-
 def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, tuple]:
     """(T1): (ratio, its standard error, (gap, pairs, pooled RMS px) per gap); nan ratio when gap 1
     or the largest gap has fewer than ``MIN_PAIRS`` fits."""
@@ -90,7 +81,7 @@ def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, 
     for gap in sorted(fits_by_gap):
         fits = fits_by_gap[gap]
         if fits:
-            pooled[gap] = (_pooled(fits), len(fits))
+            pooled[gap] = (pooled_mean_square(fits), len(fits))
             scales.append((gap, len(fits), float(np.sqrt(pooled[gap][0][0]))))
     gaps = [g for g in pooled if pooled[g][1] >= MIN_PAIRS]
     if 1 not in gaps or len(gaps) < 2:

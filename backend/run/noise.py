@@ -41,10 +41,10 @@ from scipy.special import chdtri
 
 from ..data.sequence import Sequence
 from ..geometry import se3
-from .two_view import TRIM_PX, TwoViewFit
+from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
 
 __all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "ImuVsVision", "imu_vs_vision",
-           "ImuNoise", "VelocityCorrection"]
+           "ImuNoiseDecision", "VelocityCorrection"]
 
 #: Prior standard deviations of the lever arm (m) and of the velocity offset (m/s) in (N3).
 LEVER_PRIOR_M = 2.0
@@ -111,10 +111,8 @@ def gap_statistics(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple:
         fits = fits_by_gap[gap]
         if not fits:
             continue
-        ssq = sum(f.mean_square(TRIM_PX)[0] for f in fits)
-        dof = sum(f.mean_square(TRIM_PX)[1] for f in fits)
         out.append((gap, len(fits), float(np.median([f.robust_scale() for f in fits])),
-                    float(np.sqrt(ssq / dof)) if dof > 0 else float("nan")))
+                    float(np.sqrt(pooled_mean_square(fits)[0]))))
     return tuple(out)
 
 
@@ -242,7 +240,7 @@ def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, 
 
 
 @dataclass(frozen=True)
-class ImuNoise:
+class ImuNoiseDecision:
     """The IMU noise the filter uses, per axis, and where each number came from."""
 
     linear_sigma: np.ndarray  # (3,) m/s, used

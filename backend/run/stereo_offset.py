@@ -132,14 +132,6 @@ def camera_rate_y(angular_velocity: np.ndarray, imu_T_cam: np.ndarray) -> np.nda
     return np.asarray(angular_velocity, dtype=float).reshape(-1, 3) @ R_cam_imu[1]
 
 
-def step_offsets(seq: Sequence, max_steps: int = MAX_STEPS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(steps k, beta_k, var(beta_k)) of up to ``max_steps`` step pairs spread over ``seq``: the
-    two-view bundle adjustments with the offset (D2, ``backend.run.two_view``)."""
-    fits = fit_pairs(seq, 1, max_steps, offset=True, min_points=MIN_POINTS)
-    return (np.array([f.step for f in fits], dtype=np.int64), np.array([f.beta for f in fits]),
-            np.array([f.beta_variance for f in fits]))
-
-
 def _regress(A: np.ndarray, beta: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted, Huber-reweighted least squares beta ~ A c (D3), weights 1 / var: (c, standard
     errors), the errors inflated by the reduced chi-square when the scatter exceeds the variances."""

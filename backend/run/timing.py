@@ -31,6 +31,8 @@ fused with the IMU's twist (``VisualInertialEKF.predict_frozen``).
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from ..compiled import jit, warms_up
@@ -82,7 +84,7 @@ class MotionPrior:
 
     def __init__(self, imu_sigma: np.ndarray) -> None:
         self._imu_var = np.asarray(imu_sigma, dtype=float) ** 2  # (6,) the IMU's white noise, (m/s)^2, (rad/s)^2
-        self._squares: list[np.ndarray] = []  # (u_imu,k - u_k-1)^2 of recent ordinary steps
+        self._squares: deque[np.ndarray] = deque(maxlen=self.WINDOW)  # (u_imu,k - u_k-1)^2 of recent ordinary steps
         self._last: np.ndarray | None = None  # the last step's posterior velocity, None after a frozen step
 
     def add(self, previous_pose: np.ndarray, pose: np.ndarray, dt: float, imu_velocity: np.ndarray,
@@ -94,8 +96,6 @@ class MotionPrior:
             return
         if self._last is not None:
             self._squares.append((np.asarray(imu_velocity) - self._last) ** 2)
-            if len(self._squares) > self.WINDOW:
-                self._squares.pop(0)
         self._last = se3.log_se3(se3.inverse(previous_pose) @ pose) / dt
 
     def predict(self, dt: float) -> tuple[np.ndarray, np.ndarray] | None:

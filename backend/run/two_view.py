@@ -28,7 +28,7 @@ import numpy as np
 from ..data.sequence import Sequence
 from ..geometry import se3
 
-__all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "pair_steps"]
+__all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "pair_steps", "pooled_mean_square"]
 
 #: Huber threshold (px) of the fit.
 HUBER_PX = 1.0
@@ -68,6 +68,17 @@ class TwoViewFit:
         r = self.residuals.ravel()
         kept = np.abs(r) <= trim
         return float(np.sum(r[kept] ** 2)), int(kept.sum()) - (r.size - self.dof)
+
+
+def pooled_mean_square(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[float, float]:
+    """(the residuals' mean square pooled over ``fits`` (px^2), its standard error): each pair's
+    :meth:`TwoViewFit.mean_square`, summed over the pairs' degrees of freedom; the error by the delta
+    method over the pairs (their mean squares weighted by their degrees of freedom)."""
+    ms = np.array([f.mean_square(trim) for f in fits], dtype=float)  # (ssq, dof) per pair
+    ssq, dof = ms[:, 0], np.maximum(ms[:, 1], 1.0)
+    M = ssq.sum() / dof.sum()
+    se = np.sqrt(np.sum(dof**2 * (ssq / dof - M) ** 2)) / dof.sum()
+    return float(M), float(se)
 
 
 def _predict(T: np.ndarray, beta: float, p: np.ndarray, cam, jacobians: bool = False):
