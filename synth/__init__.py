@@ -1,4 +1,4 @@
-"""vislam synthetic feature scenes with ground truth (no image rendering).
+"""vislam synthetic scenes with ground truth: stereo features, IMU velocities or samples, images.
 
 ``make_scene(SceneConfig(scenario="street" | "aerial", steps, seed, ...))`` builds a
 :class:`~vislam.backend.data.sequence.Sequence` (noisy stereo features with per-track ids, noisy IMU
@@ -6,7 +6,10 @@ velocities) together with the true poses, twists and landmark positions by id;
 ``write_scene(scene, out_dir)`` writes ``data.npz``, ``gt_tum.txt`` and ``landmarks.npz``. The
 observations' errors are ``SceneConfig.track_errors`` (:mod:`~vislam.synth.track_errors`: white
 noise, drift, bad tracks, a disparity offset, repeated frames, frame jitter, outliers);
-:mod:`~vislam.synth.grid` lists a seeded grid of scenes split into a tuning and a held-out part.
+:mod:`~vislam.synth.grid` lists a seeded grid of scenes split into a tuning and a held-out part;
+:mod:`~vislam.synth.inertial` makes continuous-time flights and drives with exact derivatives and the
+samples of a real IMU (specific force and rate, Kalibr noise, random-walk biases);
+:mod:`~vislam.synth.render` renders stereo images of a scene.
 Depends on ``backend`` only; the names below load on first use.
 """
 
@@ -23,6 +26,9 @@ _PUBLIC = {
     "write_scene": "scene",
     "TrackErrors": "track_errors",
     "PRESETS": "track_errors",
+    "InertialTrajectory": "inertial",
+    "measure_imu": "inertial",
+    "frame_truth": "inertial",
 }
 
 __all__ = list(_PUBLIC)

@@ -41,3 +41,21 @@ def observation_model(ekf, slots: np.ndarray, pixels: np.ndarray):
     inn = ekf.model.innovation(ekf.state, np.asarray(slots, dtype=np.int64), np.asarray(pixels, dtype=float),
                                ekf.config.noise.pixel_sigma**2)
     return inn.residual, inn.off_row, inn.H_x.reshape(-1, 3, 6), inn.H_m, inn.in_front
+
+
+def assert_clean_input_error(err: BaseException, path) -> str:
+    """A one-line InputError starting with the file's name; returns the message."""
+    from vislam.backend.errors import InputError
+
+    assert isinstance(err, InputError), repr(err)
+    msg = str(err)
+    assert "\n" not in msg and "\r" not in msg, msg
+    assert msg.startswith(f"{path}:"), msg
+    return msg
+
+
+def named_key(msg: str, path) -> str:
+    """The key of ``<file>: key '<key>': ...``."""
+    prefix = f"{path}: key '"
+    assert msg.startswith(prefix), f"no key named: {msg}"
+    return msg[len(prefix):].split("'", 1)[0]

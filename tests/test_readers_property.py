@@ -34,6 +34,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from helpers import assert_clean_input_error, named_key
 from vislam.backend.config import Config
 from vislam.backend.data.covariance import read_pose_covariance
 from vislam.backend.data.npz import load_sequence, save_sequence
@@ -137,22 +138,6 @@ def assert_valid_sequence(seq, workdir: Path) -> None:
         assert np.array_equal(getattr(again, name), getattr(seq, name)), name
     assert again.baseline == seq.baseline and again.num_features == seq.num_features
     np.testing.assert_allclose(again.imu_T_cam, seq.imu_T_cam, rtol=1e-12, atol=1e-12)
-
-
-def assert_clean_input_error(err: BaseException, path: Path) -> str:
-    """A one-line InputError starting with the file's name; returns the message."""
-    assert isinstance(err, InputError), repr(err)
-    msg = str(err)
-    assert "\n" not in msg and "\r" not in msg, msg
-    assert msg.startswith(f"{path}:"), msg
-    return msg
-
-
-def named_key(msg: str, path: Path) -> str:
-    """The key of ``<file>: key '<key>': ...``."""
-    prefix = f"{path}: key '"
-    assert msg.startswith(prefix), f"no key named: {msg}"
-    return msg[len(prefix):].split("'", 1)[0]
 
 
 def allowed_keys(mutated: set[str], written: dict) -> set[str]:

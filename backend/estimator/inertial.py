@@ -1,0 +1,297 @@
+"""The inertial state propagated by every sample of a real IMU: the right-invariant error on SE_2(3).
+
+The project's invariant model (``backend.estimator.invariant``, I1-I8) extended by the velocity
+(Barrau & Bonnabel, "The invariant extended Kalman filter as a stable observer", IEEE TAC 2017;
+the biases break the group structure only in their own columns). Attitude, velocity, position and
+the landmarks are one element of SE_{2+K}(3),
+
+    X = (R, v, p, m_1 .. m_K),   biases b_g, b_a in R^3,
+
+with the error E = X X_hat^-1 = exp(xi) and additive bias errors:
+
+    R = exp(phi^) R_hat,  v = exp(phi^) v_hat + J_l(phi) nu,  p = exp(phi^) p_hat + J_l(phi) rho,
+    m_i = exp(phi^) m_hat_i + J_l(phi) zeta_i,  b_g = b_g_hat + db_g,  b_a = b_a_hat + db_a          (J1)
+
+The error state is ``[rho, phi, db_g, nu, db_a, zeta_1 .. zeta_K]``: the pose and the gyro bias
+first as in the velocity model (``backend.estimator.layout``), so that the observation (I3), the
+landmark initialization (I4) and the world covariances (I6) hold unchanged; :data:`CORE_INERTIAL`
+= 15 rows precede the landmarks.
+
+IMU model (``backend.data.inertial``), world frame gravity-aligned, g = [0, 0, -9.81]:
+
+    w_m = w + b_g + n_g,   a_m = R^T (a - g) + b_a + n_a                                          (J2)
+
+Mean over one interval of length dt with constant w = w_m - b_g and f = a_m - b_a (each the mean
+of the two samples bounding the interval; samples at frame times are interpolated):
+
+    R+ = R Exp(w dt),   v+ = v + g dt + R J_l(w dt) f dt,   p+ = p + v dt + g dt^2/2 + R N(w dt) f dt^2
+    N(theta) = int_0^1 (1 - s) Exp(s theta) ds
+             = I/2 + (a - sin a)/a^2 K + (1/2 - (1 - cos a)/a^2) K^2,   a = |theta|, K = theta^/a  (J3)
+
+exact for a constant body rate and specific force (a closed form rather than RK4: exact in the
+rotation, no sub-steps, one Exp a sample). Error dynamics, to first order (hats dropped):
+
+    rho' = nu - p^ R (db_g + n_g)
+    phi' = -R (db_g + n_g)
+    nu'  = g^ phi - v^ R (db_g + n_g) - R (db_a + n_a)
+    zeta_i' = -m_i^ R (db_g + n_g) = m_i^ phi'
+    db_g' = w_g,   db_a' = w_a                                                                    (J4)
+
+The (rho, phi, nu) block is autonomous (A0 = [[0 0 I], [0 0 0], [0 g^ 0]]: the invariant
+property); the estimate enters only through the bias columns and the noise map G.
+
+Discretization over one interval, A and G held at its midpoint's estimate: A is nilpotent (A^4 = 0), so
+
+    Phi = I + A dt + A^2 dt^2/2 + A^3 dt^3/6      exactly, and
+    Q = int_0^dt Phi(s) G Qc G^T Phi(s)^T ds,  Qc = diag(sigma_g^2, sigma_a^2, sigma_wg^2, sigma_wa^2) (J5)
+
+(Kalibr's densities squared; the integrand is a polynomial of degree 6 in s, integrated by
+4-point Gauss-Legendre, exact to degree 7). Intervals compose: Phi <- Phi_i Phi, Q <- Phi_i Q Phi_i^T + Q_i.
+
+Landmarks are static, so zeta_i changes by m_i^ times phi's change. With Delta = Phi[phi, :] - E_phi
+(3 x 15) and L = [m_1^; ..; m_K^] (3K x 3), for the core c and the landmarks l:
+
+    P_cc <- Phi P_cc Phi^T + Q
+    P_cl <- Phi P_cl + (Phi P_cc Delta^T + Q[:, phi]) L^T
+    P_ll <- P_ll + L Delta P_cl + (L Delta P_cl)^T + L (Delta P_cc Delta^T + Q[phi, phi]) L^T     (J6)
+
+(old P_cc and P_cl on the right), O(D^2) per frame whatever the IMU's rate.
+Correction: X <- exp(dx) X_hat by (J1) with the update dx; biases added.                      (J7)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..compiled import jit, warms_up
+from ..data.inertial import ImuNoiseDensities, ImuSamples
+from ..geometry import se3
+
+__all__ = [
+    "CORE_INERTIAL", "RHO", "PHI", "BG", "NU", "BA", "STANDARD_GRAVITY",
+    "InertialMean", "Propagation", "propagate", "interval_knots", "integrate_kernel", "propagate_covariance",
+    "retract_inertial",
+]
+
+#: Rows of the inertial error state before the landmarks: rho, phi, db_g, nu, db_a (J1)
+CORE_INERTIAL = 15
+RHO, PHI, BG, NU, BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+#: The default gravity magnitude (m/s^2): the world's z axis points up, gravity is [0, 0, -g]
+STANDARD_GRAVITY = 9.81
+
+# 4-point Gauss-Legendre nodes and weights on [0, 1]
+_GL_X = 0.5 * (1.0 + np.array([-0.8611363115940526, -0.3399810435848563, 0.3399810435848563, 0.8611363115940526]))
+_GL_W = 0.5 * np.array([0.3478548451374538, 0.6521451548625461, 0.6521451548625461, 0.3478548451374538])
+
+
+@dataclass
+class InertialMean:
+    """The mean of the inertial state: ``world_T_imu`` (4,4), ``velocity`` (3,) m/s in the world,
+    ``gyro_bias`` (3,) rad/s, ``accel_bias`` (3,) m/s^2."""
+
+    world_T_imu: np.ndarray
+    velocity: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+    def copy(self) -> "InertialMean":
+        return InertialMean(self.world_T_imu.copy(), self.velocity.copy(), self.gyro_bias.copy(),
+                            self.accel_bias.copy())
+
+
+@dataclass
+class Propagation:
+    """One frame interval's propagation of the core (J5): ``Phi`` (15,15), ``Q`` (15,15)."""
+
+    Phi: np.ndarray
+    Q: np.ndarray
+
+
+@jit
+def _so3_terms(theta):
+    """(Exp(theta^), J_l(theta), N(theta)) of (J3), each (3,3); Taylor series below 1e-4 rad."""
+    a2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2]
+    a = np.sqrt(a2)
+    W = se3.hat3(theta)
+    W2 = W @ W
+    if a < 1e-4:
+        c_exp1, c_exp2 = 1.0 - a2 / 6.0, 0.5 - a2 / 24.0
+        c_j1, c_j2 = 0.5 - a2 / 24.0, 1.0 / 6.0 - a2 / 120.0
+        c_n1, c_n2 = 1.0 / 6.0 - a2 / 120.0, 1.0 / 24.0 - a2 / 720.0
+    else:
+        s, c = np.sin(a), np.cos(a)
+        c_exp1, c_exp2 = s / a, (1.0 - c) / a2
+        c_j1, c_j2 = (1.0 - c) / a2, (a - s) / (a2 * a)
+        c_n1, c_n2 = (a - s) / (a2 * a), (0.5 - (1.0 - c) / a2) / a2
+    E = np.eye(3) + c_exp1 * W + c_exp2 * W2
+    J = np.eye(3) + c_j1 * W + c_j2 * W2
+    N = 0.5 * np.eye(3) + c_n1 * W + c_n2 * W2
+    return E, J, N
+
+
+@jit
+def _error_matrices(R, v, p, gravity):
+    """(J4) A (15,15) and G (15,12) at the estimate (R, v, p); noise order [n_g, n_a, w_g, w_a]."""
+    A = np.zeros((15, 15))
+    G = np.zeros((15, 12))
+    pR = se3.hat3(p) @ R
+    vR = se3.hat3(v) @ R
+    gh = se3.hat3(gravity)
+    for i in range(3):
+        A[i, 9 + i] = 1.0  # rho' = nu
+        for j in range(3):
+            A[i, 6 + j] = -pR[i, j]
+            A[3 + i, 6 + j] = -R[i, j]
+            A[9 + i, 3 + j] = gh[i, j]
+            A[9 + i, 6 + j] = -vR[i, j]
+            A[9 + i, 12 + j] = -R[i, j]
+            G[i, j] = -pR[i, j]
+            G[3 + i, j] = -R[i, j]
+            G[9 + i, j] = -vR[i, j]
+            G[9 + i, 3 + j] = -R[i, j]
+        G[6 + i, 6 + i] = 1.0
+        G[12 + i, 9 + i] = 1.0
+    return A, G
+
+
+@jit
+def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w):
+    """(J3) and (J5) over the knots ``times`` (n,) with samples ``acc``, ``gyr`` (n,3) at them:
+    returns (R, v, p, Phi (15,15), Q (15,15)) at the last knot. ``qc`` (12,): the continuous noise
+    variances [sigma_g^2 x3, sigma_a^2 x3, sigma_wg^2 x3, sigma_wa^2 x3]."""
+    Phi = np.eye(15)
+    Q = np.zeros((15, 15))
+    R = R.copy()
+    v = v.copy()
+    p = p.copy()
+    for k in range(times.size - 1):
+        dt = times[k + 1] - times[k]
+        w = 0.5 * (gyr[k] + gyr[k + 1]) - bg
+        f = 0.5 * (acc[k] + acc[k + 1]) - ba
+        # A and G at the interval's midpoint (second order in dt; J3 over dt/2)
+        Eh, Jh, Nh = _so3_terms(w * (0.5 * dt))
+        h = 0.5 * dt
+        v_mid = v + gravity * h + (R @ (Jh @ f)) * h
+        p_mid = p + v * h + 0.5 * gravity * h * h + (R @ (Nh @ f)) * (h * h)
+        A, G = _error_matrices(R @ Eh, v_mid, p_mid, gravity)
+        GQG = np.zeros((15, 15))
+        for i in range(15):
+            for j in range(15):
+                s = 0.0
+                for t in range(12):
+                    s += G[i, t] * qc[t] * G[j, t]
+                GQG[i, j] = s
+        A2 = A @ A
+        A3 = A2 @ A
+        Phi_k = np.eye(15) + A * dt + A2 * (dt * dt / 2.0) + A3 * (dt * dt * dt / 6.0)
+        Qk = np.zeros((15, 15))
+        for j in range(gl_x.size):
+            s = gl_x[j] * dt
+            F = np.eye(15) + A * s + A2 * (s * s / 2.0) + A3 * (s * s * s / 6.0)
+            Qk += (gl_w[j] * dt) * (F @ GQG @ F.T)
+        Phi = Phi_k @ Phi
+        Q = Phi_k @ Q @ Phi_k.T + Qk
+        # the mean (J3)
+        E, J, N = _so3_terms(w * dt)
+        Rf = R @ f
+        RJf = R @ (J @ f)
+        RNf = R @ (N @ f)
+        for i in range(3):
+            p[i] = p[i] + v[i] * dt + 0.5 * gravity[i] * dt * dt + RNf[i] * dt * dt
+            v[i] = v[i] + gravity[i] * dt + RJf[i] * dt
+        R = R @ E
+    for i in range(15):  # exact symmetry
+        for j in range(i):
+            s = 0.5 * (Q[i, j] + Q[j, i])
+            Q[i, j] = s
+            Q[j, i] = s
+    return R, v, p, Phi, Q
+
+
+def interval_knots(imu: ImuSamples, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The knots of one frame interval [t0, t1]: t0, every sample stamped strictly inside, t1, with the
+    samples linearly interpolated at t0 and t1 (held at the record's ends). Returns times (n,),
+    specific force (n,3), rate (n,3)."""
+    t = imu.time_stamps
+    inside = np.flatnonzero((t > t0) & (t < t1))
+    times = np.concatenate([[t0], t[inside], [t1]])
+
+    def at(x: np.ndarray) -> np.ndarray:
+        cols = [np.interp(times, t, x[:, i]) for i in range(3)]
+        out = np.stack(cols, axis=1)
+        out[1:-1] = x[inside]
+        return out
+
+    return times, at(imu.linear_acceleration), at(imu.angular_velocity)
+
+
+def continuous_variances(noise: ImuNoiseDensities) -> np.ndarray:
+    """Qc (12,) of (J5) from Kalibr's densities."""
+    return np.repeat(np.array([noise.gyroscope_noise_density, noise.accelerometer_noise_density,
+                               noise.gyroscope_random_walk, noise.accelerometer_random_walk]) ** 2, 3)
+
+
+def propagate(mean: InertialMean, imu: ImuSamples, t0: float, t1: float, noise: ImuNoiseDensities,
+              gravity: np.ndarray) -> tuple[InertialMean, Propagation]:
+    """The mean at t1 from the mean at t0 by every IMU sample between (J3), and the core's transition
+    and noise over the interval (J5)."""
+    times, acc, gyr = interval_knots(imu, t0, t1)
+    T = mean.world_T_imu
+    R, v, p, Phi, Q = integrate_kernel(T[:3, :3], mean.velocity, T[:3, 3], mean.gyro_bias, mean.accel_bias,
+                                       times, acc, gyr, np.asarray(gravity, dtype=float), continuous_variances(noise),
+                                       _GL_X, _GL_W)
+    out = mean.copy()
+    out.world_T_imu = np.eye(4)
+    out.world_T_imu[:3, :3] = R
+    out.world_T_imu[:3, 3] = p
+    out.velocity = v
+    return out, Propagation(Phi, Q)
+
+
+def propagate_covariance(P: np.ndarray, prop: Propagation, points: np.ndarray) -> np.ndarray:
+    """(J6): the covariance (D,D), D = 15 + 3K, after the interval, for the world landmarks ``points``
+    (K,3) (static during it). Returns a new exactly symmetric matrix."""
+    Phi, Q = prop.Phi, prop.Q
+    c = CORE_INERTIAL
+    Pcc, Pcl, Pll = P[:c, :c], P[:c, c:], P[c:, c:]
+    out = np.empty_like(P)
+    out[:c, :c] = Phi @ Pcc @ Phi.T + Q
+    if points.shape[0]:
+        Delta = Phi[PHI].copy()
+        Delta[:, PHI] -= np.eye(3)
+        L = np.concatenate([se3.hat3(m) for m in points], axis=0)  # (3K,3)
+        cross = Phi @ Pcl + (Phi @ Pcc @ Delta.T + Q[:, PHI]) @ L.T
+        out[:c, c:] = cross
+        out[c:, :c] = cross.T
+        LU = L @ (Delta @ Pcl)
+        M = Delta @ Pcc @ Delta.T + Q[PHI, PHI]
+        out[c:, c:] = Pll + LU + LU.T + L @ M @ L.T
+    return 0.5 * (out + out.T)
+
+
+def retract_inertial(mean: InertialMean, points: np.ndarray, dx: np.ndarray) -> InertialMean:
+    """(J7): X <- exp(dx) X_hat for dx = [rho, phi, db_g, nu, db_a, zeta_1 .. zeta_K]; the world
+    ``points`` (K,3) move in place."""
+    E, J = se3.exp_so3_and_left_jacobian(dx[PHI])
+    out = mean.copy()
+    T = mean.world_T_imu
+    out.world_T_imu = np.eye(4)
+    out.world_T_imu[:3, :3] = E @ T[:3, :3]
+    out.world_T_imu[:3, 3] = E @ T[:3, 3] + J @ dx[RHO]
+    out.velocity = E @ mean.velocity + J @ dx[NU]
+    out.gyro_bias = mean.gyro_bias + dx[BG]
+    out.accel_bias = mean.accel_bias + dx[BA]
+    if points.shape[0]:
+        z = dx[CORE_INERTIAL:].reshape(-1, 3)
+        points[...] = points @ E.T + z @ J.T
+    return out
+
+
+@warms_up
+def _warm_up() -> None:
+    t = np.array([0.0, 0.005, 0.01])
+    acc = np.tile([0.0, 0.0, 9.81], (3, 1))
+    integrate_kernel(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), t, acc, np.zeros((3, 3)),
+                     np.array([0.0, 0.0, -9.81]), np.ones(12) * 1e-6, _GL_X, _GL_W)
