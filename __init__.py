@@ -13,6 +13,11 @@ The public face of the package (the names below load on first use)::
     run = vislam.OnlineRun(vislam.StereoCamera(seq.K, seq.baseline), decisions, vislam.Config())
     run.step(t, v, w, ids, pixels)                         # run.ekf.world_T_imu, run.ekf.pose_covariance
 
+    # a real IMU's samples (an inertial sequence: seq.imu), started at rest
+    decisions = vislam.decide_inertial(seq, vislam.Config())
+    run = vislam.InertialRun(vislam.StereoCamera(seq.K, seq.baseline), decisions, vislam.Config(), seq.imu)
+    run.step(t, ids, pixels)                               # run.ekf.velocity, run.ekf.accel_bias too
+
 The packages: ``backend`` (the estimator, file formats, the run, evaluation), ``frontend`` (OpenCV
 stereo tracking of images), ``synth`` (synthetic scenes with ground truth) and ``tools`` (the
 ``vislam`` command line).
@@ -33,6 +38,8 @@ _PUBLIC = {
     "FilterError": "backend.errors",
     # data
     "Sequence": "backend.data.sequence",
+    "ImuSamples": "backend.data.inertial",
+    "ImuNoiseDensities": "backend.data.inertial",
     "load_sequence": "backend.data.npz",
     "save_sequence": "backend.data.npz",
     "read_tum": "backend.data.tum",
@@ -49,6 +56,9 @@ _PUBLIC = {
     "Decisions": "backend.run.decisions",
     "OnlineRun": "backend.run.online",
     "RunResult": "backend.run.online",
+    "decide_inertial": "backend.run.inertial",
+    "InertialDecisions": "backend.run.inertial",
+    "InertialRun": "backend.run.inertial",
     # evaluation
     "trajectory_errors": "backend.evaluation.metrics",
 }

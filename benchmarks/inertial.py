@@ -1,13 +1,18 @@
-"""The inertial propagation on the real EuRoC V1_01 IMU record: accuracy of 1 s of propagation from
-the ground-truth state over the moving flight, its consistency under two noise models, and speed.
+"""A real IMU: the inertial propagation on the real EuRoC V1_01 IMU record (1 s from the ground-truth
+state over the moving flight: accuracy, consistency under two noise models, speed), and whole
+`vislam run` processes on synthetic flights and drives with a real IMU and on the EuRoC slice.
 
     python benchmarks/inertial.py          (needs ../shared/euroc)
 
-Prints a Markdown table for BENCHMARKS.md.
+Prints Markdown tables for BENCHMARKS.md.
 """
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -69,5 +74,42 @@ def main() -> None:
               f"{spent / span * 1e3:.2f} ms ({span / spent:.0f}x real time) |")
 
 
+def _vislam_run(data: str, out: Path, gt: str | None = None) -> tuple[float, dict]:
+    """(wall seconds of the whole process, its summary.json) of ``vislam run data``."""
+    cmd = [sys.executable, "-m", "vislam.tools.cli", "run", data, "--out", str(out), "--no-progress", "--quiet"]
+    if gt:
+        cmd += ["--gt", gt]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    return time.perf_counter() - t0, json.loads((out / "summary.json").read_text())
+
+
+def runs() -> None:
+    """Whole processes: synthetic room flight and street drive (60 s, seeds 0-1) and the EuRoC slice."""
+    from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene, write_inertial_scene
+
+    print("\n| input | frames | observations per frame | ATE m | dead reckoning ATE m | position NEES mean / inside 95 % "
+          "| NIS | filter s (real-time factor) | whole process s (real-time factor) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        jobs = []
+        for scenario in ("room", "street"):
+            for seed in (0, 1):
+                scene = make_inertial_scene(InertialSceneConfig(scenario=scenario, duration=60.0, seed=seed))
+                d = write_inertial_scene(scene, Path(tmp) / f"{scenario}{seed}")
+                jobs.append((f"synthetic {scenario}, seed {seed}, 60 s", str(d / "data.npz"), str(d / "gt_tum.txt")))
+        jobs.append(("EuRoC V1_01 first 40 pairs (at rest, raw images)", str(MAV0), None))
+        for i, (name, data, gt) in enumerate(jobs):
+            wall, s = _vislam_run(data, Path(tmp) / f"out{i}", gt)
+            e, t = s["errors"], s["timing"]
+            nees = e["nees"]["position"]
+            seconds = t["sequence_seconds"]
+            print(f"| {name} | {s['steps']} | {s['observations']['valid'] / s['steps']:.0f} | "
+                  f"{e['estimate']['ate_rmse']:.4f} | {e['dead_reckoning']['ate_rmse']:.3f} | "
+                  f"{nees['mean']:.2f} / {100 * nees['share_inside_95']:.0f} % | {s['mean_nis_per_observation']:.2f} | "
+                  f"{t['filter_seconds']:.2f} ({seconds / t['filter_seconds']:.1f}x) | {wall:.2f} ({seconds / wall:.1f}x) |")
+
+
 if __name__ == "__main__":
     main()
+    runs()

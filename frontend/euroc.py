@@ -361,6 +361,13 @@ def ns_to_seconds(ns) -> np.ndarray:
     return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
+def is_euroc(path) -> bool:
+    """``path`` is an EuRoC ASL folder (``mav0`` or its parent, with cam0/, cam1/, imu0/)."""
+    p = Path(path)
+    root = p / "mav0" if (p / "mav0").is_dir() else p
+    return p.is_dir() and all((root / name).is_dir() for name in ("cam0", "cam1", "imu0"))
+
+
 def find_mav0(path) -> Path:
     """The ``mav0`` folder of ``path`` (``path`` itself, or ``path/mav0``); InputError naming what is
     missing unless it holds ``cam0/``, ``cam1/`` and ``imu0/``."""

@@ -174,3 +174,36 @@ def open_tracking_input(images, imu=None, imu_T_cam_path=None, config: TrackerCo
     velocities = drive_imu(drive, imu, imu_T_cam_path) if drive is not None else check_imu(imu, stereo, imu_T_cam_path)
     return stereo, velocities, drive
 
+
+
+def track_euroc(data, config: TrackerConfig | None = None, progress: Callable[[int, int], None] | None = None,
+                draw_dir=None) -> Sequence:
+    """Track every stereo pair of an EuRoC ASL folder (path or :class:`~frontend.euroc.EurocDataset`),
+    rectified (``frontend.euroc.StereoRectification``), into an inertial sequence: the pairs' tracks,
+    the rectified left camera's K, baseline and ``imu_T_cam``, and the IMU's samples (``Sequence.imu``)
+    with the noise densities of ``imu0/sensor.yaml``. ``progress(index, n)`` after each pair."""
+    from .euroc import EurocDataset, read_euroc
+
+    data = data if isinstance(data, EurocDataset) else read_euroc(data)
+    config = config if config is not None else TrackerConfig()
+    w, h = data.rectification.size
+    if min(w, h) < config.min_image_side:
+        raise InputError(f"{data.root}: images of {w}x{h} px are smaller than tracker.min_image_side = "
+                         f"{config.min_image_side}")
+    tracker = StereoTracker(config, data.K, data.baseline)
+    drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
+    n = len(data.frames)
+    ids, pixels = [], []
+    with opencv_threads(config.threads):
+        for k in range(n):
+            left, right = data.read_pair(k)
+            i, z = tracker.step(left, right)
+            if drawer is not None:
+                drawer.draw(k, left, right, i, z)
+            ids.append(i)
+            pixels.append(z)
+            if progress is not None:
+                progress(k, n)
+    return Sequence.from_steps(data.frames.times, None, None, ids, pixels, data.K, data.baseline, data.imu_T_cam,
+                               num_features=tracker.num_ids, source=str(data.root), tracker=VISLAM_TRACKER,
+                               imu=data.imu.samples)

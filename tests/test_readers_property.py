@@ -376,7 +376,8 @@ def test_npz_time_stamps_property(n, layout, sparse, data):
     arrays = course_arrays(layout, sparse, n)
     arrays["time_stamps"] = t = data.draw(time_stamp_arrays(n), label="time_stamps")
     s = t.astype(np.float64).reshape(-1)
-    steps = np.diff(s)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf in the oracle: such stamps are refused
+        steps = np.diff(s)
     ok = (s.size >= 2 and np.isfinite(s).all() and (steps > 0).all() and np.median(steps) <= 10.0
           and steps.max() <= 60.0)
     with tempfile.TemporaryDirectory() as d:

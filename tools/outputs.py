@@ -112,6 +112,15 @@ def write_map_npz(path: str | os.PathLike, ids: Any, positions: Any, covariances
             np.savez(fh, ids=ids_arr, positions=pos, covariances=cov)
 
 
+def write_imu_states(path: str | os.PathLike, time_stamps: Any, velocity: Any, gyro_bias: Any, accel_bias: Any) -> None:
+    """A real IMU's run: one line per step, ``t vx vy vz bgx bgy bgz bax bay baz`` (world velocity m/s,
+    gyro bias rad/s, accelerometer bias m/s^2), with a header line; written atomically."""
+    rows = np.column_stack([np.asarray(time_stamps, dtype=float), np.asarray(velocity, dtype=float),
+                            np.asarray(gyro_bias, dtype=float), np.asarray(accel_bias, dtype=float)])
+    with atomic_write(path) as tmp:
+        np.savetxt(tmp, rows, fmt="%.9f", header="t vx vy vz bgx bgy bgz bax bay baz")
+
+
 def uncertainty_colors(covariances: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colours of landmarks by position uncertainty: returns ``(rgb (K,3), sigma (K,), u (K,))``.
 

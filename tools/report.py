@@ -5,6 +5,7 @@
 | trajectory.txt | TUM `t tx ty tz qx qy qz qw`, world_T_imu, the data's own stamps (evo reads it) |
 | dead_reckoning.txt | the same for IMU-only dead reckoning |
 | pose_covariance.npz | `time_stamps` (N,), the trajectory's, and `covariance` (N,6,6) of xi = [rho; phi], world_T_imu = mu exp(xi^) (body frame) |
+| imu_states.txt | a real IMU's run: `t vx vy vz bgx bgy bgz bax bay baz` per step, world velocity (m/s), gyro (rad/s) and accelerometer (m/s^2) biases |
 | map.npz | `ids`, `positions` (K,3), `covariances` (K,3,3) |
 | map.ply | landmarks coloured by uncertainty (viridis on log10 of the largest sigma: dark = certain, yellow = uncertain) |
 | trajectory.ply | the path as a line set coloured by time |
@@ -33,10 +34,12 @@ from . import outputs, plots
 
 def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
     """ATE (SE(3)-aligned) and RPE of the estimate and of dead reckoning against ground truth, and the
-    NEES of the estimate's pose covariance (``backend.evaluation.consistency.trajectory_nees``)."""
+    NEES of the estimate's pose covariance (``backend.evaluation.consistency.trajectory_nees``; an
+    inertial run's world is gravity-aligned: only the first pose's yaw and position are removed)."""
     est = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt_poses)
     dr = trajectory_errors(result.time_stamps, result.dead_reckoning, gt_t, gt_poses)
-    nees = trajectory_nees(result.time_stamps, result.world_T_imu, result.pose_covariance, gt_t, gt_poses)
+    nees = trajectory_nees(result.time_stamps, result.world_T_imu, result.pose_covariance, gt_t, gt_poses,
+                           gravity_aligned=result.inertial)
     return {"estimate": est.as_dict(), "dead_reckoning": dr.as_dict(), "nees": nees.as_dict()}
 
 
@@ -68,6 +71,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
         },
         "mean_nis_per_observation": stats.mean_nis,
         "gyro_bias_final": result.gyro_bias,
+        **({"accel_bias_final": result.accel_biases[-1], "velocity_final": result.velocity[-1]} if result.inertial else {}),
         "timing": {
             "wall_seconds": stats.total_seconds,
             "filter_seconds": stats.wall_seconds,
@@ -109,6 +113,9 @@ def write_run_outputs(
     write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
                       header="world_T_imu by IMU dead reckoning")
     write_pose_covariance(out_dir / POSE_COVARIANCE_FILE, result.time_stamps, result.pose_covariance)
+    if result.inertial:
+        outputs.write_imu_states(out_dir / "imu_states.txt", result.time_stamps, result.velocity, result.gyro_biases,
+                                 result.accel_biases)
     outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
     if not outputs.write_map_ply(out_dir / "map.ply", result.map_positions, result.map_covariances):
         notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")

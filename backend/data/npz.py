@@ -7,6 +7,14 @@ step k, ``linear_velocity`` (3,N), ``K`` (3,3), ``b`` (baseline, metres) and
 * 2022/23 layout: ``angular_velocity`` (3,N) and ``imu_T_cam`` (camera -> IMU),
 * 2019/20 layout: ``rotational_velocity`` (3,N) and ``cam_T_imu`` (IMU -> camera).
 
+The *inertial* layout has a real IMU's samples instead of the velocities: the frame keys
+(``time_stamps``, ``features``, ``K``, ``b``, ``imu_T_cam`` or ``cam_T_imu``) plus
+``imu_time_stamps`` (1,L) s, ``imu_linear_acceleration`` (3,L) m/s^2 (specific force in the IMU frame)
+and ``imu_angular_velocity`` (3,L) rad/s, and optionally the four noise scalars named as in Kalibr
+(``accelerometer_noise_density``, ``accelerometer_random_walk``, ``gyroscope_noise_density``,
+``gyroscope_random_walk``; all four or none). A file with both the velocity keys and the inertial
+keys is refused unless ``imu="velocity"`` or ``imu="inertial"`` picks one.
+
 :func:`load_sequence` streams the ``features.npy`` member out of the zip in chunks of a few MB
 (works for ``np.savez`` and ``np.savez_compressed``) and keeps the observations per step, so a
 165 MB features array of 66k observations costs a few MB beyond the observations themselves.
@@ -47,10 +55,11 @@ _READ_ERRORS = (zipfile.BadZipFile, *_INFLATE_ERRORS, EOFError, OSError)  # a da
 from ..errors import InputError
 from ..geometry.se3 import inverse
 from .files import atomic_write, check_output_file
+from .inertial import KALIBR_KEYS, check_imu_samples, check_noise_densities
 from .sequence import (LAYOUTS, ORTHO_ACCEPT, Sequence, check_baseline, check_camera_matrix, check_numeric, check_rigid,
                        check_shape, check_time_stamps, format_number, input_error, nearest_rigid, validate_sequence)
 
-__all__ = ["load_sequence", "save_sequence", "IMAGE_MARGIN"]
+__all__ = ["load_sequence", "save_sequence", "IMAGE_MARGIN", "INERTIAL_KEYS", "IMU_INPUTS"]
 
 #: Factor applied to 2*cx, 2*cy to infer the image size when none is given.
 IMAGE_MARGIN = 1.25
@@ -59,6 +68,10 @@ IMAGE_MARGIN = 1.25
 _CHUNK_BYTES = 1 << 20
 
 _COMMON_KEYS = ("time_stamps", "features", "linear_velocity", "K", "b")
+#: The real IMU's samples of the inertial layout
+INERTIAL_KEYS = ("imu_time_stamps", "imu_linear_acceleration", "imu_angular_velocity")
+#: load_sequence's ``imu``: which IMU input of a file to read
+IMU_INPUTS = ("auto", "velocity", "inertial")
 #: The sparse layout of the observations, instead of ``features``: per step, CSR
 _SPARSE_KEYS = ("obs_ptr", "obs_ids", "obs_pixels", "num_features")
 #: The most feature tracks a file may declare (num_features of the sparse layout)
@@ -346,11 +359,26 @@ def open_npz(path: Path) -> "np.lib.npyio.NpzFile":
         raise InputError(f"{src}: cannot open as .npz: {e}".replace("\n", " ")) from None
 
 
-def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Sequence:
-    """Load a course .npz (either layout) without materializing the dense features array.
+def _imu_input(src: str, keys: set, imu: str) -> bool:
+    """True when the file is read as inertial (module docstring): its keys and the caller's ``imu``."""
+    if imu not in IMU_INPUTS:
+        raise ValueError(f"imu must be one of {IMU_INPUTS}, got {imu!r}")
+    inertial = bool(set(INERTIAL_KEYS) & keys)
+    velocity = "linear_velocity" in keys or any(pair[0] in keys for pair in LAYOUTS.values())
+    if imu == "auto" and inertial and velocity:
+        raise input_error(src, INERTIAL_KEYS[0], "the file has both IMU velocities ('linear_velocity') and a real "
+                                                 "IMU's samples: pick one (vislam run --imu velocity|inertial)")
+    return imu == "inertial" or (imu == "auto" and inertial)
+
+
+def load_sequence(path, *, image_size: tuple[float, float] | None = None, imu: str = "auto") -> Sequence:
+    """Load a course .npz (either layout, velocities or a real IMU's samples) without materializing
+    the dense features array.
 
     ``image_size=(width, height)`` bounds the pixels; if None it is inferred from K (see the
-    module docstring). Raises InputError (one line: file, key, problem) for unusable input.
+    module docstring). ``imu``: "velocity" or "inertial" reads that IMU input of a file that has
+    both ("auto" refuses such a file). Raises InputError (one line: file, key, problem) for
+    unusable input.
     """
     path = Path(path)
     src = str(path)
@@ -358,18 +386,24 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
     with npz:
         keys = set(npz.files)
         have = sorted(keys)
+        inertial = _imu_input(src, keys, imu)
         sparse = "features" not in keys and bool(set(_SPARSE_KEYS) & keys)  # then every sparse key is needed
-        for key in _COMMON_KEYS + (_SPARSE_KEYS if sparse else ()):
+        common = tuple(k for k in _COMMON_KEYS if k != "linear_velocity") + INERTIAL_KEYS if inertial else _COMMON_KEYS
+        for key in common + (_SPARSE_KEYS if sparse else ()):
             if key not in keys and not (key == "features" and sparse):
                 layout_of = " of the sparse layout" if key in _SPARSE_KEYS else ""
                 raise input_error(src, key, f"missing{layout_of} (file has keys {have})")
-        complete = [lay for lay, pair in LAYOUTS.items() if set(pair) <= keys]
-        need = ("need 'angular_velocity'+'imu_T_cam' (2022/23 layout) "
-                "or 'rotational_velocity'+'cam_T_imu' (2019/20 layout)")
+        if inertial:
+            complete = [lay for lay, pair in LAYOUTS.items() if pair[1] in keys]
+            need = "need the extrinsic 'imu_T_cam' or 'cam_T_imu'"
+        else:
+            complete = [lay for lay, pair in LAYOUTS.items() if set(pair) <= keys]
+            need = ("need 'angular_velocity'+'imu_T_cam' (2022/23 layout) "
+                    "or 'rotational_velocity'+'cam_T_imu' (2019/20 layout)")
         if not complete:
             partial = [lay for lay, pair in LAYOUTS.items() if set(pair) & keys]
             lay = partial[0] if len(partial) == 1 else "2022"
-            missing = [k for k in LAYOUTS[lay] if k not in keys][0]
+            missing = LAYOUTS[lay][1] if inertial else [k for k in LAYOUTS[lay] if k not in keys][0]
             raise input_error(src, missing, f"missing; {need}; file has keys {have}")
         layout = complete[0]
         ang_key, ext_key = LAYOUTS[layout]
@@ -382,7 +416,7 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
                 raise input_error(src, key, f"cannot read: {type(e).__name__}: {e}") from None
 
         if len(complete) == 2:  # both layouts' keys: usable when they say the same
-            _check_layouts_agree(src, get)
+            _check_layouts_agree(src, get, velocities=not inertial)
             notes.append(f"{src}: both layouts' keys present and in agreement; read as the 2022/23 layout")
 
         t = get("time_stamps")
@@ -392,8 +426,9 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
             raise input_error(src, "time_stamps", f"expected shape (N,) or (1, N), got {t.shape}")
         check_time_stamps(src, "time_stamps", t)
         n = t.shape[0]
-        vel = {}
-        for key in ("linear_velocity", ang_key):
+        vel = {"linear_velocity": None, ang_key: None}
+        samples = _read_imu_samples(src, get, keys) if inertial else None
+        for key in () if inertial else ("linear_velocity", ang_key):
             a = get(key)
             check_shape(src, key, a, (3, n), f"(3, {n}) (N from 'time_stamps')")
             vel[key] = np.ascontiguousarray(a.T)
@@ -437,19 +472,32 @@ def load_sequence(path, *, image_size: tuple[float, float] | None = None) -> Seq
         dropped=dropped,
         tracker=tracker,
         notes=notes,
+        imu=samples,
         _cam_T_imu_file=cam_T_imu_file,
     )
     validate_sequence(seq)
     return seq
 
 
-def _check_layouts_agree(src: str, get) -> None:
-    """A file with both layouts' keys is read when they agree (the same angular rates, extrinsics
-    that are each other's inverse); InputError naming the keys otherwise."""
+def _read_imu_samples(src: str, get, keys: set):
+    """The inertial layout's IMU samples and, when all four Kalibr scalars are there, their noise."""
+    noise = None
+    present = [k for k in KALIBR_KEYS if k in keys]
+    if present:
+        noise = check_noise_densities(src, {k: get(k) for k in present})
+    return check_imu_samples(src, *(get(k) for k in INERTIAL_KEYS), noise)
+
+
+def _check_layouts_agree(src: str, get, velocities: bool = True) -> None:
+    """A file with both layouts' keys is read when they agree (the same angular rates unless
+    ``velocities`` is False, extrinsics that are each other's inverse); InputError naming the keys
+    otherwise."""
     need = "keep one layout's keys ('angular_velocity'+'imu_T_cam' or 'rotational_velocity'+'cam_T_imu')"
-    a, r = get("angular_velocity"), get("rotational_velocity")
-    if a.shape != r.shape or not np.allclose(a, r, rtol=0.0, atol=1e-9):
-        raise input_error(src, "rotational_velocity", f"both layouts' keys present and 'angular_velocity' differs; {need}")
+    if velocities:
+        a, r = get("angular_velocity"), get("rotational_velocity")
+        if a.shape != r.shape or not np.allclose(a, r, rtol=0.0, atol=1e-9):
+            raise input_error(src, "rotational_velocity", f"both layouts' keys present and 'angular_velocity' differs; "
+                                                          f"{need}")
     imu_T_cam, cam_T_imu = get("imu_T_cam"), get("cam_T_imu")
     check_rigid(src, "imu_T_cam", imu_T_cam, ORTHO_ACCEPT)
     check_rigid(src, "cam_T_imu", cam_T_imu, ORTHO_ACCEPT)
@@ -511,7 +559,8 @@ def save_sequence(seq: Sequence, path, *, layout: str | None = None, dense: bool
     ``np.savez_compressed`` to a temporary file in the target's directory, then moved onto
     ``path``: the target is either the old file or the complete new one (KeyboardInterrupt
     included). The exact name ``path`` is used (no ``.npz`` is appended). Dropped observations
-    are not written.
+    are not written. An inertial sequence writes the inertial layout (its IMU samples and noise
+    instead of the velocities; ``layout`` then names only the extrinsic's key).
     """
     layout = seq.layout if layout is None else layout
     if layout not in LAYOUTS:
@@ -531,11 +580,20 @@ def save_sequence(seq: Sequence, path, *, layout: str | None = None, dense: bool
         observations = {"obs_ptr": np.asarray(seq.obs_ptr, dtype=np.int64), "obs_ids": np.asarray(seq.obs_ids, np.int64),
                         "obs_pixels": np.asarray(seq.obs_pixels, dtype=np.float64),
                         "num_features": np.asarray(m, dtype=np.int64)}
+    if seq.imu is not None:
+        imu = seq.imu
+        motion = {"imu_time_stamps": np.asarray(imu.time_stamps, dtype=np.float64).reshape(1, -1),
+                  "imu_linear_acceleration": np.asarray(imu.linear_acceleration, dtype=np.float64).T,
+                  "imu_angular_velocity": np.asarray(imu.angular_velocity, dtype=np.float64).T}
+        if imu.noise is not None:
+            motion.update({k: np.asarray(float(getattr(imu.noise, k))) for k in KALIBR_KEYS})
+    else:
+        motion = {"linear_velocity": np.asarray(seq.linear_velocity, dtype=np.float64).T,
+                  ang_key: np.asarray(seq.angular_velocity, dtype=np.float64).T}
     arrays = {
         "time_stamps": np.asarray(seq.time_stamps, dtype=np.float64).reshape(1, n),
         **observations,
-        "linear_velocity": np.asarray(seq.linear_velocity, dtype=np.float64).T,
-        ang_key: np.asarray(seq.angular_velocity, dtype=np.float64).T,
+        **motion,
         "K": np.asarray(seq.K, dtype=np.float64),
         "b": np.asarray(float(seq.baseline), dtype=np.float64),
         ext_key: seq.cam_T_imu if layout == "2019" else np.asarray(seq.imu_T_cam, dtype=np.float64),

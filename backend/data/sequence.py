@@ -15,11 +15,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
 from ..geometry.se3 import inverse
+
+if TYPE_CHECKING:
+    from .inertial import ImuSamples
 
 __all__ = [
     "Sequence",
@@ -181,11 +185,15 @@ def nearest_rigid(src: str, key: str, T: np.ndarray) -> tuple[np.ndarray, str | 
 
 @dataclass(eq=False, repr=False)
 class Sequence:
-    """A stereo-feature + IMU-velocity sequence, observations stored per step (CSR), never dense M x N."""
+    """A stereo-feature + IMU sequence, observations stored per step (CSR), never dense M x N.
+
+    The IMU is either body velocities per step (``linear_velocity``, ``angular_velocity``) or a
+    real IMU's samples at their own rate (``imu``, :class:`~vislam.backend.data.inertial.ImuSamples`;
+    the velocities are then None): an *inertial* sequence."""
 
     time_stamps: np.ndarray  # (N,) float64 seconds, strictly increasing
-    linear_velocity: np.ndarray  # (N,3) m/s in the IMU frame
-    angular_velocity: np.ndarray  # (N,3) rad/s in the IMU frame
+    linear_velocity: np.ndarray | None  # (N,3) m/s in the IMU frame; None in an inertial sequence
+    angular_velocity: np.ndarray | None  # (N,3) rad/s in the IMU frame; None in an inertial sequence
     K: np.ndarray  # (3,3)
     baseline: float
     imu_T_cam: np.ndarray  # (4,4) maps camera-frame points into the IMU frame
@@ -197,12 +205,18 @@ class Sequence:
     layout: str = "2022"  # "2022" (angular_velocity/imu_T_cam) or "2019" (rotational_velocity/cam_T_imu)
     dropped: dict[str, int] = field(default_factory=dict)  # {"nonpositive_disparity": n, "outside_image": n}
     tracker: str = ""  # the front end that made the tracks (optional key 'tracker'; "" unknown)
+    imu: "ImuSamples | None" = None  # a real IMU's samples (an inertial sequence), else None
     notes: list[str] = field(default_factory=list, compare=False)  # what the reader corrected and how
     # The cam_T_imu read from a 2019-layout file, kept so that saving in that layout writes it back
     # bit for bit. Used only while rigid_inverse(it) still equals imu_T_cam exactly.
     _cam_T_imu_file: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     # -- sizes ---------------------------------------------------------------------------------
+    @property
+    def inertial(self) -> bool:
+        """A real IMU's samples (``imu``), not body velocities."""
+        return self.imu is not None
+
     @property
     def num_steps(self) -> int:
         return int(self.time_stamps.shape[0])
@@ -222,10 +236,11 @@ class Sequence:
     @classmethod
     def from_steps(cls, time_stamps, linear_velocity, angular_velocity, ids: list, pixels: list, K, baseline: float,
                    imu_T_cam, num_features: int | None = None, source: str = "", layout: str = "2022",
-                   tracker: str = "") -> "Sequence":
+                   tracker: str = "", imu: "ImuSamples | None" = None) -> "Sequence":
         """A validated sequence from per-step lists of ids (n_k,) and pixels (n_k,4), and per-step
-        time stamps and velocities (N,), (N,3), (N,3); ``num_features`` defaults to the largest id + 1.
-        Arrays of other shapes, or ids that are not integers, are refused (InputError)."""
+        time stamps and velocities (N,), (N,3), (N,3) (None for both with a real IMU's samples
+        ``imu``); ``num_features`` defaults to the largest id + 1. Arrays of other shapes, or ids that
+        are not integers, are refused (InputError)."""
         src = source or "<sequence>"
         if len(pixels) != len(ids):
             raise input_error(src, "obs_pixels", f"{len(pixels)} steps of pixels for {len(ids)} steps of ids")
@@ -248,8 +263,8 @@ class Sequence:
             num_features = int(obs_ids.max()) + 1 if obs_ids.size else 0
         seq = cls(
             time_stamps=np.array(time_stamps, dtype=np.float64),
-            linear_velocity=np.array(linear_velocity, dtype=np.float64),
-            angular_velocity=np.array(angular_velocity, dtype=np.float64),
+            linear_velocity=None if linear_velocity is None else np.array(linear_velocity, dtype=np.float64),
+            angular_velocity=None if angular_velocity is None else np.array(angular_velocity, dtype=np.float64),
             K=np.array(K, dtype=np.float64),
             baseline=float(baseline),
             imu_T_cam=np.array(imu_T_cam, dtype=np.float64),
@@ -260,14 +275,19 @@ class Sequence:
             source=source,
             layout=layout,
             tracker=tracker,
+            imu=imu,
         )
         validate_sequence(seq)
         return seq
 
     def steps(self):
-        """(t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4)) of each step, in order."""
+        """(t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4)) of each step, in order
+        (the velocities None in an inertial sequence)."""
         for k in range(self.num_steps):
-            yield (self.time_stamps[k], self.linear_velocity[k], self.angular_velocity[k], *self.observations(k))
+            if self.imu is not None:
+                yield (self.time_stamps[k], None, None, *self.observations(k))
+            else:
+                yield (self.time_stamps[k], self.linear_velocity[k], self.angular_velocity[k], *self.observations(k))
 
     # -- access --------------------------------------------------------------------------------
     def observations(self, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -298,8 +318,8 @@ class Sequence:
         return dataclasses.replace(
             self,
             time_stamps=self.time_stamps[idx].copy(),
-            linear_velocity=self.linear_velocity[idx].copy(),
-            angular_velocity=self.angular_velocity[idx].copy(),
+            linear_velocity=None if self.linear_velocity is None else self.linear_velocity[idx].copy(),
+            angular_velocity=None if self.angular_velocity is None else self.angular_velocity[idx].copy(),
             obs_ptr=ptr,
             obs_ids=self.obs_ids[rows],
             obs_pixels=self.obs_pixels[rows],
@@ -307,11 +327,30 @@ class Sequence:
         )
 
     def __repr__(self) -> str:
+        imu = f", imu={self.imu.num_samples} samples" if self.imu is not None else ""
         return (
-            f"Sequence(source={self.source!r}, layout={self.layout!r}, steps={self.num_steps}, "
+            f"Sequence(source={self.source!r}, layout={self.layout!r}, steps={self.num_steps}{imu}, "
             f"features={self.num_features}, observations={self.num_observations}, "
             f"dropped={self.dropped})"
         )
+
+
+def check_inertial(src: str, seq: Sequence, t: np.ndarray) -> None:
+    """An inertial sequence: no velocities, valid IMU samples whose record covers the frames (to one
+    sample interval at each end)."""
+    from .inertial import check_imu_samples
+
+    for key in ("linear_velocity", "angular_velocity"):
+        if getattr(seq, key) is not None:
+            raise input_error(src, key, "given with a real IMU's samples: keep one of the two IMU inputs")
+    imu = seq.imu
+    check_imu_samples(src, imu.time_stamps, imu.linear_acceleration, imu.angular_velocity, imu.noise)
+    ti = imu.time_stamps
+    step = float(np.median(np.diff(ti)))
+    if ti[0] > t[0] + step or ti[-1] < t[-1] - step:
+        raise input_error(src, "imu_time_stamps", f"the IMU record [{format_number(ti[0])}, {format_number(ti[-1])}] s "
+                                                  f"does not cover the frames [{format_number(t[0])}, "
+                                                  f"{format_number(t[-1])}] s: IMU and frame stamps must share a clock")
 
 
 def validate_sequence(seq: Sequence) -> None:
@@ -330,8 +369,13 @@ def validate_sequence(seq: Sequence) -> None:
         raise input_error(src, "time_stamps", f"expected shape (N,), got {t.shape}")
     check_time_stamps(src, "time_stamps", t)
     n = t.shape[0]
-    for key in ("linear_velocity", "angular_velocity"):
-        check_shape(src, key, check_numeric(src, key, getattr(seq, key)), (n, 3), f"({n}, 3)")
+    if seq.imu is None:
+        for key in ("linear_velocity", "angular_velocity"):
+            if getattr(seq, key) is None:
+                raise input_error(src, key, "missing: a sequence needs IMU velocities or a real IMU's samples")
+            check_shape(src, key, check_numeric(src, key, getattr(seq, key)), (n, 3), f"({n}, 3)")
+    else:
+        check_inertial(src, seq, t)
     check_camera_matrix(src, "K", check_numeric(src, "K", seq.K))
     check_baseline(src, "baseline", float(seq.baseline))
     check_rigid(src, "imu_T_cam", check_numeric(src, "imu_T_cam", seq.imu_T_cam))

@@ -44,14 +44,15 @@ def gather_symmetric(P, keep):
 
 
 @jit
-def gather_landmarks(P, keep):
-    """(A2) P over the pose, the bias and the landmark slots ``keep`` (the others marginalized)."""
-    idx = np.empty(CORE + 3 * keep.size, dtype=np.int64)
-    for i in range(CORE):
+def gather_landmarks(P, keep, core=CORE):
+    """(A2) P over the first ``core`` rows (pose, bias; velocity and accelerometer bias in the inertial
+    state) and the landmark slots ``keep`` (the others marginalized)."""
+    idx = np.empty(core + 3 * keep.size, dtype=np.int64)
+    for i in range(core):
         idx[i] = i
     for i in range(keep.size):
         for a in range(3):
-            idx[CORE + 3 * i + a] = CORE + 3 * keep[i] + a
+            idx[core + 3 * i + a] = core + 3 * keep[i] + a
     return gather_symmetric(P, idx)
 
 

@@ -31,7 +31,9 @@ from ..errors import FilterError
 from ..geometry.camera import StereoCamera
 from .body import BodyModel
 from .covariance import repair_if_indefinite
+from ..data.inertial import ImuSamples
 from .health import HealthMonitor
+from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
 from .layout import BIAS, CORE, POSE
 from .model import ErrorModel
@@ -142,15 +144,19 @@ class VisualInertialEKF:
     config : Config
         The options (the tables ``estimator``, ``noise``, ``update``, ``landmarks``, ``drift``,
         ``health`` are read).
-    imu_noise : ImuNoise
-        White noise of the velocity measurements per axis.
+    imu_noise : ImuNoise or None
+        White noise of the velocity measurements per axis (the velocity model; None with ``inertial``).
     world_T_imu : array, shape (4, 4), optional
         The first pose (default: the identity, the world frame).
     expected_landmarks : int, optional
         With ``estimator.full_state``: refuse at once when that many would not fit.
+    inertial : InertialStart, optional
+        A real IMU instead of velocities: the inertial state (attitude, velocity, position, gyro and
+        accelerometer biases; ``backend.estimator.inertial``) starts from it, and
+        ``propagate(imu, t0, t1)`` replaces ``predict``.
 
-    Use: ``predict(dt, v, w)`` then ``update(ids, pixels)`` once per time step, ``finish()`` at the
-    end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
+    Use: ``predict(dt, v, w)`` (or ``propagate(imu, t0, t1)``) then ``update(ids, pixels)`` once per
+    time step, ``finish()`` at the end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
     ``execution.blas_threads`` threads (one by default: at the filter's ~200 x 200 sizes more
     threads are slower, up to 40x on a busy machine), whatever the caller set; ``close()`` gives
     the caller's setting back. (Limiting per call instead costs ~0.1 ms a step: OpenBLAS re-sizes
@@ -165,6 +171,7 @@ class VisualInertialEKF:
         imu_noise: ImuNoise,
         world_T_imu: np.ndarray | None = None,
         expected_landmarks: int | None = None,
+        inertial: InertialStart | None = None,
     ) -> None:
         warm_up()  # compile or load the kernels now (once per process), not in the first step
         self.kernel_seconds = warm_up_seconds()
@@ -176,16 +183,25 @@ class VisualInertialEKF:
         self.imu_noise = imu_noise
         self.estimate_pose = est.mode == Mode.SLAM
         self.use_vision = est.mode != Mode.DEAD_RECKONING
-        self.model = make_error_model(config, camera, imu_T_cam)
-        self.state = FilterState(
-            mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
-            theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
-            anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
-        )
-        if self.estimate_pose:
-            self.state.P[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
-            if est.estimate_gyro_bias:
-                self.state.P[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+        self.inertial = inertial is not None
+        if self.inertial:
+            self.model = InertialModel(camera, imu_T_cam, inertial, self.estimate_pose)
+            m = inertial.mean
+            self.state = FilterState(mu=np.array(m.world_T_imu, dtype=float), gyro_bias=np.array(m.gyro_bias, float),
+                                     core=CORE_INERTIAL, velocity=np.array(m.velocity, float),
+                                     accel_bias=np.array(m.accel_bias, float))
+            self.state.P = np.array(inertial.covariance, dtype=float)
+        else:
+            self.model = make_error_model(config, camera, imu_T_cam)
+            self.state = FilterState(
+                mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
+                theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
+                anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
+            )
+            if self.estimate_pose:
+                self.state.P[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
+                if est.estimate_gyro_bias:
+                    self.state.P[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
         if noise.pixel_sigma is None:
             raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
                               "(vislam.OnlineRun, vislam.run_sequence)")
@@ -235,6 +251,24 @@ class VisualInertialEKF:
         twist, q = self._imu_twist(dt, linear_velocity, angular_velocity)
         self.model.predict(self.state, twist, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
                            self._landmark_walk * dt)
+
+    def propagate(self, imu: ImuSamples, t0: float, t1: float) -> None:
+        """Move the inertial state from t0 to t1 by every IMU sample between (J3, J5, J6 of
+        ``backend.estimator.inertial``); the filter must have been made with ``inertial``."""
+        if not self.inertial:
+            raise TypeError("propagate() needs the inertial state: VisualInertialEKF(..., inertial=InertialStart(...))")
+        self.step_index += 1
+        self.model.propagate(self.state, imu, t0, t1)
+
+    @property
+    def velocity(self) -> np.ndarray | None:
+        """The world-frame velocity (3,) m/s of the inertial state (None in the velocity model)."""
+        return self.state.velocity
+
+    @property
+    def accel_bias(self) -> np.ndarray | None:
+        """The accelerometer bias (3,) m/s^2 of the inertial state (None in the velocity model)."""
+        return self.state.accel_bias
 
     def _imu_twist(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray):
         """(the step's body twist tau (v, w - b) (6,), its noise sigmas times tau (6,)) from the IMU sample."""
@@ -405,7 +439,7 @@ class VisualInertialEKF:
     # ------------------------------------------------------------------ health
     def _check_covariance(self) -> None:
         """(H2): say so (once per episode) when P is not positive definite, and repair it."""
-        estimated = self.state.estimated(self.estimate_pose, self.config.estimator.estimate_gyro_bias)
+        estimated = self.state.estimated(self.estimate_pose, self.config.estimator.estimate_gyro_bias or self.inertial)
         worst = repair_if_indefinite(self.state.P, estimated)
         if worst is not None:
             self.health.report(f"step {self.step_index}: covariance lost positive definiteness (min eigenvalue "

@@ -68,11 +68,13 @@ import numpy as np
 from ..compiled import jit, warms_up
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..geometry import se3
+from .invariant import InvariantModel, innovation as invariant_innovation, world_covariances
+from .state import FilterState
 
 __all__ = [
     "CORE_INERTIAL", "RHO", "PHI", "BG", "NU", "BA", "STANDARD_GRAVITY",
     "InertialMean", "Propagation", "propagate", "interval_knots", "integrate_kernel", "propagate_covariance",
-    "retract_inertial",
+    "retract_inertial", "InertialStart", "InertialModel",
 ]
 
 #: Rows of the inertial error state before the landmarks: rho, phi, db_g, nu, db_a (J1)
@@ -289,9 +291,61 @@ def retract_inertial(mean: InertialMean, points: np.ndarray, dx: np.ndarray) -> 
     return out
 
 
+@dataclass
+class InertialStart:
+    """What the filter starts from: the ``mean`` at the first frame, the core's ``covariance`` (15,15)
+    of (J1), the IMU's ``noise`` densities and the ``gravity`` vector (3,) of the world frame."""
+
+    mean: InertialMean
+    covariance: np.ndarray
+    noise: ImuNoiseDensities
+    gravity: np.ndarray
+
+
+class InertialModel(InvariantModel):
+    """The right-invariant error on SE_{2+K}(3) with biases (module docstring): the observation (I3),
+    the landmark initialization (I4) and the world covariances (I6) of the invariant model with the
+    landmark slots after the 15 core rows; the prediction by every IMU sample (:meth:`propagate`)."""
+
+    freezes = False
+
+    def __init__(self, camera, imu_T_cam, start: InertialStart, estimate_pose: bool) -> None:
+        super().__init__(camera, imu_T_cam, "xyz", estimate_pose, True)
+        self.noise = start.noise
+        self.gravity = np.asarray(start.gravity, dtype=float)
+
+    def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
+        raise TypeError("the inertial state moves by IMU samples: VisualInertialEKF.propagate(imu, t0, t1)")
+
+    def propagate(self, state: FilterState, imu: ImuSamples, t0: float, t1: float) -> None:
+        """The mean by (J3) and P by (J5, J6) from t0 to t1; with the pose held fixed (mapping), the mean only."""
+        mean = InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias)
+        new, prop = propagate(mean, imu, t0, t1, self.noise, self.gravity)
+        state.mu, state.velocity = new.world_T_imu, new.velocity
+        if self.estimate_pose:
+            state.P = propagate_covariance(state.P, prop, state.theta)
+
+    def correct(self, state: FilterState, dx: np.ndarray) -> None:
+        mean = retract_inertial(InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias),
+                                state.theta, dx)
+        state.mu, state.velocity = mean.world_T_imu, mean.velocity
+        state.gyro_bias, state.accel_bias = mean.gyro_bias, mean.accel_bias
+
+
 @warms_up
 def _warm_up() -> None:
     t = np.array([0.0, 0.005, 0.01])
     acc = np.tile([0.0, 0.0, 9.81], (3, 1))
     integrate_kernel(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), t, acc, np.zeros((3, 3)),
                      np.array([0.0, 0.0, -9.81]), np.ones(12) * 1e-6, _GL_X, _GL_W)
+    # the invariant kernels with the landmark slots after the 15 core rows
+    k = 2
+    P = np.eye(CORE_INERTIAL + 3 * k)
+    slots = np.arange(k, dtype=np.int64)
+    points = np.ones((k, 3)) + 5.0
+    pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
+    invariant_innovation(P, points, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True,
+                         CORE_INERTIAL)
+    world_covariances(P, slots, points, CORE_INERTIAL)
+    from .covariance import gather_landmarks
+    gather_landmarks(P, np.arange(1, dtype=np.int64), CORE_INERTIAL)

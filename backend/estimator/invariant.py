@@ -219,7 +219,7 @@ def observe(points, cam_T_world, fx, fy, cx, cy, baseline, pixels):
 
 
 @jit
-def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline, pixels, pixel_var, pose):
+def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline, pixels, pixel_var, pose, core=CORE):
     """The prior innovation in one call: :func:`observe` of the landmarks ``slots`` (world points
     theta[slots]) from cam_T_world = cam_T_imu world_T_imu^-1, then the products H P and S of
     ``backend.estimator.update``; H_x = 0 when ``pose`` is False (poses held fixed). Returns
@@ -231,7 +231,7 @@ def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline
     residual, off_row, H_x, H_m, in_front = observe(points, cam_T_world, fx, fy, cx, cy, baseline, pixels)
     if not pose:
         H_x[:] = 0.0
-    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row)
+    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row, core)
     return residual, off_row, H_x, H_m, HP, S, nis, in_front
 
 
@@ -262,7 +262,7 @@ def initialize(P, pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigm
 
 # ---------------------------------------------------------------- correction (I5)
 @jit
-def retract_inplace(world_T_imu, points, dx):
+def retract_inplace(world_T_imu, points, dx, core=CORE):
     """(I5) exp(dx) X_hat: returns the new pose exp(dx_pose^) world_T_imu and moves the world points
     (K,3) in place, m <- R_d m + J_l zeta (the state dx = [rho, phi, bias (3), zeta_1 .. zeta_K])."""
     E, J = se3.exp_se3_and_left_jacobian(dx[:6])
@@ -272,7 +272,7 @@ def retract_inplace(world_T_imu, points, dx):
             pose[i, j] = E[i, 0] * world_T_imu[0, j] + E[i, 1] * world_T_imu[1, j] + E[i, 2] * world_T_imu[2, j] \
                 + E[i, 3] * world_T_imu[3, j]
     for k in range(points.shape[0]):
-        z = dx[CORE + 3 * k:CORE + 3 * k + 3]
+        z = dx[core + 3 * k:core + 3 * k + 3]
         x0, x1, x2 = points[k, 0], points[k, 1], points[k, 2]
         for i in range(3):
             points[k, i] = (E[i, 0] * x0 + E[i, 1] * x1 + E[i, 2] * x2
@@ -282,14 +282,14 @@ def retract_inplace(world_T_imu, points, dx):
 
 # ---------------------------------------------------------------- covariances in the world and body frames
 @jit
-def world_covariances(P, slots, points):
+def world_covariances(P, slots, points, core=CORE):
     """(I6) covariances (k,3,3) of the world positions ``points`` (k,3) of the landmarks ``slots``:
     dm = zeta - m^ phi, so Cov(m) = A P_phiphi A^T + A P_phi,zeta + (A P_phi,zeta)^T + P_zeta
     with A = -m^ (symmetrized)."""
     k = slots.size
     out = np.empty((k, 3, 3))
     for i in range(k):
-        s = CORE + 3 * slots[i]
+        s = core + 3 * slots[i]
         for a in range(3):
             for b in range(3):
                 out[i, a, b] = P[s + a, s + b]
@@ -346,7 +346,7 @@ class InvariantModel(ErrorModel):
         cam = self.camera
         residual, off_row, H_x, H_m, HP, S, nis, in_front = innovation(
             state.P, state.theta, slots, state.mu, self.cam_T_imu, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
-            pixels, pixel_var, self.estimate_pose)
+            pixels, pixel_var, self.estimate_pose, state.core)
         return Innovation(residual, off_row, H_x, H_m, HP, S, nis, in_front)
 
     def initialize(self, state, pixels, sigma, pixel_var):
@@ -361,7 +361,7 @@ class InvariantModel(ErrorModel):
 
     def world_landmarks(self, state, slots):
         theta = state.theta[slots]  # world positions: every one finite
-        return theta, world_covariances(state.P, slots, theta), np.ones(slots.size, dtype=bool)
+        return theta, world_covariances(state.P, slots, theta, state.core), np.ones(slots.size, dtype=bool)
 
     def pose_covariance(self, state) -> np.ndarray:
         return body_pose_covariance(state.mu, state.P[POSE, POSE])

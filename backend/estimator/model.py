@@ -89,5 +89,5 @@ class ErrorModel(abc.ABC):
         (``landmark_walk_var`` added to their variances); P of the pose untouched."""
         state.mu = state.mu @ step
         if landmark_walk_var and state.num_landmarks:
-            diag = np.arange(CORE, state.P.shape[0])
+            diag = np.arange(state.core, state.P.shape[0])
             state.P[diag, diag] += landmark_walk_var

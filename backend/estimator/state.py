@@ -39,6 +39,15 @@ class FilterState:
     outlier_stash: dict = field(default_factory=dict)
     _ids_sorted: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # for slots_of
     _ids_order: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: rows of P before the landmark slots: ``layout.CORE`` (pose, gyro bias), or
+    #: ``inertial.CORE_INERTIAL`` (with velocity and accelerometer bias)
+    core: int = CORE
+    velocity: np.ndarray | None = None  # (3,) world frame, the inertial state only
+    accel_bias: np.ndarray | None = None  # (3,) the inertial state only
+
+    def __post_init__(self) -> None:
+        if self.P.shape[0] < self.core:
+            self.P = np.zeros((self.core, self.core))
 
     # the rows of track, as views (kernels change the counts in place)
     @property
@@ -79,7 +88,7 @@ class FilterState:
         """(D,) mask of the states the filter estimates (the pose and the bias may be held fixed)."""
         mask = np.ones(self.P.shape[0], dtype=bool)
         if not pose:
-            mask[:CORE] = False
+            mask[:self.core] = False
         elif not bias:
             mask[BIAS] = False
         return mask
@@ -116,7 +125,7 @@ class FilterState:
         _, keep, remap, counted = plan_removal(mask, _NONE if ended is None else ended, self.outlier_run)
         if counted.size:
             self.outlier_stash.update(zip(self.ids[counted].tolist(), self.outlier_run[counted].tolist()))
-        self.P = gather_landmarks(self.P, keep)  # C-ordered, one pass
+        self.P = gather_landmarks(self.P, keep, self.core)  # C-ordered, one pass
         self.track = np.take(self.track, keep, axis=1)  # C-ordered (a[:, idx] is not): contiguous rows
         self.theta = self.theta[keep]
         if self.theta_first is not None:

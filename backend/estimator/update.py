@@ -95,16 +95,17 @@ def _nis3(S, r0, r1, r2):
 
 
 @jit
-def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row):
+def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row, core=CORE):
     """H P (3k,D), S = H P H^T + R (3k,3k) and the NIS (k,) of each observation (4 dof: its
     3-row block plus off_row^2 / sigma^2, U1), for H given as H_x (3k,6) on the pose and
-    H_m (k,3,3) on landmark ``slots`` (each 3-row block touches 6 + 3 columns of P)."""
+    H_m (k,3,3) on landmark ``slots`` (each 3-row block touches 6 + 3 columns of P); the landmark
+    slots start at row ``core`` of P (``layout.CORE``; 15 for the inertial state)."""
     D = P.shape[0]
     k = slots.size
     m = 3 * k
     HP = np.zeros((m, D))
     for i in range(k):
-        base = CORE + 3 * slots[i]
+        base = core + 3 * slots[i]
         for a in range(3):
             r = 3 * i + a
             out = HP[r]
@@ -125,7 +126,7 @@ def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row):
         for r2 in range(r + 1):
             i2 = r2 // 3
             b = r2 - 3 * i2
-            base = CORE + 3 * slots[i2]
+            base = core + 3 * slots[i2]
             s = 0.0
             for j in range(6):
                 s += hp[j] * H_x[r2, j]

@@ -215,8 +215,29 @@ class TrajectoryNees:
                 "position": self.position.as_dict(), "pose": self.pose.as_dict()}
 
 
+def yaw_alignment(world_T_imu: np.ndarray, true_world_T_imu: np.ndarray) -> np.ndarray:
+    """The rotation about z and translation A (4,4) that move the pose ``world_T_imu`` onto
+    ``true_world_T_imu`` except for roll and pitch: the rotation error of A world_T_imu against the
+    truth, R_true (A R)^T = exp(phi^), has phi_z = 0 (a world-frame error, as the filters' invariant
+    errors; the yaw of a tilted body axis would leave phi_z of order tilt x tan(pitch)) and the
+    positions agree."""
+    R, R_true = world_T_imu[:3, :3], true_world_T_imu[:3, :3]
+    yaw = 0.0
+    for _ in range(20):
+        c, s = np.cos(yaw), np.sin(yaw)
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        step = se3.log_so3(R_true @ (Rz @ R).T)[2]
+        yaw += step
+        if abs(step) < 1e-15:
+            break
+    A = np.eye(4)
+    A[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    A[:3, 3] = true_world_T_imu[:3, 3] - A[:3, :3] @ world_T_imu[:3, 3]
+    return A
+
+
 def trajectory_nees(est_t: Any, world_T_imu: Any, pose_covariance: Any, gt_t: Any, gt_world_T_imu: Any, *,
-                    max_diff: float = 0.01) -> TrajectoryNees:
+                    max_diff: float = 0.01, gravity_aligned: bool = False) -> TrajectoryNees:
     """Position and pose NEES of each step of one run against ground truth (module docstring, E4).
 
     Parameters
@@ -228,6 +249,11 @@ def trajectory_nees(est_t: Any, world_T_imu: Any, pose_covariance: Any, gt_t: An
     gt_world_T_imu : (G, 4, 4) array, the ground truth (any world frame)
     max_diff : float
         Largest stamp difference (s) of a matched pair (nearest stamp, ``metrics.associate_indices``).
+    gravity_aligned : bool
+        Both world frames have z up (an inertial filter's, a gravity-aligned ground truth's): then
+        roll and pitch are absolute and only the unobservable yaw and position of the first matched
+        pose are removed (the estimate moved by a rotation about z and a translation onto the truth's
+        first pose); else both trajectories are taken relative to their first pose.
 
     Returns
     -------
@@ -250,8 +276,12 @@ def trajectory_nees(est_t: Any, world_T_imu: Any, pose_covariance: Any, gt_t: An
             index = int(np.flatnonzero(~np.isfinite(a).all(axis=(1, 2)))[0])
             raise ValueError(f"{what}: non-finite value at index {index}")
     i, j = associate_indices(t, gt_t, max_diff)
-    mu_rel = se3.inverse(mu[i[0]]) @ mu[i]
-    true_rel = se3.inverse(truth[j[0]]) @ truth[j]
+    if gravity_aligned:
+        A = yaw_alignment(mu[i[0]], truth[j[0]])
+        mu_rel, true_rel = A @ mu[i], truth[j]
+    else:
+        mu_rel = se3.inverse(mu[i[0]]) @ mu[i]
+        true_rel = se3.inverse(truth[j[0]]) @ truth[j]
     P = P[i]
     zero = np.all(np.diagonal(P, axis1=1, axis2=2) <= ZERO_POSE_VARIANCE, axis=1)
     skipped = max(1, int(np.argmin(zero)) if not zero.all() else zero.size)

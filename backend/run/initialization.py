@@ -19,8 +19,9 @@ estimate by |b_horizontal| / g. The covariance says so: with the bias prior sigm
 
     g^ phi = R_hat db_a   (to first order; rows x, y: phi_x = -(R db_a)_y / g, phi_y = (R db_a)_x / g)   (Z4)
 
-so roll and pitch start with sigma_ba0 / g each and fully correlated with the bias; yaw, position
-and velocity start at (nearly) zero uncertainty, the gyro bias at the standard error of its mean.
+so roll and pitch start with sigma_ba0 / g each and fully correlated with the bias; yaw and position
+start at (nearly) zero uncertainty (the first pose defines them), the velocity at the measured
+wander (Z3), the gyro bias at the standard error of its mean.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ class RestOptions:
     max_attitude_wander_deg: float = 0.5  # Z3
     max_velocity_wander: float = 0.1  # m/s, Z3
     accel_bias_sigma0: float = 0.1  # m/s^2 per axis: the prior of the accelerometer bias (Z4)
-    velocity_sigma0: float = 0.01  # m/s: the velocity at rest
+    min_velocity_sigma0: float = 1e-3  # m/s: the velocity at rest is known to its measured wander (Z3), at least this
     pose_sigma0: float = 1e-6  # position (m) and yaw (rad): the frame is defined by the first pose
 
 
@@ -129,7 +130,7 @@ def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: I
     mean = InertialMean(T, np.zeros(3), m["gyro_mean"].copy(), np.zeros(3))
     P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
     P[RHO, RHO] = np.eye(3) * options.pose_sigma0**2
-    P[NU, NU] = np.eye(3) * options.velocity_sigma0**2
+    P[NU, NU] = np.eye(3) * max(m["velocity_wander"], options.min_velocity_sigma0) ** 2
     se = m["gyro_se"]
     if noise is not None:  # the white noise's share when the vibration is smaller than it (never on a real rig)
         se = np.maximum(se, noise.gyroscope_noise_density / np.sqrt(max(m["window_s"], 1e-9)))

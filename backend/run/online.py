@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
 from ..geometry.camera import StereoCamera
 from .decisions import Decisions
+
+if TYPE_CHECKING:
+    from .inertial import InertialDecisions
 from .timing import MotionPrior, repeats_previous
 
 
@@ -81,6 +84,71 @@ class RunStats:
         return out
 
 
+class RunBook:
+    """The statistics of one run as its steps go (``RunStats``), shared by every kind of run: what each
+    update used, the step times, and at the end the map, the health check (H3) and the timings."""
+
+    def __init__(self, ekf: VisualInertialEKF) -> None:
+        self.ekf = ekf
+        self.stats = RunStats(kernel_seconds=ekf.kernel_seconds)
+        self.times: list[float] = []
+        self.step_seconds: list[float] = []
+        self.wall = 0.0
+        self._active_sum = 0
+        self._nis_sum = 0.0
+
+    def add_update(self, step_stats: StepStats) -> None:
+        """Count one update's observations and landmarks."""
+        stats = self.stats
+        stats.observations_used += step_stats.used
+        stats.observations_gated += step_stats.gated
+        stats.landmarks_initialized += step_stats.initialized
+        stats.landmarks_dropped += step_stats.dropped
+        stats.landmarks_reanchored += step_stats.reanchored
+        stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
+        self._active_sum += step_stats.active
+        self._nis_sum += step_stats.nis_sum
+
+    def add_step(self, t: float, predict_seconds: float, update_seconds: float) -> None:
+        """One time stamp done, with the seconds of its prediction and its update."""
+        self.times.append(float(t))
+        self.stats.seconds_predict += predict_seconds
+        self.stats.seconds_update += update_seconds
+        self.wall += predict_seconds + update_seconds
+        self.step_seconds.append(predict_seconds + update_seconds)
+
+    def close(self, mode: Mode, setup_seconds: float, load_seconds: float, input_seconds: float):
+        """Marginalize the active landmarks into the map, check that vision did something (H3), fill
+        the statistics; returns (map ids (K,), positions (K,3), covariances (K,3,3), step seconds (N,))."""
+        if not self.times:
+            raise InputError("no steps: nothing to estimate")
+        t0 = time.perf_counter()
+        self.ekf.finish()
+        stats = self.stats
+        stats.steps = len(self.times)
+        stats.wall_seconds = self.wall + time.perf_counter() - t0
+        stats.setup_seconds = setup_seconds
+        stats.load_seconds = load_seconds
+        stats.input_seconds = input_seconds
+        stats.sequence_seconds = self.times[-1] - self.times[0]
+        stats.active_landmarks_mean = self._active_sum / stats.steps
+        stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
+        if mode != Mode.DEAD_RECKONING:  # H3: a run meant to see that did not
+            message = vision_check(stats.observations, stats.observations_used, stats.observations_gated,
+                                   slam=mode == Mode.SLAM)
+            if message is not None:
+                self.ekf.health.report(message)
+        stats.health_messages = list(self.ekf.health.messages)
+        stats.seconds_bookkeeping = self.ekf.seconds_bookkeeping
+        stats.seconds_update -= self.ekf.seconds_bookkeeping
+        step_ms = 1e3 * np.array(self.step_seconds)
+        stats.step_ms_median, stats.step_ms_p99 = (float(x) for x in np.percentile(step_ms, [50, 99]))
+        stats.step_ms_max = float(step_ms.max())
+        map_ids, map_pos, map_cov = self.ekf.landmark_map()
+        stats.landmarks_mapped = int(map_ids.size)
+        return map_ids, map_pos, map_cov, step_ms / 1e3
+
+
 @dataclass
 class RunResult:
     time_stamps: np.ndarray  # (N,)
@@ -93,8 +161,16 @@ class RunResult:
     gyro_bias: np.ndarray  # (3,) final estimate
     stats: RunStats
     step_seconds: np.ndarray  # (N,) wall seconds of each step (predict + update)
-    decisions: Decisions  # what the run decided from the data
+    decisions: "Decisions | InertialDecisions"  # what the run decided from the data
     config: Config  # the configuration with the decided values (Decisions.config_for)
+    velocity: np.ndarray | None = None  # (N,3) m/s in the world frame: an inertial run's (``backend.run.inertial``)
+    gyro_biases: np.ndarray | None = None  # (N,3) rad/s at every step: an inertial run's
+    accel_biases: np.ndarray | None = None  # (N,3) m/s^2 at every step: an inertial run's
+
+    @property
+    def inertial(self) -> bool:
+        """A real IMU's run (velocity and biases per step), not a velocity run."""
+        return self.velocity is not None
 
     @property
     def conventions(self):
@@ -132,23 +208,20 @@ class OnlineRun:
         self.ekf = VisualInertialEKF(camera, decisions.imu_T_cam, config, ImuNoise(imu.linear_sigma, imu.angular_sigma),
                                      expected_landmarks=expected_landmarks)
         self.observer = observer
-        self.stats = RunStats(kernel_seconds=self.ekf.kernel_seconds)
+        self.book = RunBook(self.ekf)
+        self.stats = self.book.stats
         self._next = VELOCITY_INDEX_OFFSET[decisions.conventions.velocity_index] == 1
         self._offset = decisions.stereo_offset
         self._velocity = decisions.velocity
         self._R_cam_imu = np.asarray(decisions.imu_T_cam, dtype=float)[:3, :3].T
         self._policy = config.conventions.repeated_frames
         self._motion = MotionPrior(np.concatenate([imu.linear_sigma, imu.angular_sigma]))
-        self._t: list[float] = []
+        self._t = self.book.times
         self._poses: list[np.ndarray] = []
         self._pose_covariances: list[np.ndarray] = []
         self._dr_twists: list[np.ndarray] = []  # dead reckoning, composed in result()
         self._prev_sample = None  # (t, v, w) of the previous step
         self._prev_frame = None  # (ids, pixels) of the last step that was not a repeat, as given
-        self._active_sum = 0
-        self._nis_sum = 0.0
-        self._wall = 0.0
-        self._step_seconds: list[float] = []
 
     @property
     def num_steps(self) -> int:
@@ -188,14 +261,9 @@ class OnlineRun:
             self.observer(k, self.ekf, step_stats)
         if k:
             self._motion.add(self._poses[-1], self.ekf.world_T_imu, float(t) - self._t[-1], imu_velocity, repeated)
-        self._t.append(float(t))
         self._poses.append(self.ekf.world_T_imu.copy())
         self._pose_covariances.append(self.ekf.pose_covariance)
-        t2 = time.perf_counter()
-        self.stats.seconds_predict += t1 - t0
-        self.stats.seconds_update += t2 - t1
-        self._wall += t2 - t0
-        self._step_seconds.append(t2 - t0)
+        self.book.add_step(t, t1 - t0, time.perf_counter() - t1)
         return step_stats
 
     def _observe(self, ids: np.ndarray, pixels: np.ndarray, repeated: bool) -> Optional[StepStats]:
@@ -209,45 +277,13 @@ class OnlineRun:
                     self.ekf.finish()  # no track bridges a stalled camera
                 return None
         step_stats = self.ekf.update(ids, pixels)
-        stats.observations_used += step_stats.used
-        stats.observations_gated += step_stats.gated
-        stats.landmarks_initialized += step_stats.initialized
-        stats.landmarks_dropped += step_stats.dropped
-        stats.landmarks_reanchored += step_stats.reanchored
-        stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
-        self._active_sum += step_stats.active
-        self._nis_sum += step_stats.nis_sum
+        self.book.add_update(step_stats)
         return step_stats
 
     def result(self, setup_seconds: float = 0.0, load_seconds: float = 0.0, input_seconds: float = 0.0) -> RunResult:
         """Marginalize the active landmarks into the map; the run's trajectory, map and statistics."""
-        if not self._t:
-            raise InputError("no steps: nothing to estimate")
-        t0 = time.perf_counter()
-        self.ekf.finish()
-        stats = self.stats
-        stats.steps = len(self._t)
-        stats.wall_seconds = self._wall + time.perf_counter() - t0
-        stats.setup_seconds = setup_seconds
-        stats.load_seconds = load_seconds
-        stats.input_seconds = input_seconds
-        stats.sequence_seconds = self._t[-1] - self._t[0]
-        stats.active_landmarks_mean = self._active_sum / stats.steps
-        stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
-        mode = self.config.estimator.mode
-        if mode != Mode.DEAD_RECKONING:  # H3: a run meant to see that did not
-            message = vision_check(stats.observations, stats.observations_used, stats.observations_gated,
-                                   slam=mode == Mode.SLAM)
-            if message is not None:
-                self.ekf.health.report(message)
-        stats.health_messages = list(self.ekf.health.messages)
-        stats.seconds_bookkeeping = self.ekf.seconds_bookkeeping
-        stats.seconds_update -= self.ekf.seconds_bookkeeping
-        step_ms = 1e3 * np.array(self._step_seconds)
-        stats.step_ms_median, stats.step_ms_p99 = (float(x) for x in np.percentile(step_ms, [50, 99]))
-        stats.step_ms_max = float(step_ms.max())
-        map_ids, map_pos, map_cov = self.ekf.landmark_map()
-        stats.landmarks_mapped = int(map_ids.size)
+        map_ids, map_pos, map_cov, step_seconds = self.book.close(self.config.estimator.mode, setup_seconds,
+                                                                  load_seconds, input_seconds)
         return RunResult(
             time_stamps=np.array(self._t),
             world_T_imu=np.array(self._poses),
@@ -257,8 +293,8 @@ class OnlineRun:
             map_positions=map_pos,
             map_covariances=map_cov,
             gyro_bias=self.ekf.gyro_bias.copy(),
-            stats=stats,
-            step_seconds=step_ms / 1e3,
+            stats=self.stats,
+            step_seconds=step_seconds,
             decisions=self.decisions,
             config=self.config,
         )

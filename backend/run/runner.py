@@ -169,10 +169,17 @@ def run_sequence(
     say: Callable[[str], None] = _quiet,
 ) -> RunResult:
     """Run the filter over every step and every observation of ``seq``: :func:`decide` on the whole
-    sequence (unless ``decisions`` are given), then :func:`run_stream` over its steps."""
+    sequence (unless ``decisions`` are given), then :func:`run_stream` over its steps; an inertial
+    sequence (a real IMU's samples) goes to :func:`~vislam.backend.run.inertial.run_inertial`."""
     config = (config if config is not None else Config()).validate()
     if seq.num_steps < 2:
         raise InputError(f"{seq.source}: key 'time_stamps': need at least 2 steps, got {seq.num_steps}")
+    if seq.inertial:  # a real IMU's samples: the inertial state (backend.run.inertial)
+        if decisions is not None:
+            raise ValueError("run_sequence: decisions of a velocity run given for an inertial sequence")
+        from .inertial import run_inertial
+
+        return run_inertial(seq, config, load_seconds=load_seconds, progress=progress, observer=observer, say=say)
     setup = 0.0
     if decisions is None:
         with threadpool_limits(limits=config.execution.blas_threads):

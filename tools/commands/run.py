@@ -16,11 +16,16 @@ from .. import console, options
 
 def add_parser(sub) -> None:
     p = sub.add_parser("run", help="the filter on a feature file (.npz) or stereo images: trajectory, map, summary")
-    p.add_argument("data", help="feature + IMU file in the course .npz layout, a stereo image directory (with --imu) "
-                               "or a KITTI raw drive (..._sync/: IMU and ground truth from its oxts/)")
+    p.add_argument("data", help="feature + IMU file in the course .npz layout (IMU velocities or a real IMU's samples), "
+                               "a stereo image directory (with --imu), a KITTI raw drive (..._sync/: IMU and ground "
+                               "truth from its oxts/) or an EuRoC ASL folder (mav0/: raw stereo pairs, rectified, the "
+                               "IMU's samples, ground truth from state_groundtruth_estimate0/)")
     p.add_argument("--imu", help="with an odometry-layout image directory: IMU velocities (CSV t,vx,vy,vz,wx,wy,wz "
                                  "or a course .npz)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
+    p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
+                   help="a feature file with both IMU inputs (velocities and a real IMU's samples): which one to use "
+                        "(default: auto, which refuses such a file)")
     p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG "
                                                  "(left image on top with track tails, right image below with the stereo matches)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
@@ -68,13 +73,18 @@ def main(args: argparse.Namespace) -> int:
     with output_directory(args.out, args.force, OUTPUT_SPACE) as staging, _recorder(args) as recorder:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
-            drive = None
-            if images:
+            drive = euroc_truth = None
+            if images and _is_euroc(args.data):
+                (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
+            elif images:
                 (result, notes), gt, drive = _run_images(args, config, tracker, gt, say, recorder)
             else:
                 result, notes = _run_file(args, config, gt, say, recorder)
         if recorder is not None:
             recorder.log_result(result, gt[2] if gt else None)
+        if euroc_truth is not None:
+            write_tum(staging / GROUND_TRUTH, euroc_truth.times, euroc_truth.world_T_imu,
+                      header=f"world_T_imu from {euroc_truth.source} (EuRoC ground truth of the body = IMU frame)")
         if drive is not None:
             write_tum(staging / GROUND_TRUTH, drive.imu.time_stamps, drive.world_T_imu,
                       header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
@@ -84,7 +94,7 @@ def main(args: argparse.Namespace) -> int:
             from ...backend.data.tum import write_kitti_poses
 
             for name, poses in (("trajectory", result.world_T_imu), ("dead_reckoning", result.dead_reckoning)):
-                write_kitti_poses(staging / f"{name}_kitti.txt", poses, result.conventions.imu_T_cam)
+                write_kitti_poses(staging / f"{name}_kitti.txt", poses, result.decisions.imu_T_cam)
     if not args.quiet:
         print(format_summary(summary, out))
     print_health(summary)  # with --quiet too: nothing but errors and the warnings that say the result is not what was asked for
@@ -114,7 +124,7 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     from ...backend.run.runner import run_sequence
 
     t0 = time.perf_counter()
-    seq = load_sequence(args.data, image_size=config.input.image_size)  # bad input is refused before any waiting
+    seq = load_sequence(args.data, image_size=config.input.image_size, imu=args.imu_input)  # refused before any waiting
     load_seconds = time.perf_counter() - t0
     _check_ground_truth(gt, seq.time_stamps)
     if recorder is not None:
@@ -127,6 +137,48 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
         return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
                             observer=None if recorder is None else recorder.observer), list(seq.notes)
+
+
+def _is_euroc(path) -> bool:
+    from ...frontend.euroc import is_euroc
+
+    return is_euroc(path)
+
+
+def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
+    """An EuRoC ASL folder: every pair rectified and tracked (``frontend.track.track_euroc``), then the
+    filter with the inertial state over the sequence. Returns ((result, notes), ground truth, the
+    folder's ground truth or None): without ``--gt`` its state_groundtruth_estimate0 is the ground truth."""
+    from ...backend.run.runner import run_sequence
+    from ...frontend.euroc import read_euroc
+    from ...frontend.track import track_euroc
+
+    if args.imu or args.imu_T_cam:
+        raise InputError(f"{args.data}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
+                         "carries its IMU and calibration")
+    t0 = time.perf_counter()
+    data = read_euroc(args.data)
+    truth = data.ground_truth if gt is None else None
+    if truth is not None:
+        gt = (truth.source, truth.times, truth.world_T_imu)
+    notes = list(data.notes)
+    say(f"vislam run {args.data}: EuRoC, {len(data.frames)} stereo pairs ({data.rectification.size[0]}x"
+        f"{data.rectification.size[1]}, rectified: fx {data.K[0, 0]:.1f} px, baseline {data.baseline:.4f} m), "
+        f"{data.imu.samples.num_samples} IMU samples at {data.imu.samples.rate_hz:.0f} Hz"
+        + (f"; ground truth {truth.source}" if truth is not None else ""))
+    for note in notes:
+        say(f"note: {note}")
+    say(console.configuration_text(args.verbose, config))
+    with console.progress_bar(len(data.frames), "track", "frame", console.progress_off(args)) as progress:
+        seq = track_euroc(data, tracker, progress, args.draw)
+    load_seconds = time.perf_counter() - t0
+    _check_ground_truth(gt, seq.time_stamps)
+    if recorder is not None:
+        recorder.time_stamps = seq.time_stamps
+    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
+        result = run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
+                              observer=None if recorder is None else recorder.observer)
+    return (result, notes), gt, truth
 
 
 def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):

@@ -21,10 +21,16 @@ def add_parser(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        epilog="track-error options for --errors, KEY (default): meaning\n  "
                               + "\n  ".join(TrackErrors.help_lines()))
-    p.add_argument("--scenario", choices=["street", "aerial"], default="street")
-    p.add_argument("--steps", type=int, default=500)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True)
+    p.add_argument("--scenario", choices=["street", "aerial", "room"], default=None,
+                   help="street or aerial (body velocities), room or street with --imu inertial (default: street)")
+    p.add_argument("--steps", type=int, default=500, help="steps of a velocity scene (default: 500)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory and the points (default: 0)")
+    p.add_argument("--imu", choices=["velocity", "inertial"], default="velocity",
+                   help="velocity: body velocities per step (the course layout); inertial: a real IMU's samples "
+                        "(200 Hz ADIS16448-like, random-walk biases, 2 s at rest at the start; 20 Hz tracks at 0.5 px, "
+                        "2 %% outliers) in the inertial layout (default: velocity)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds of an inertial scene (default: 60)")
+    p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--force", action="store_true")
     p.add_argument("--render", action="store_true", help="also render rectified stereo images (KITTI odometry layout)")
     p.add_argument("--track-errors", dest="track_errors", choices=sorted(PRESETS), default="none",
@@ -46,6 +52,12 @@ def track_errors(args: argparse.Namespace) -> TrackErrors:
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ...synth.scene import SceneConfig, check_scene_size, make_scene, write_scene
+
+    if args.imu == "inertial":
+        return _inertial(args)
+    args.scenario = args.scenario or "street"
+    if args.scenario == "room":
+        raise VislamError("--scenario room: a scene with a real IMU's samples: add --imu inertial")
 
     if args.render and args.scenario != "street":
         raise VislamError("--render: only the street scenario has a textured world so far")
@@ -97,3 +109,33 @@ def track_error_summary(scene) -> str:
              f"disparity offset {facts['disparity_offset_px']:g} px",
              f"jitter rms {facts['jitter_rms']['rotation_rad']:.2g} rad, {facts['jitter_rms']['translation_m']:.2g} m"]
     return "; ".join(parts)
+
+
+#: The longest inertial scene (s): 200 Hz samples and 20 Hz tracks of an hour are about 1 GB
+MAX_INERTIAL_SECONDS = 3600.0
+
+
+def _inertial(args: argparse.Namespace) -> int:
+    """``--imu inertial``: a flight (room) or drive (street) with a real IMU's samples (``synth.inertial_scene``)."""
+    from ...backend.data.files import output_directory
+    from ...synth.inertial_scene import InertialSceneConfig, make_inertial_scene, write_inertial_scene
+
+    scenario = args.scenario or "room"
+    if scenario == "aerial":
+        raise VislamError("--imu inertial: scenarios room and street (aerial has body velocities only)")
+    if args.render or args.track_errors != "none" or args.errors:
+        raise VislamError("--imu inertial: no --render, --track-errors or --errors yet (white pixel noise and outliers)")
+    if not 4.0 <= args.duration <= MAX_INERTIAL_SECONDS:
+        raise VislamError(f"--duration {args.duration:g}: an inertial scene lasts 4 to {MAX_INERTIAL_SECONDS:g} s "
+                          "(2 s at rest, then the motion)")
+    config = InertialSceneConfig(scenario=scenario, duration=args.duration, seed=args.seed)
+    with output_directory(args.out, args.force) as staging:
+        scene = make_inertial_scene(config)
+        write_inertial_scene(scene, staging)
+    seq = scene.sequence
+    if not args.quiet:
+        print(f"{scenario} scene with a real IMU, seed {args.seed}: {seq.num_steps} frames at {config.frame_rate:g} Hz, "
+              f"{seq.imu.num_samples} IMU samples at {config.imu_rate:g} Hz, {seq.num_observations} observations of "
+              f"{seq.num_features} tracks; wrote data.npz (inertial layout), gt_tum.txt, gt_states.npz, landmarks.npz "
+              f"to {args.out}/")
+    return 0

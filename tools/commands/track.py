@@ -11,8 +11,9 @@ from .. import console, options
 def add_parser(sub) -> None:
     p = sub.add_parser("track", help="stereo images (KITTI odometry layout + IMU, or a KITTI raw drive) -> "
                                      "observations in the course .npz layout")
-    p.add_argument("images", help="directory with image_0/, image_1/, calib.txt, times.txt; or a KITTI raw drive "
-                                  "DATE/DATE_drive_NNNN_sync/ (image_00/, image_01/, oxts/; calibration in DATE/)")
+    p.add_argument("images", help="directory with image_0/, image_1/, calib.txt, times.txt; a KITTI raw drive "
+                                  "DATE/DATE_drive_NNNN_sync/ (image_00/, image_01/, oxts/; calibration in DATE/); or an "
+                                  "EuRoC ASL folder mav0/ (written in the inertial layout: the IMU's samples)")
     p.add_argument("--imu", help="IMU velocities: CSV t,vx,vy,vz,wx,wy,wz or a course .npz (frame i = step i); "
                                  "needed with the odometry layout (a raw drive has its oxts/)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="4x4 text imu_T_cam (needed with a CSV)")
@@ -32,6 +33,10 @@ def main(args: argparse.Namespace) -> int:
 
     out = check_output_file(args.out, overwrite=args.force)  # refused before any work
     config = options.tracker_config(args, only=True)
+    from ...frontend.euroc import is_euroc
+
+    if is_euroc(args.images):
+        return _track_euroc(args, config, out)
     directory, imu, _ = open_tracking_input(args.images, args.imu, args.imu_T_cam, config, args.draw)
     say = console.sayer(args.quiet)
     for note in imu.notes:
@@ -44,4 +49,29 @@ def main(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
               f"({per_frame:.0f} per frame); wrote {out}")
+    return 0
+
+
+def _track_euroc(args: argparse.Namespace, config, out) -> int:
+    """An EuRoC ASL folder -> the inertial layout (rectified pairs' tracks, the IMU's samples)."""
+    from ...backend.data.npz import save_sequence
+    from ...backend.errors import InputError
+    from ...frontend.euroc import read_euroc
+    from ...frontend.track import track_euroc
+
+    if args.imu or args.imu_T_cam:
+        raise InputError(f"{args.images}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
+                         "carries its IMU and calibration")
+    data = read_euroc(args.images)
+    say = console.sayer(args.quiet)
+    for note in data.notes:
+        say(f"note: {note}")
+    say(console.configuration_text(args.verbose, config))
+    with console.progress_bar(len(data.frames), "track", "frame", console.progress_off(args)) as progress:
+        seq = track_euroc(data, config, progress, args.draw)
+    save_sequence(seq, out)
+    if not args.quiet:
+        print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
+              f"({seq.num_observations / seq.num_steps:.0f} per frame), {seq.imu.num_samples} IMU samples; "
+              f"wrote {out} (inertial layout)")
     return 0
