@@ -67,7 +67,7 @@ class InertialSceneConfig:
     imu_rate: float = 200.0  # Hz
     frame_rate: float = 20.0  # Hz
     noise: ImuNoiseDensities = ADIS16448
-    start_at_rest: float = 2.0  # s
+    start_at_rest: float | None = 2.0  # s at rest before the motion; None: moving from the first sample
     pixel_sigma: float = 0.5  # px
     outlier_share: float = 0.02
     points: int = 600  # room: points on its faces; street: the density factor is points / 600
@@ -79,7 +79,7 @@ class InertialSceneConfig:
     def __post_init__(self) -> None:
         if self.scenario not in INERTIAL_SCENARIOS:
             raise ValueError(f"scenario must be one of {INERTIAL_SCENARIOS}, got {self.scenario!r}")
-        if not (self.duration > self.start_at_rest + 1.0 and self.imu_rate > self.frame_rate > 0):
+        if not (self.duration > (self.start_at_rest or 0.0) + 1.0 and self.imu_rate > self.frame_rate > 0):
             raise ValueError("need duration > start_at_rest + 1 s and imu_rate > frame_rate > 0")
 
 
@@ -110,13 +110,13 @@ def make_inertial_scene(config: InertialSceneConfig | None = None, noise_seed: i
     times = frame_times(samples, cfg.frame_rate)
     frames = frame_truth(traj, times)
     calib = cfg.calibration or (vi_sensor_calibration() if cfg.scenario == "room" else kitti_calibration())
-    if cfg.scenario == "room":
-        points, max_depth = room_points(seed, cfg.points), 12.0
+    if cfg.scenario == "room":  # the walls from 0.5 m (a camera nearer than that sees a blur)
+        points, min_depth, max_depth = room_points(seed, cfg.points), 0.5, 12.0
     else:
         points = street_landmarks(frames.world_T_imu, generator(seed, "landmarks"), density=cfg.points / 600.0)
-        max_depth = 60.0
+        min_depth, max_depth = 2.0, 60.0
     obs = observe(frames.world_T_imu, points, calib, pixel_sigma=cfg.pixel_sigma, outlier_share=cfg.outlier_share,
-                  mean_track_length=cfg.mean_track_length, min_depth=0.3, max_depth=max_depth, seed=noise_seed)
+                  mean_track_length=cfg.mean_track_length, min_depth=min_depth, max_depth=max_depth, seed=noise_seed)
     idx = np.clip(np.searchsorted(truth.time_stamps, times), 0, truth.time_stamps.size - 1)
     sequence = Sequence(
         time_stamps=np.asarray(times, dtype=float), linear_velocity=None, angular_velocity=None,

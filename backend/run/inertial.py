@@ -3,13 +3,14 @@
 :func:`decide_inertial` makes one frozen :class:`InertialDecisions` from an inertial
 :class:`~vislam.backend.data.sequence.Sequence` (``sequence.imu`` holds the samples):
 
-- the start (Z1-Z5 of ``backend.run.initialization``): the IMU at rest over the first second
-  after the first frame gives gravity, the gyro bias and the samples' noise with the rig's
-  vibration; a recording that starts in motion is refused (initialization from vision in motion
-  is not available);
+- the start (``backend.run.initialization``): the IMU at rest over the first second after the
+  first frame gives gravity, the gyro bias and the samples' noise with the rig's vibration (Z1-Z5);
+  else, in motion, vision's poses of the first second against the IMU give the gyro bias, gravity
+  and the velocity (M1-M4); a start neither can make is refused;
 - the IMU's noise densities: for each sensor the larger of the file's (a Kalibr-style datasheet
-  value) and the one measured at rest, since a running rig's vibration is in the samples but not
-  in a datasheet (EuRoC V1_01: datasheet 1.7e-4 rad/s/sqrt(Hz) and 2.0e-3 m/s^2/sqrt(Hz), at rest
+  value) and the one measured (at rest; started in motion, the white noise of the whole record from
+  second differences, N1 of ``backend.run.noise``: 3.1e-3 and 8.3e-2 on EuRoC V1_01), since a
+  running rig's vibration is in the samples but not in a datasheet (EuRoC V1_01: datasheet 1.7e-4 rad/s/sqrt(Hz) and 2.0e-3 m/s^2/sqrt(Hz), at rest
   3.5e-3 and 4.6e-2; 1 s of propagation from the ground truth misses by 2.3 cm, NEES 298 with the
   datasheet's, 0.75 with the measured ones: ``benchmarks/inertial.py``); the random walks from the
   file, else the ADIS16448's, said so;
@@ -40,9 +41,10 @@ from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
 from ..estimator.inertial import STANDARD_GRAVITY, InertialMean, InertialStart, propagate
 from ..geometry.camera import StereoCamera
-from .initialization import Initialization, initialize_at_rest
+from .initialization import (Initialization, RestOptions, initialize_at_rest, initialize_in_motion, rest_test,
+                             vision_motion)
 from .decisions import NOISE_MIN_POINTS, PAIRS_GAP1
-from .noise import gap_statistics, pixel_noise
+from .noise import estimate_white_noise, gap_statistics, pixel_noise
 from .two_view import fit_pairs
 from .online import RunBook, RunResult
 
@@ -93,7 +95,13 @@ def _noise(imu: ImuSamples, init: Initialization) -> tuple[ImuNoiseDensities, st
     """The densities used (module docstring) and where each came from."""
     file = imu.noise
     m = init.measured
-    g_rest, a_rest = m["gyroscope_density_at_rest"], m["accelerometer_density_at_rest"]
+    if init.at_rest:
+        g_rest, a_rest, where = m["gyroscope_density_at_rest"], m["accelerometer_density_at_rest"], "measured at rest"
+    else:  # (N1) the white noise of the whole record, from second differences
+        root_dt = np.sqrt(float(np.median(np.diff(imu.time_stamps))))
+        g_rest = float(np.sqrt(np.mean(estimate_white_noise(imu.angular_velocity) ** 2))) * root_dt
+        a_rest = float(np.sqrt(np.mean(estimate_white_noise(imu.linear_acceleration) ** 2))) * root_dt
+        where = "the samples' white noise (N1)"
     walks = file if file is not None else ADIS16448
     g_file = file.gyroscope_noise_density if file is not None else 0.0
     a_file = file.accelerometer_noise_density if file is not None else 0.0
@@ -101,26 +109,33 @@ def _noise(imu: ImuSamples, init: Initialization) -> tuple[ImuNoiseDensities, st
     said = []
     for name, used, given, rest in (("gyroscope", gyro, g_file, g_rest), ("accelerometer", accel, a_file, a_rest)):
         if file is None:
-            said.append(f"{name} measured at rest")
+            said.append(f"{name} {where}")
         elif used == given:
-            said.append(f"{name} from the file (at rest {rest:.3g})")
+            said.append(f"{name} from the file ({where} {rest:.3g})")
         else:
-            said.append(f"{name} measured at rest, {rest / given:.1f}x the file's {given:.3g}")
+            said.append(f"{name} {where}, {rest / given:.1f}x the file's {given:.3g}")
     said.append("random walks from the file" if file is not None else f"random walks: {ADIS16448.source}, none given")
     return (ImuNoiseDensities(accel, walks.accelerometer_random_walk, gyro, walks.gyroscope_random_walk,
                               source="decided"), "; ".join(said))
 
 
 def decide_inertial(seq: Sequence, config: Config) -> InertialDecisions:
-    """(module docstring) from the inertial sequence ``seq``; InputError when it does not start at rest."""
+    """(module docstring) from the inertial sequence ``seq``; InputError when it can start neither at rest nor in
+    motion."""
     if seq.imu is None:
         raise ValueError("decide_inertial needs an inertial sequence (sequence.imu)")
     gravity = np.array([0.0, 0.0, -STANDARD_GRAVITY])
-    init = initialize_at_rest(seq.imu, float(seq.time_stamps[0]), gravity, seq.imu.noise)
-    if not init.at_rest:
-        raise InputError(f"{seq.source}: key 'imu_time_stamps': the IMU is not at rest after the first frame "
-                         f"({init.reason}); the inertial state starts from rest (gravity and gyro bias from the IMU); "
-                         "starting in motion is not available: start the recording at rest")
+    rest = RestOptions()
+    t0 = float(seq.time_stamps[0])
+    still = rest_test(seq.imu, t0, rest.window)
+    seen = vision_motion(seq, rest.window, still.get("gyro_mean", np.zeros(3)))
+    init = initialize_at_rest(seq.imu, t0, gravity, seq.imu.noise, rest, seen)
+    if not init.ok:
+        rest = init.reason
+        init = initialize_in_motion(seq, gravity, seq.imu.noise)
+        if not init.ok:
+            raise InputError(f"{seq.source}: key 'features': the inertial state cannot start: not at rest after the "
+                             f"first frame ({rest}), and in motion {init.reason}")
     noise, reason = _noise(seq.imu, init)
     fits = {1: fit_pairs(seq, 1, PAIRS_GAP1, offset=True, min_points=NOISE_MIN_POINTS)}
     pixels = pixel_noise(seq, gap_statistics(fits), 1, config.noise.pixel_sigma)

@@ -1,4 +1,5 @@
-"""The inertial state at the first frame, from the IMU at rest (Z1-Z4).
+"""The inertial state at the first frame: from the IMU at rest (Z1-Z5), or in motion from vision and
+the IMU together (M1-M4).
 
 At rest (v = 0, R constant) the samples of the first ``window`` seconds measure
 
@@ -9,10 +10,14 @@ world frame is gravity-aligned with the first pose at the origin and no yaw: its
 mean specific force's direction, its x axis the IMU's x axis projected on the horizontal plane
 (any other yaw would do: it is unobservable).                                                     (Z2)
 
-Rest is decided from the samples alone, by how far attitude and velocity wander: the integrals
-of (w_m - mean) and (a_m - mean) over the window stay under ``max_attitude_wander_deg`` and
+Rest is decided from the samples, by how far attitude and velocity wander: the integrals of
+(w_m - mean) and (a_m - mean) over the window stay under ``max_attitude_wander_deg`` and
 ``max_velocity_wander`` (a vibrating rig at rest: EuRoC's before take-off wanders 0.06-0.19 deg
-and 0.01-0.04 m/s in 1 s; hovering or turning, 1-5 deg).                                         (Z3)
+and 0.01-0.04 m/s in 1 s; hovering or turning, 1-5 deg); and, since an IMU cannot tell rest from
+a constant velocity, from the images: the camera moves less than ``max_vision_translation`` and
+turns less than ``max_attitude_wander_deg`` between the first frame and the last of the window
+(a two-view fit, D2 of ``backend.run.two_view``: :func:`vision_motion`; EuRoC's before take-off:
+3-5 mm, the tracks 0.4-1.2 px; a car at 8 m/s: 8 m).                                              (Z3)
 
 The accelerometer bias's horizontal part cannot be told from a tilt at rest: a bias b tilts the
 estimate by |b_horizontal| / g. The covariance says so: with the bias prior sigma_ba0 per axis,
@@ -26,6 +31,7 @@ wander (Z3), the gyro bias at the standard error of its mean.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,7 +39,8 @@ import numpy as np
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..estimator.inertial import BA, BG, CORE_INERTIAL, NU, PHI, RHO, InertialMean
 
-__all__ = ["RestOptions", "Initialization", "initialize_at_rest", "rest_test"]
+__all__ = ["RestOptions", "Initialization", "initialize_at_rest", "rest_test", "vision_motion", "MotionOptions",
+           "initialize_in_motion", "initialize_in_motion_over"]
 
 
 @dataclass(frozen=True)
@@ -44,6 +51,7 @@ class RestOptions:
     min_window: float = 0.2  # fewer seconds than this: not tested
     max_attitude_wander_deg: float = 0.5  # Z3
     max_velocity_wander: float = 0.1  # m/s, Z3
+    max_vision_translation: float = 0.02  # m, Z3: the camera's motion over the window seen by vision
     accel_bias_sigma0: float = 0.1  # m/s^2 per axis: the prior of the accelerometer bias (Z4)
     min_velocity_sigma0: float = 1e-3  # m/s: the velocity at rest is known to its measured wander (Z3), at least this
     pose_sigma0: float = 1e-6  # position (m) and yaw (rad): the frame is defined by the first pose
@@ -51,20 +59,36 @@ class RestOptions:
 
 @dataclass(frozen=True)
 class Initialization:
-    """How the inertial state started and what was found; ``mean`` and ``covariance`` (15,15) of
-    the core error state (J1) when ``at_rest``."""
+    """How the inertial state started (``how``: "at rest", Z1-Z5, or "in motion", M1-M4) and what was
+    found; ``mean`` and ``covariance`` (15,15) of the core error state (J1) when ``ok``, else the
+    ``reason``."""
 
-    at_rest: bool
+    ok: bool
     reason: str
     mean: InertialMean | None = None
     covariance: np.ndarray | None = None
     measured: dict = field(default_factory=dict)
+    how: str = "at rest"
+
+    @property
+    def at_rest(self) -> bool:
+        """Started at rest (Z1-Z5)."""
+        return self.ok and self.how == "at rest"
 
     def describe(self) -> str:
         m = self.measured
-        if not self.at_rest:
-            return f"inertial initialization: not at rest ({self.reason})"
+        if not self.ok:
+            return f"inertial initialization: not {self.how} ({self.reason})"
         g = np.asarray(m["gravity_in_imu"])
+        if self.how == "in motion":
+            v = np.asarray(m["velocity"])
+            return (f"inertial initialization: in motion from {m['frames']} frames over {m['window_s']:.2f} s (vision's "
+                    f"poses against the IMU: rotation residual {m['rotation_residual_deg']:.3f} deg, gravity fitted "
+                    f"{m['gravity_fit_norm']:.3f} m/s^2 long); gravity in the IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, "
+                    f"{g[2]:+.4f}]; velocity [{v[0]:+.3f}, {v[1]:+.3f}, {v[2]:+.3f}] m/s; gyro bias "
+                    f"[{', '.join(f'{x:+.5f}' for x in m['gyro_bias'])}] rad/s; roll and pitch +- "
+                    f"{m['tilt_sigma_deg']:.2f} deg (the fit's and an accelerometer bias of "
+                    f"{m['accel_bias_sigma0']:g} m/s^2)")
         return (f"inertial initialization: at rest over {m['window_s']:.2f} s ({m['samples']} samples; attitude wander "
                 f"{m['attitude_wander_deg']:.2f} deg, velocity wander {m['velocity_wander']:.3f} m/s); gravity in the "
                 f"IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, {g[2]:+.4f}], |specific force| {m['specific_force']:.4f} m/s^2; "
@@ -73,7 +97,7 @@ class Initialization:
                 "told from a tilt at rest)")
 
     def as_dict(self) -> dict:
-        return {"at_rest": self.at_rest, "reason": self.reason,
+        return {"how": self.how, "ok": self.ok, "reason": self.reason,
                 **{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in self.measured.items()}}
 
 
@@ -99,6 +123,68 @@ def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
     return out
 
 
+def _imu_rotations(imu: ImuSamples, times: np.ndarray, gyro_bias: np.ndarray) -> np.ndarray:
+    """The gyro's rotations I0_R_Ik (K,3,3) at ``times`` (K,) from the first, with ``gyro_bias`` removed (J3)."""
+    from ..estimator.inertial import _GL_W, _GL_X, integrate_kernel, interval_knots
+
+    R, out = np.eye(3), [np.eye(3)]
+    for a, b in zip(times[:-1], times[1:]):
+        knots, acc, gyr = interval_knots(imu, a, b)
+        R, _, _, _, _ = integrate_kernel(R, np.zeros(3), np.zeros(3), gyro_bias, np.zeros(3), knots, acc, gyr,
+                                         np.zeros(3), np.zeros(12), _GL_X, _GL_W)
+        out.append(R)
+    return np.array(out)
+
+
+def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
+    """The two-view fit (D2) of frames a and b, started from the gyro's rotation ``Ia_R_Ib`` (3,3) and a
+    robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
+    mismatches, which an undamped fit can follow even from the right answer, left out); None when
+    fewer than ``min_points`` remain or the fit fails."""
+    from .two_view import MIN_DISPARITY, fit_pair
+
+    K = seq.K
+    cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
+    R_ic = np.asarray(seq.imu_T_cam, dtype=float)[:3, :3]
+    ia, za = seq.observations(a)
+    ib, zb = seq.observations(b)
+    _, i, j = np.intersect1d(ia, ib, return_indices=True)
+    near = (za[i, 0] - za[i, 2] > MIN_DISPARITY) & (zb[j, 0] - zb[j, 2] > MIN_DISPARITY)
+    i, j = i[near], j[near]
+    if i.size < min_points:
+        return None
+    guess, agree = _motion_guess(za[i], zb[j], cam, R_ic.T @ Ia_R_Ib.T @ R_ic)
+    if agree.sum() < min_points:
+        return None
+    return fit_pair(za[i[agree]], zb[j[agree]], cam, min_points=min_points, step=a, gap=b - a, initial=guess)
+
+
+def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> tuple[float, float] | None:
+    """(Z3) (translation m, rotation deg) of the camera between the first frame and the last one of the
+    first ``window`` seconds: the two-view fit of the two (D2, started from the gyro's rotation with
+    ``gyro_bias`` removed), or where too few tracks last that long, the fits of successive frames
+    composed (their errors telescope: each frame's pixel noise enters two fits with opposite signs);
+    None when neither can be fitted."""
+    from ..geometry import se3
+
+    t = seq.time_stamps
+    last = int(np.searchsorted(t, t[0] + window, side="right")) - 1
+    if last < 1:
+        return None
+    R = _imu_rotations(seq.imu, t[:last + 1], gyro_bias)
+    direct = _fit_frames(seq, 0, last, R[last])
+    if direct is not None:
+        T = direct.b_T_a
+    else:
+        T = np.eye(4)
+        for k in range(1, last + 1):
+            step = _fit_frames(seq, k - 1, k, R[k - 1].T @ R[k])
+            if step is None:
+                return None
+            T = step.b_T_a @ T
+    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.linalg.norm(se3.log_so3(T[:3, :3]))))
+
+
 def gravity_aligned_rotation(up_in_imu: np.ndarray) -> np.ndarray:
     """(Z2) world_R_imu (3,3) whose world z is ``up_in_imu`` (3,) and whose yaw is zero (the IMU's x
     axis projected on the horizontal plane is the world's x; its y axis when x points up)."""
@@ -111,10 +197,21 @@ def gravity_aligned_rotation(up_in_imu: np.ndarray) -> np.ndarray:
 
 
 def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: ImuNoiseDensities | None = None,
-                       options: RestOptions = RestOptions()) -> Initialization:
-    """(Z1-Z4) the inertial state at ``t0`` (the first frame) if the IMU is at rest over the window
-    after it; else an :class:`Initialization` with ``at_rest`` False and the reason."""
+                       options: RestOptions = RestOptions(), seen=False) -> Initialization:
+    """(Z1-Z5) the inertial state at ``t0`` (the first frame) if the IMU is at rest over the window
+    after it and vision agrees: ``seen`` is :func:`vision_motion` of the window ((translation m,
+    rotation deg), None where it could not be fitted, False: no images); else an
+    :class:`Initialization` with ``at_rest`` False and the reason."""
     m = rest_test(imu, t0, options.window)
+    if seen is not False:
+        if seen is None:
+            return Initialization(False, "vision cannot fit the first frame to the last of the first "
+                                         f"{options.window:g} s (the scene changed)", measured=m)
+        m["vision_translation"], m["vision_rotation_deg"] = seen
+        if seen[0] > options.max_vision_translation or seen[1] > options.max_attitude_wander_deg:
+            return Initialization(False, f"vision sees the camera move {seen[0]:.3f} m and turn {seen[1]:.2f} deg in "
+                                         f"the first {options.window:g} s (at most {options.max_vision_translation:g} "
+                                         f"m, {options.max_attitude_wander_deg:g} deg)", measured=m)
     if m.get("window_s", 0.0) < options.min_window or "gyro_mean" not in m:
         return Initialization(False, f"{m.get('window_s', 0.0):.2f} s of IMU after the first frame, "
                                      f"{options.min_window:g} s needed", measured=m)
@@ -130,7 +227,8 @@ def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: I
     mean = InertialMean(T, np.zeros(3), m["gyro_mean"].copy(), np.zeros(3))
     P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
     P[RHO, RHO] = np.eye(3) * options.pose_sigma0**2
-    P[NU, NU] = np.eye(3) * max(m["velocity_wander"], options.min_velocity_sigma0) ** 2
+    moved = m.get("vision_translation", 0.0) / max(m["window_s"], 1e-9)  # a velocity vision allows
+    P[NU, NU] = np.eye(3) * max(m["velocity_wander"], moved, options.min_velocity_sigma0) ** 2
     se = m["gyro_se"]
     if noise is not None:  # the white noise's share when the vibration is smaller than it (never on a real rig)
         se = np.maximum(se, noise.gyroscope_noise_density / np.sqrt(max(m["window_s"], 1e-9)))
@@ -149,3 +247,235 @@ def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: I
              specific_force=float(np.linalg.norm(m["accel_mean"])), gyro_bias=m["gyro_mean"],
              tilt_sigma_deg=float(np.degrees(options.accel_bias_sigma0 / g)), accel_bias_sigma0=options.accel_bias_sigma0)
     return Initialization(True, "", mean, 0.5 * (P + P.T), m)
+
+
+# ------------------------------------------------------------------------------------------ in motion
+@dataclass(frozen=True)
+class MotionOptions:
+    """Options of the initialization in motion (M1-M4)."""
+
+    window: float = 1.0  # seconds of frames after the first one
+    min_frames: int = 5  # at least this many frame pairs chained
+    min_points: int = 12  # points of a two-view fit
+    accel_bias_sigma0: float = 0.1  # m/s^2 per axis: the accelerometer bias prior (it fakes gravity: Z4)
+    pose_sigma0: float = 1e-6  # position (m) and yaw (rad) of the first pose: it defines the frame
+    max_gravity_misfit: float = 0.1  # refuse when the fitted gravity's length is off by more than this share
+    max_rotation_residual_deg: float = 0.5  # ... or vision's rotations and the gyro's differ by more (RMS)
+    max_tilt_sigma_deg: float = 2.0  # a longer window while gravity's direction is more uncertain than this
+
+
+def _motion_guess(za: np.ndarray, zb: np.ndarray, cam, b_R_a: np.ndarray, inlier_px: float = 10.0):
+    """(a camera motion b_T_a (4,4) to start a two-view fit from, the matches (n,) bool it agrees with):
+    for motions too large to start from none. The rotation ``b_R_a`` (3,3) is the gyro's; the
+    translation the weighted median over the matched stereo points of Pb - b_R_a Pa per axis (weights
+    disparity^4, a triangulated depth's inverse variance); the points of frame a it moves within
+    ``inlier_px`` of their pixels in frame b (uL, vL, uR) are the matches kept (gross mismatches, which
+    an undamped fit from a good start can still follow, are left out)."""
+    fx, fy, cx, cy, b = cam
+
+    def points(z):
+        d = z[:, 0] - z[:, 2]
+        depth = fx * b / np.where(d > 0, d, np.nan)
+        return np.stack([(z[:, 0] - cx) / fx * depth, (z[:, 1] - cy) / fy * depth, depth], axis=1), d
+
+    (Pa, da), (Pb, db) = points(za), points(zb)
+    ok = np.isfinite(Pa).all(axis=1) & np.isfinite(Pb).all(axis=1)
+    T = np.eye(4)
+    T[:3, :3] = b_R_a
+    if ok.sum() < 3:
+        return T, ok
+    t = Pb[ok] - Pa[ok] @ b_R_a.T
+    w = np.minimum(da[ok], db[ok]) ** 4
+    for axis in range(3):
+        order = np.argsort(t[:, axis])
+        cum = np.cumsum(w[order])
+        T[axis, 3] = t[order[np.searchsorted(cum, 0.5 * cum[-1])], axis]
+    q = Pa @ b_R_a.T + T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iz = 1.0 / q[:, 2]
+        err = np.maximum.reduce([np.abs(fx * q[:, 0] * iz + cx - zb[:, 0]), np.abs(fy * q[:, 1] * iz + cy - zb[:, 1]),
+                                 np.abs(fx * (q[:, 0] - b) * iz + cx - zb[:, 2])])
+    return T, ok & (q[:, 2] > 0) & (err <= inlier_px)
+
+
+def _chain_vision(seq, frames: range, min_points: int, imu_rotations: np.ndarray, max_skip: int = 3):
+    """(M1) the frames chained (a list of indices, the first one first), the IMU poses I0_T_Ik (K,4,4)
+    of those frames relative to the first and the covariance (K,6,6) of each position-and-rotation
+    (summed along the chain), from two-view fits of successive frames (:func:`_fit_frames`; stereo
+    gives the metric scale), each started from the gyro's rotation ``imu_rotations`` (one per frame of
+    ``frames``, I0_R_Ik); a frame that cannot be fitted to the last chained one is skipped (at most
+    ``max_skip`` in a row); (None, None, None) when the chain breaks."""
+    imu_T_cam = np.asarray(seq.imu_T_cam, dtype=float)
+    cam_T_imu = np.linalg.inv(imu_T_cam)
+    R_ic = imu_T_cam[:3, :3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3], Ad[3:, 3:] = R_ic, R_ic
+    used, poses, covs = [frames[0]], [np.eye(4)], [np.zeros((6, 6))]
+    a = frames[0]
+    while a < frames[-1]:
+        fit = None
+        for b in range(a + 1, min(a + 1 + max_skip, frames[-1] + 1)):
+            fit = _fit_frames(seq, a, b, imu_rotations[a - frames[0]].T @ imu_rotations[b - frames[0]], min_points)
+            if fit is not None:
+                break
+        if fit is None:
+            return None, None, None
+        step = imu_T_cam @ np.linalg.inv(fit.b_T_a) @ cam_T_imu  # Ia_T_Ib
+        Rw = poses[-1][:3, :3]
+        Aw = np.zeros((6, 6))
+        Aw[:3, :3], Aw[3:, 3:] = Rw, Rw
+        covs.append(covs[-1] + Aw @ Ad @ fit.motion_covariance @ Ad.T @ Aw.T)
+        poses.append(poses[-1] @ step)
+        used.append(b)
+        a = b
+    return used, np.array(poses), np.array(covs)
+
+
+def initialize_in_motion(seq, gravity: np.ndarray, noise: ImuNoiseDensities | None = None,
+                         options: MotionOptions = MotionOptions()) -> Initialization:
+    """:func:`initialize_in_motion_over` the first ``options.window`` seconds, then twice and three times
+    that while gravity's direction stays more uncertain than ``options.max_tilt_sigma_deg`` (a fast,
+    straight start: vision's positions over 1 s barely tell gravity from a velocity); the last try's
+    outcome, refused (``ok`` False) if still too uncertain: a filter started that far from the truth
+    would not be consistent."""
+    out = None
+    for factor in (1.0, 2.0, 3.0):
+        out = initialize_in_motion_over(seq, gravity, noise, dataclasses.replace(options, window=factor * options.window))
+        if out.ok and out.measured["tilt_sigma_deg"] <= options.max_tilt_sigma_deg:
+            return out
+        if not out.ok and "frames," in out.reason:  # the sequence is too short for a longer window
+            break
+    if out.ok:
+        return Initialization(False, f"gravity's direction stays uncertain by +- {out.measured['tilt_sigma_deg']:.1f} deg "
+                                     f"over {out.measured['window_s']:.1f} s of frames (at most "
+                                     f"{options.max_tilt_sigma_deg:g})", measured=out.measured, how="in motion")
+    return out
+
+
+def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities | None = None,
+                              options: MotionOptions = MotionOptions()) -> Initialization:
+    """The inertial state at the first frame of the inertial sequence ``seq`` while it moves:
+
+    (M1) vision: the IMU poses I0_T_Ik of the frames of the first ``window`` seconds, chained from
+    two-view fits of consecutive frames (metric from stereo);
+    (M2) the gyro bias b_g: Gauss-Newton on  log(R_imu,k(b_g)^T R_vis,k) = 0  over those frames, R_imu,k
+    the rotation integrated from the samples (J3); its covariance from the last frame's rotation
+    covariance (the chain's errors are correlated: the fit's scatter would understate it);
+    (M3) gravity g0 and velocity v0 in the first IMU frame: with the samples integrated from rest
+    without gravity (positions dp_k), the positions seen by vision are p_k = v0 t_k + g0 t_k^2 / 2 + dp_k,
+    linear in (v0, g0): generalized least squares with the chain's covariance (independent increments:
+    Cov(p_j, p_k) = Sigma_min(j,k)), then v0 again with |g0| = |g|;
+    (M4) the world: up = -g0 (Z2), the velocity in it, the covariance of (v0, g0) from the fit, the
+    accelerometer bias's tilt correlation as at rest (Z4: a constant bias is a gravity error).
+    Returns ``at_rest`` False with the reason when vision cannot carry the window."""
+    from ..estimator.inertial import integrate_kernel, interval_knots, _GL_W, _GL_X
+
+    imu = seq.imu
+    t = seq.time_stamps
+    last = int(np.searchsorted(t, t[0] + options.window, side="right"))
+    last = max(last, options.min_frames + 1)
+    if last > seq.num_steps:
+        return Initialization(False, f"{seq.num_steps} frames, {options.min_frames + 1} needed to start in motion",
+                              how="in motion")
+    qc = np.zeros(12)
+
+    def integrate(bg: np.ndarray, frames):
+        """R_k (K,3,3), dp_k (K,3), dv_k (K,3) at ``frames``: the samples from I0 with zero velocity and no gravity."""
+        R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
+        Rs, ps, vs = [R], [p], [v]
+        for a, b in zip(frames[:-1], frames[1:]):
+            times, acc, gyr = interval_knots(imu, t[a], t[b])
+            R, v, p, _, _ = integrate_kernel(R, v, p, bg, np.zeros(3), times, acc, gyr, np.zeros(3), qc, _GL_X, _GL_W)
+            Rs.append(R)
+            ps.append(p)
+            vs.append(v)
+        return np.array(Rs), np.array(ps), np.array(vs)
+
+    frames, poses, covs = _chain_vision(seq, range(0, last), options.min_points,
+                                        _imu_rotations(imu, t[:last], np.zeros(3)))
+    if frames is None:
+        return Initialization(False, "vision cannot follow the first frames (no two-view fit with "
+                                     f"{options.min_points} points within 3 frames)", how="in motion")
+    # (M2) the gyro bias, Gauss-Newton with a numerical Jacobian (3 unknowns)
+    from ..geometry import se3
+
+    bg = np.zeros(3)
+    R_vis = poses[:, :3, :3]
+
+    def rot_residual(b):
+        Rs, _, _ = integrate(b, frames)
+        return np.concatenate([se3.log_so3(Rs[k].T @ R_vis[k]) for k in range(1, len(frames))])
+
+    for _ in range(3):
+        r0 = rot_residual(bg)
+        J = np.stack([(rot_residual(bg + e) - r0) / 1e-4 for e in np.eye(3) * 1e-4], axis=1)
+        step = np.linalg.lstsq(J, -r0, rcond=None)[0]
+        bg = bg + step
+        if np.abs(step).max() < 1e-7:
+            break
+    r_rot = rot_residual(bg)
+    # its covariance from the last frame's rotation alone: the chain's errors are correlated (each frame's
+    # pixel noise enters two fits), so the residuals' scatter about the fitted slope would understate it
+    J_end = J[-3:]
+    J_inv = np.linalg.inv(J_end)
+    bg_cov = J_inv @ covs[-1][3:, 3:] @ J_inv.T
+    # (M3) gravity and velocity in the first IMU frame
+    Rs, dp, _ = integrate(bg, frames)
+    tk = t[list(frames)] - t[0]
+    n = len(frames) - 1
+    A = np.zeros((3 * n, 6))
+    y = np.zeros(3 * n)
+    C = np.zeros((3 * n, 3 * n))  # the chain's positions: independent increments, Cov(p_j, p_k) = Sigma_min(j,k)
+    for i, k in enumerate(range(1, len(frames))):
+        A[3 * i:3 * i + 3, :3] = np.eye(3) * tk[k]
+        A[3 * i:3 * i + 3, 3:] = np.eye(3) * 0.5 * tk[k] ** 2
+        y[3 * i:3 * i + 3] = poses[k, :3, 3] - dp[k]
+        for j in range(i + 1):
+            C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = covs[j + 1][:3, :3]
+            C[3 * j:3 * j + 3, 3 * i:3 * i + 3] = covs[j + 1][:3, :3]
+    L = np.linalg.cholesky(C + 1e-12 * np.eye(3 * n))
+    Aw = np.linalg.solve(L, A)  # generalized least squares, whitened
+    yw = np.linalg.solve(L, y)
+    x, *_ = np.linalg.lstsq(Aw, yw, rcond=None)
+    resid = yw - Aw @ x
+    scale = max(float(resid @ resid) / max(resid.size - 6, 1), 1.0)  # the fit's own scatter, never below vision's
+    x_cov = np.linalg.inv(Aw.T @ Aw) * scale
+    g_norm = float(np.linalg.norm(gravity))
+    fitted = float(np.linalg.norm(x[3:]))
+    rot_rms = float(np.degrees(np.sqrt(np.mean(r_rot**2))))
+    if abs(fitted - g_norm) > options.max_gravity_misfit * g_norm or rot_rms > options.max_rotation_residual_deg:
+        return Initialization(False, f"vision's first {tk[-1]:.2f} s and the IMU disagree: gravity fitted {fitted:.2f} "
+                                     f"m/s^2 long (|g| = {g_norm:g}), rotations {rot_rms:.3f} deg apart after the gyro "
+                                     "bias", how="in motion")
+    g0 = x[3:] * g_norm / fitted
+    v0 = np.linalg.lstsq(Aw[:, :3], np.linalg.solve(L, y - A[:, 3:] @ g0), rcond=None)[0]
+    # (M4) the world and the covariance
+    R = gravity_aligned_rotation(-g0)
+    T = np.eye(4)
+    T[:3, :3] = R
+    mean = InertialMean(T, R @ v0, bg, np.zeros(3))
+    P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
+    P[RHO, RHO] = np.eye(3) * options.pose_sigma0**2
+    P[NU, NU] = R @ x_cov[:3, :3] @ R.T
+    P[BG, BG] = bg_cov
+    s2 = options.accel_bias_sigma0**2
+    C = np.zeros((3, 3))
+    C[0] = -R[1] / g_norm
+    C[1] = R[0] / g_norm
+    # the gravity direction's own uncertainty from the fit, projected on roll and pitch (world frame)
+    G = R @ x_cov[3:, 3:] @ R.T / g_norm**2
+    tilt = np.zeros((3, 3))
+    tilt[:2, :2] = [[G[1, 1], -G[1, 0]], [-G[0, 1], G[0, 0]]]
+    P[PHI, PHI] = s2 * C @ C.T + tilt
+    P[5, 5] += options.pose_sigma0**2
+    P[PHI, BA] = s2 * C
+    P[BA, PHI] = s2 * C.T
+    P[BA, BA] = np.eye(3) * s2
+    up = -g0 / g_norm
+    measured = {"frames": len(frames), "window_s": float(tk[-1]), "gravity_in_imu": up, "gyro_bias": bg,
+                "velocity": R @ v0, "speed": float(np.linalg.norm(v0)),
+                "gravity_fit_norm": float(np.linalg.norm(x[3:])),
+                "rotation_residual_deg": rot_rms,
+                "tilt_sigma_deg": float(np.degrees(np.sqrt(s2 / g_norm**2 + np.trace(G[:2, :2]) / 2))),
+                "accel_bias_sigma0": options.accel_bias_sigma0}
+    return Initialization(True, "", mean, 0.5 * (P + P.T), measured, how="in motion")

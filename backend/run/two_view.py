@@ -126,13 +126,15 @@ def _predict(T: np.ndarray, beta: float, p: np.ndarray, cam, jacobians: bool = F
     return pred, Jp, Jg
 
 
-def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations: int = 8):
+def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations: int = 8,
+                   initial: np.ndarray | None = None):
     """(T, beta, S^-1 of the motion (and beta), residuals (n,8), dof, sigma^2) or None: the
     Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement); ``offset``:
-    beta is fitted (7 unknowns besides the points), else held at 0 (6)."""
+    beta is fitted (7 unknowns besides the points), else held at 0 (6); ``initial``: the motion to
+    start from (default: none)."""
     g = 7 if offset else 6
     z = np.concatenate([za, zb], axis=1)  # (n,8)
-    T = np.eye(4)
+    T = np.eye(4) if initial is None else np.array(initial, dtype=float)
     beta = 0.0
     p = np.stack([za[:, 0], za[:, 1], za[:, 0] - za[:, 2]], axis=1)
     S = None
@@ -187,23 +189,24 @@ def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations
 
 
 def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_points: int = 12,
-             step: int = 0, gap: int = 1) -> TwoViewFit | None:
+             step: int = 0, gap: int = 1, initial: np.ndarray | None = None) -> TwoViewFit | None:
     """The fit (D2) of one step pair's matched pixels ``za``, ``zb`` (n,4), or None: the pairs whose
     rows agree, then again from the start on the points whose eight residuals all stay within
     ``TRIM_PX`` (gross mismatches removed, not only down-weighted); None when fewer than
     ``min_points`` remain, a third of them is trimmed, or the fit is degenerate.
-    ``cam`` = (fx, fy, cx, cy, baseline)."""
+    ``cam`` = (fx, fy, cx, cy, baseline); ``initial``: the motion to start from (default: none, for
+    the small motions of consecutive steps)."""
     rows = (np.abs(za[:, 1] - za[:, 3]) <= ROW_PX) & (np.abs(zb[:, 1] - zb[:, 3]) <= ROW_PX)
     za, zb = za[rows], zb[rows]
     if za.shape[0] < min_points:
         return None
-    first = _bundle_adjust(za, zb, cam, offset)
+    first = _bundle_adjust(za, zb, cam, offset, initial=initial)
     if first is None:
         return None
     keep = np.abs(first[3]).max(axis=1) <= TRIM_PX
     if keep.sum() < max(min_points, 2 * za.shape[0] / 3):
         return None
-    second = _bundle_adjust(za[keep], zb[keep], cam, offset)
+    second = _bundle_adjust(za[keep], zb[keep], cam, offset, initial=None if initial is None else first[0])
     if second is None or np.abs(second[3]).max() > TRIM_PX:
         return None
     T, beta, S_inv, r, dof, sigma2 = second
