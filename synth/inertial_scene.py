@@ -16,6 +16,7 @@ from the IMU alone. :func:`write_inertial_scene` writes ``data.npz`` in the iner
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,8 +32,8 @@ from .inertial import GRAVITY, ROOM_BOX, frame_times, frame_truth, measure_imu, 
 from .landmarks import street_landmarks
 from .observe import Calibration, kitti_calibration, observe
 
-__all__ = ["InertialSceneConfig", "InertialScene", "make_inertial_scene", "write_inertial_scene", "room_points",
-           "vi_sensor_calibration", "INERTIAL_SCENARIOS"]
+__all__ = ["InertialSceneConfig", "InertialScene", "InertialSceneFactory", "make_inertial_scene", "write_inertial_scene",
+           "room_points", "vi_sensor_calibration", "INERTIAL_SCENARIOS"]
 
 INERTIAL_SCENARIOS = ("room", "street")
 
@@ -128,6 +129,28 @@ def make_inertial_scene(config: InertialSceneConfig | None = None, noise_seed: i
     validate_sequence(sequence)
     return InertialScene(cfg, sequence, frames.world_T_imu, frames.velocity, truth.gyro_bias[idx],
                          truth.accel_bias[idx], points[obs.point_index], np.asarray(GRAVITY, dtype=float))
+
+
+@dataclass(frozen=True)
+class InertialSceneFactory:
+    """The scene of ``config`` with the noise of a noise seed and, optionally, another starting
+    accelerometer bias (drawn from the filter's prior by a Monte Carlo run, ``backend.evaluation.
+    consistency``); picklable, so runs can go to worker processes."""
+
+    config: InertialSceneConfig
+    #: the bias a Monte Carlo run replaces: the accelerometer's (the tilt it fakes at the start)
+    sampled_bias = "accelerometer"
+
+    def __call__(self, noise_seed: int, bias=None) -> InertialScene:
+        config = self.config if bias is None else dataclasses.replace(self.config, accel_bias0=tuple(float(b) for b in bias))
+        return make_inertial_scene(config, noise_seed=noise_seed)
+
+    def as_dict(self) -> dict:
+        c = self.config
+        return {"imu": "inertial", "scenario": c.scenario, "duration": c.duration, "seed": c.seed,
+                "imu_rate": c.imu_rate, "frame_rate": c.frame_rate, "noise": c.noise.as_dict(),
+                "start_at_rest": c.start_at_rest, "pixel_sigma": c.pixel_sigma, "outlier_share": c.outlier_share,
+                "points": c.points}
 
 
 def write_inertial_scene(scene: InertialScene, out_dir) -> Path:

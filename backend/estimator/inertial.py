@@ -263,7 +263,9 @@ def propagate_covariance(P: np.ndarray, prop: Propagation, points: np.ndarray) -
     if points.shape[0]:
         Delta = Phi[PHI].copy()
         Delta[:, PHI] -= np.eye(3)
-        L = np.concatenate([se3.hat3(m) for m in points], axis=0)  # (3K,3)
+        x, y, z = points.T
+        zero = np.zeros_like(x)
+        L = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=1).reshape(-1, 3)  # (3K,3): the m_i^ stacked
         cross = Phi @ Pcl + (Phi @ Pcc @ Delta.T + Q[:, PHI]) @ L.T
         out[:c, c:] = cross
         out[c:, :c] = cross.T

@@ -21,9 +21,16 @@ from .. import console, options, outputs
 
 def add_parser(sub) -> None:
     p = sub.add_parser("mc", help="Monte Carlo consistency (NEES, NIS) of the filter on a synthetic scene")
-    p.add_argument("--scenario", choices=["street", "aerial"], default="street")
+    p.add_argument("--scenario", choices=["street", "aerial", "room"], default=None,
+                   help="street or aerial (body velocities), room or street with --imu inertial (default: street; "
+                        "room with --imu inertial)")
+    p.add_argument("--imu", choices=["velocity", "inertial"], default="velocity",
+                   help="velocity: body velocities per step; inertial: a real IMU's samples (vislam synth --imu "
+                        "inertial's scenes without gross outliers, the accelerometer bias drawn from the filter's "
+                        "prior each run)")
     p.add_argument("--runs", type=int, default=20, help="noise realizations (default 20)")
-    p.add_argument("--steps", type=int, default=300, help="steps per run (default 300)")
+    p.add_argument("--steps", type=int, default=300, help="steps per run of a velocity scene (default 300)")
+    p.add_argument("--duration", type=float, default=10.0, help="seconds per run of an inertial scene (default 10)")
     p.add_argument("--seed", type=int, default=0,
                    help="geometry seed; run i uses the noise seed SEED+i (default 0)")
     p.add_argument("--landmark-density", type=float, default=1.0, help="scales the scene's landmark density")
@@ -39,20 +46,40 @@ def add_parser(sub) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from ...synth.scene import SceneConfig, check_scene_size
+    from ...synth.scene import SceneConfig, SceneFactory, check_scene_size
     from ..plots import plot_consistency
 
     if args.runs < 1:
         raise ConfigError(f"--runs must be >= 1, got {args.runs}")
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-    scene_config = SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed,
-                               landmark_density=args.landmark_density)
-    # the noise identified from the data (or the scene's own, --true-noise) < --config < --set
-    config = options.filter_config(args, base=scene_config.filter_config() if args.true_noise else None)
-    check_scene_size(scene_config)  # memory bounds, before any work
+    if args.imu == "inertial":
+        from ...synth.inertial_scene import InertialSceneConfig, InertialSceneFactory
+        from .synth import MAX_INERTIAL_SECONDS
+
+        if args.scenario == "aerial" or args.true_noise:
+            raise ConfigError("--imu inertial: scenarios room and street, and no --true-noise (the noise is decided "
+                              "from each run's data)")
+        if not 4.0 <= args.duration <= MAX_INERTIAL_SECONDS:
+            raise ConfigError(f"--duration {args.duration:g}: an inertial scene lasts 4 to {MAX_INERTIAL_SECONDS:g} s")
+        args.scenario = args.scenario or "room"
+        # no gross outliers: a landmark started from one (its track's first observation) would enter the
+        # map's NEES with a position nothing supports; the filter's own model is what is tested here
+        factory = InertialSceneFactory(InertialSceneConfig(scenario=args.scenario, duration=args.duration,
+                                                           seed=args.seed, outlier_share=0.0))
+        config = options.filter_config(args)
+    else:
+        args.scenario = args.scenario or "street"
+        if args.scenario == "room":
+            raise ConfigError("--scenario room: a scene with a real IMU's samples: add --imu inertial")
+        scene_config = SceneConfig(scenario=args.scenario, steps=args.steps, seed=args.seed,
+                                   landmark_density=args.landmark_density)
+        # the noise identified from the data (or the scene's own, --true-noise) < --config < --set
+        config = options.filter_config(args, base=scene_config.filter_config() if args.true_noise else None)
+        check_scene_size(scene_config)  # memory bounds, before any work
+        factory = SceneFactory(scene_config)
     with output_directory(args.out, args.force) as staging:  # checked before any work
-        result = _monte_carlo(args, scene_config, config)
+        result = _monte_carlo(args, factory, config)
         check = landmark_nees_check(result)
         data = result.as_dict()
         data["landmark_nees"].update(check)
@@ -110,19 +137,19 @@ def summary_lines(result, check: dict) -> list[str]:
     return lines
 
 
-def _monte_carlo(args: argparse.Namespace, scene_config, config):
+def _monte_carlo(args: argparse.Namespace, factory, config):
     """The runs, on every core (or ``--workers``) or a Ray cluster (``--ray``), with a progress bar."""
     from concurrent.futures import ThreadPoolExecutor
     from contextlib import nullcontext
 
     from ...backend.evaluation.consistency import monte_carlo
-    from ...synth.scene import SceneFactory
     from ..pool import executor
 
     workers = args.workers or os.cpu_count() or 1
     where = f"Ray at {args.ray}" if args.ray else f"{workers} worker(s)"
     console.sayer(args.quiet)(
-        f"vislam mc: {args.runs} runs of the {args.scenario} scene (geometry seed {args.seed}, {args.steps} steps), "
+        f"vislam mc: {args.runs} runs of the {args.scenario} scene (geometry seed {args.seed}, "
+        + (f"{args.duration:g} s, a real IMU" if args.imu == "inertial" else f"{args.steps} steps") + "), "
         f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {where}\n" + console.configuration_text(args.verbose, config))
     one_thread = workers == 1 and not args.ray  # one worker: no process start-up
     pool = nullcontext(ThreadPoolExecutor(max_workers=1)) if one_thread else executor(args.workers, args.ray, args.runs)
@@ -135,7 +162,7 @@ def _monte_carlo(args: argparse.Namespace, scene_config, config):
                 progress(done[0])
 
         try:
-            result = monte_carlo(SceneFactory(scene_config), config, args.runs, seed0=args.seed, executor=runner,
+            result = monte_carlo(factory, config, args.runs, seed0=args.seed, executor=runner,
                                  progress=advance)
         finally:
             if one_thread:
