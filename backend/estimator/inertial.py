@@ -197,7 +197,6 @@ def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w):
         Q = Phi_k @ Q @ Phi_k.T + Qk
         # the mean (J3)
         E, J, N = _so3_terms(w * dt)
-        Rf = R @ f
         RJf = R @ (J @ f)
         RNf = R @ (N @ f)
         for i in range(3):

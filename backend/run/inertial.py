@@ -39,7 +39,7 @@ from ..data.inertial import ADIS16448, ImuNoiseDensities, ImuSamples
 from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
-from ..estimator.inertial import STANDARD_GRAVITY, InertialMean, InertialStart, propagate
+from ..estimator.inertial import STANDARD_GRAVITY, InertialStart, propagate
 from ..geometry.camera import StereoCamera
 from .initialization import (Initialization, RestOptions, initialize_at_rest, initialize_in_motion, rest_test,
                              vision_motion)
