@@ -248,6 +248,9 @@ def test_run_command_on_an_inertial_file_writes_states(tmp_path):
     assert states.shape == (scene.sequence.num_steps, 10)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["decisions"]["imu"] == "inertial"
+    r = _vislam("check", str(tmp_path / "scene" / "data.npz"))
+    assert r.returncode == 0, r.stderr
+    assert "inertial layout" in r.stdout and "inertial initialization: at rest" in r.stdout
     assert np.abs(np.array(summary["accel_bias_final"]) - scene.accel_bias_true[-1]).max() < 0.05
     assert summary["errors"]["estimate"]["ate_rmse"] < 0.05
 

@@ -9,7 +9,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser("check", help="validate a feature file and test its conventions (extrinsic, velocity timing); "
                                      "with a real IMU's samples, the start at rest and the noise")
     p.add_argument("data", help="feature + IMU file in the course .npz layout (velocities or the inertial layout)")
-    p.add_argument("--imu", choices=["auto", "velocity", "inertial"], default="auto",
+    p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
                    help="a file with both IMU inputs: which one to check (default: auto, which refuses such a file)")
     p.set_defaults(func=main)
 
@@ -21,7 +21,7 @@ def main(args: argparse.Namespace) -> int:
     from ...backend.data.npz import load_sequence
     from ...backend.run.decisions import decide
 
-    seq = load_sequence(args.data, imu=args.imu)
+    seq = load_sequence(args.data, imu=args.imu_input)
     defaults = Config()
     per_step = np.diff(seq.obs_ptr)
     print(f"{args.data}: {'inertial' if seq.inertial else seq.layout} layout, {seq.num_steps} steps over "
