@@ -292,3 +292,16 @@ def test_mc_command_on_inertial_scenes(tmp_path):
     assert 2.0 <= data["landmark_nees"]["mean"] <= 4.0
     assert 3.5 <= data["nis"]["mean_per_observation"] <= 4.5
     assert data["scene"]["imu"] == "inertial"
+
+
+def test_imu_samples_in_memory_must_be_float_rows(flight):
+    """A sequence made in memory with ImuSamples of the .npz's (3,L) shape (not made by check_imu_samples)
+    is refused at validation in one line naming the key, not later inside the filter."""
+    seq = flight.sequence
+    imu = seq.imu
+    transposed = ImuSamples(imu.time_stamps, imu.linear_acceleration.T, imu.angular_velocity.T, imu.noise)
+    from vislam.backend.data.sequence import validate_sequence
+
+    with pytest.raises(InputError, match="imu_linear_acceleration") as err:
+        validate_sequence(dataclasses.replace(seq, imu=transposed))
+    assert "\n" not in str(err.value)

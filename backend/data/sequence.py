@@ -344,7 +344,14 @@ def check_inertial(src: str, seq: Sequence, t: np.ndarray) -> None:
         if getattr(seq, key) is not None:
             raise input_error(src, key, "given with a real IMU's samples: keep one of the two IMU inputs")
     imu = seq.imu
-    check_imu_samples(src, imu.time_stamps, imu.linear_acceleration, imu.angular_velocity, imu.noise)
+    checked = check_imu_samples(src, imu.time_stamps, imu.linear_acceleration, imu.angular_velocity, imu.noise)
+    for key, given, valid in (("imu_time_stamps", imu.time_stamps, checked.time_stamps),
+                              ("imu_linear_acceleration", imu.linear_acceleration, checked.linear_acceleration),
+                              ("imu_angular_velocity", imu.angular_velocity, checked.angular_velocity)):
+        if not (isinstance(given, np.ndarray) and given.dtype == np.float64 and given.shape == valid.shape):
+            raise input_error(src, key, f"an ImuSamples in memory holds float64 arrays of shape {valid.shape}, got "
+                                        f"{type(given).__name__} {getattr(given, 'dtype', '')} {np.shape(given)} "
+                                        "(vislam.backend.data.inertial.check_imu_samples makes them)")
     ti = imu.time_stamps
     step = float(np.median(np.diff(ti)))
     if ti[0] > t[0] + step or ti[-1] < t[-1] - step:

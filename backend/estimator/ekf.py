@@ -258,7 +258,7 @@ class VisualInertialEKF:
         if not self.inertial:
             raise TypeError("propagate() needs the inertial state: VisualInertialEKF(..., inertial=InertialStart(...))")
         self.step_index += 1
-        self.model.propagate(self.state, imu, t0, t1)
+        self.model.propagate(self.state, imu, t0, t1, self._landmark_walk)
 
     @property
     def velocity(self) -> np.ndarray | None:

@@ -318,13 +318,17 @@ class InertialModel(InvariantModel):
     def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
         raise TypeError("the inertial state moves by IMU samples: VisualInertialEKF.propagate(imu, t0, t1)")
 
-    def propagate(self, state: FilterState, imu: ImuSamples, t0: float, t1: float) -> None:
-        """The mean by (J3) and P by (J5, J6) from t0 to t1; with the pose held fixed (mapping), the mean only."""
+    def propagate(self, state: FilterState, imu: ImuSamples, t0: float, t1: float, landmark_walk_var: float = 0.0) -> None:
+        """The mean by (J3) and P by (J5, J6) from t0 to t1, the landmarks' random walk of variance
+        ``landmark_walk_var`` per second added; with the pose held fixed (mapping), the mean only."""
         mean = InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias)
         new, prop = propagate(mean, imu, t0, t1, self.noise, self.gravity)
         state.mu, state.velocity = new.world_T_imu, new.velocity
         if self.estimate_pose:
             state.P = propagate_covariance(state.P, prop, state.theta)
+        if landmark_walk_var and state.num_landmarks:
+            diag = np.arange(state.core, state.P.shape[0])
+            state.P[diag, diag] += landmark_walk_var * (t1 - t0)
 
     def correct(self, state: FilterState, dx: np.ndarray) -> None:
         mean = retract_inertial(InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias),

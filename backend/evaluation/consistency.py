@@ -366,8 +366,10 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
 
         align = [np.eye(4)]  # an inertial run's world is the truth's up to yaw and position (E5)
 
+        aligned = scene.sequence.imu is not None  # a real IMU: a gravity-aligned world of its own
+
         def record(k, ekf, step_stats) -> None:
-            if k == 0 and inertial:
+            if k == 0 and aligned:
                 align[0] = yaw_alignment(ekf.world_T_imu, truth[0])
             nees[k] = pose_nees(align[0] @ ekf.world_T_imu, ekf.pose_covariance, truth[k])
             if step_stats is not None:

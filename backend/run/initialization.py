@@ -84,13 +84,13 @@ class Initialization:
             v = np.asarray(m["velocity"])
             return (f"inertial initialization: in motion from {m['frames']} frames over {m['window_s']:.2f} s (vision's "
                     f"poses against the IMU: rotation residual {m['rotation_residual_deg']:.3f} deg, gravity fitted "
-                    f"{m['gravity_fit_norm']:.3f} m/s^2 long); gravity in the IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, "
+                    f"{m['gravity_fit_norm']:.3f} m/s^2 long); up (minus gravity) in the IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, "
                     f"{g[2]:+.4f}]; velocity [{v[0]:+.3f}, {v[1]:+.3f}, {v[2]:+.3f}] m/s; gyro bias "
                     f"[{', '.join(f'{x:+.5f}' for x in m['gyro_bias'])}] rad/s; roll and pitch +- "
                     f"{m['tilt_sigma_deg']:.2f} deg (the fit's and an accelerometer bias of "
                     f"{m['accel_bias_sigma0']:g} m/s^2)")
         return (f"inertial initialization: at rest over {m['window_s']:.2f} s ({m['samples']} samples; attitude wander "
-                f"{m['attitude_wander_deg']:.2f} deg, velocity wander {m['velocity_wander']:.3f} m/s); gravity in the "
+                f"{m['attitude_wander_deg']:.2f} deg, velocity wander {m['velocity_wander']:.3f} m/s); up (minus gravity) in the "
                 f"IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, {g[2]:+.4f}], |specific force| {m['specific_force']:.4f} m/s^2; "
                 f"gyro bias [{', '.join(f'{x:+.5f}' for x in m['gyro_bias'])}] rad/s; roll and pitch +- "
                 f"{m['tilt_sigma_deg']:.2f} deg (an accelerometer bias of {m['accel_bias_sigma0']:g} m/s^2 cannot be "
@@ -321,11 +321,11 @@ def _chain_vision(seq, frames: range, min_points: int, imu_rotations: np.ndarray
         if fit is None:
             return None, None, None
         step = imu_T_cam @ np.linalg.inv(fit.b_T_a) @ cam_T_imu  # Ia_T_Ib
-        Rw = poses[-1][:3, :3]
+        poses.append(poses[-1] @ step)
+        Rw = poses[-1][:3, :3]  # the step's perturbation is in frame Ib (a right perturbation of Ia_T_Ib)
         Aw = np.zeros((6, 6))
         Aw[:3, :3], Aw[3:, 3:] = Rw, Rw
         covs.append(covs[-1] + Aw @ Ad @ fit.motion_covariance @ Ad.T @ Aw.T)
-        poses.append(poses[-1] @ step)
         used.append(b)
         a = b
     return used, np.array(poses), np.array(covs)
@@ -418,7 +418,8 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     # pixel noise enters two fits), so the residuals' scatter about the fitted slope would understate it
     J_end = J[-3:]
     J_inv = np.linalg.inv(J_end)
-    bg_cov = J_inv @ covs[-1][3:, 3:] @ J_inv.T
+    R_end = R_vis[-1]  # the residual log(R_imu^T R_vis) is in the last frame's body axes
+    bg_cov = J_inv @ (R_end.T @ covs[-1][3:, 3:] @ R_end) @ J_inv.T
     # (M3) gravity and velocity in the first IMU frame
     Rs, dp, _ = integrate(bg, frames)
     tk = t[list(frames)] - t[0]
@@ -467,6 +468,11 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     tilt = np.zeros((3, 3))
     tilt[:2, :2] = [[G[1, 1], -G[1, 0]], [-G[0, 1], G[0, 0]]]
     P[PHI, PHI] = s2 * C @ C.T + tilt
+    # the fit's velocity and gravity errors are correlated (p = v0 t + g0 t^2/2): with nu = -R e_v and
+    # phi = -M R e_g / |g| (M e = e_z x e, the tilt a gravity error makes), Cov(nu, phi) = R C_vg R^T M^T / |g|
+    M = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    P[NU, PHI] = R @ x_cov[:3, 3:] @ R.T @ M.T / g_norm
+    P[PHI, NU] = P[NU, PHI].T
     P[5, 5] += options.pose_sigma0**2
     P[PHI, BA] = s2 * C
     P[BA, PHI] = s2 * C.T
