@@ -346,6 +346,11 @@ class EurocDataset:
             images.append(img)
         return self.rectification.rectify(*images) if rectified else (images[0], images[1])
 
+    def pairs(self):
+        """Yield (index, left, right) of every pair, rectified (as ``StereoDirectory.frames`` does)."""
+        for k in range(len(self.frames)):
+            yield (k, *self.read_pair(k))
+
 
 # ---------------------------------------------------------------------------------------------- small helpers
 

@@ -75,14 +75,15 @@ def iter_tracks(images_dir, config: TrackerConfig | None = None, draw_dir=None,
     check_image_size(stereo, config)
     tracker = tracker if tracker is not None else StereoTracker(config, stereo.K, stereo.baseline)
     drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
-    return _tracked_frames(stereo, config, tracker, drawer, on_frame)
+    return _tracked_frames(stereo.frames(), config, tracker, drawer, on_frame)
 
 
-def _tracked_frames(stereo: StereoDirectory, config: TrackerConfig, tracker: StereoTracker,
+def _tracked_frames(frames: Iterator, config: TrackerConfig, tracker: StereoTracker,
                     drawer: TrackDrawer | None, on_frame: Callable | None = None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """The frame loop of :func:`iter_tracks` (its inputs already checked)."""
+    """The frame loop of :func:`iter_tracks` and :func:`track_euroc` over (index, left, right) ``frames``
+    (its inputs already checked)."""
     with opencv_threads(config.threads):
-        for index, left, right in stereo.frames():
+        for index, left, right in frames:
             ids, pixels = tracker.step(left, right)
             if drawer is not None:
                 drawer.draw(index, left, right, ids, pixels)
@@ -194,16 +195,11 @@ def track_euroc(data, config: TrackerConfig | None = None, progress: Callable[[i
     drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
     n = len(data.frames)
     ids, pixels = [], []
-    with opencv_threads(config.threads):
-        for k in range(n):
-            left, right = data.read_pair(k)
-            i, z = tracker.step(left, right)
-            if drawer is not None:
-                drawer.draw(k, left, right, i, z)
-            ids.append(i)
-            pixels.append(z)
-            if progress is not None:
-                progress(k, n)
+    for k, i, z in _tracked_frames(data.pairs(), config, tracker, drawer):
+        ids.append(i)
+        pixels.append(z)
+        if progress is not None:
+            progress(k, n)
     return Sequence.from_steps(data.frames.times, None, None, ids, pixels, data.K, data.baseline, data.imu_T_cam,
                                num_features=tracker.num_ids, source=str(data.root), tracker=VISLAM_TRACKER,
                                imu=data.imu.samples)

@@ -17,7 +17,7 @@ its config (``make_scene``).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Iterator
 
 from .scene import SceneConfig
@@ -88,37 +88,33 @@ def part_of(name: str) -> str:
     return PARTS[1] if int(hashlib.sha256(name.encode("utf-8")).hexdigest()[:8], 16) % 3 == 0 else PARTS[0]
 
 
-def _spec(scenario, seed, steps, px, drift, rep, beta, out, jit, vel, timing) -> GridSpec:
-    return GridSpec(scenario, seed, steps, px, drift, rep, beta, out, jit, vel, timing)
-
-
 #: The grid: every level of every factor appears in several scenes, on both scenarios.
 GRID: tuple[GridSpec, ...] = (
-    #     scenario  seed steps  px    drift    rep    beta  out   jit    vel     timing
-    _spec("street", 101, 300, 0.25, "off", False, 0.0, 0.0, False, "mid", "next"),
-    _spec("street", 102, 300, 0.5, "on", True, -1.0, 0.0, True, "mid", "next"),
-    _spec("street", 103, 400, 0.25, "on", True, -1.0, 0.03, True, "high", "next"),
-    _spec("street", 104, 200, 1.0, "heavy", False, 0.0, 0.03, False, "low", "this"),
-    _spec("street", 105, 300, 0.5, "heavy", True, -1.0, 0.0, True, "mid", "this"),
-    _spec("street", 106, 400, 0.25, "off", True, 0.0, 0.03, False, "high", "next"),
-    _spec("street", 107, 250, 0.75, "on", False, -1.0, 0.0, False, "low", "next"),
-    _spec("street", 108, 350, 0.5, "on", True, 0.0, 0.03, True, "mid", "this"),
-    _spec("street", 109, 300, 1.0, "off", False, -1.0, 0.03, True, "high", "this"),
-    _spec("street", 110, 200, 0.25, "heavy", True, -1.0, 0.0, False, "mid", "next"),
-    _spec("street", 111, 400, 0.5, "on", False, 0.0, 0.0, True, "low", "next"),
-    _spec("street", 112, 300, 0.75, "heavy", True, 0.0, 0.03, True, "high", "next"),
-    _spec("street", 113, 350, 0.25, "on", True, -1.0, 0.03, False, "mid", "this"),
-    _spec("street", 114, 250, 0.5, "off", True, -1.0, 0.0, True, "low", "next"),
-    _spec("aerial", 201, 300, 0.25, "off", False, 0.0, 0.0, False, "mid", "next"),
-    _spec("aerial", 202, 300, 0.5, "on", True, -1.0, 0.0, True, "mid", "this"),
-    _spec("aerial", 203, 400, 0.25, "on", False, -1.0, 0.03, False, "high", "next"),
-    _spec("aerial", 204, 200, 1.0, "heavy", True, 0.0, 0.03, True, "low", "next"),
-    _spec("aerial", 205, 350, 0.5, "heavy", False, -1.0, 0.0, False, "mid", "this"),
-    _spec("aerial", 206, 250, 0.75, "on", True, 0.0, 0.03, True, "high", "this"),
-    _spec("aerial", 207, 300, 0.25, "off", True, -1.0, 0.03, True, "low", "next"),
-    _spec("aerial", 208, 400, 0.5, "on", True, 0.0, 0.0, False, "mid", "next"),
-    _spec("aerial", 209, 200, 0.75, "heavy", False, -1.0, 0.03, True, "high", "next"),
-    _spec("aerial", 210, 300, 1.0, "on", True, -1.0, 0.0, False, "low", "this"),
+    #        scenario  seed steps  px    drift    rep    beta  out   jit    vel     timing
+    GridSpec("street", 101, 300, 0.25, "off", False, 0.0, 0.0, False, "mid", "next"),
+    GridSpec("street", 102, 300, 0.5, "on", True, -1.0, 0.0, True, "mid", "next"),
+    GridSpec("street", 103, 400, 0.25, "on", True, -1.0, 0.03, True, "high", "next"),
+    GridSpec("street", 104, 200, 1.0, "heavy", False, 0.0, 0.03, False, "low", "this"),
+    GridSpec("street", 105, 300, 0.5, "heavy", True, -1.0, 0.0, True, "mid", "this"),
+    GridSpec("street", 106, 400, 0.25, "off", True, 0.0, 0.03, False, "high", "next"),
+    GridSpec("street", 107, 250, 0.75, "on", False, -1.0, 0.0, False, "low", "next"),
+    GridSpec("street", 108, 350, 0.5, "on", True, 0.0, 0.03, True, "mid", "this"),
+    GridSpec("street", 109, 300, 1.0, "off", False, -1.0, 0.03, True, "high", "this"),
+    GridSpec("street", 110, 200, 0.25, "heavy", True, -1.0, 0.0, False, "mid", "next"),
+    GridSpec("street", 111, 400, 0.5, "on", False, 0.0, 0.0, True, "low", "next"),
+    GridSpec("street", 112, 300, 0.75, "heavy", True, 0.0, 0.03, True, "high", "next"),
+    GridSpec("street", 113, 350, 0.25, "on", True, -1.0, 0.03, False, "mid", "this"),
+    GridSpec("street", 114, 250, 0.5, "off", True, -1.0, 0.0, True, "low", "next"),
+    GridSpec("aerial", 201, 300, 0.25, "off", False, 0.0, 0.0, False, "mid", "next"),
+    GridSpec("aerial", 202, 300, 0.5, "on", True, -1.0, 0.0, True, "mid", "this"),
+    GridSpec("aerial", 203, 400, 0.25, "on", False, -1.0, 0.03, False, "high", "next"),
+    GridSpec("aerial", 204, 200, 1.0, "heavy", True, 0.0, 0.03, True, "low", "next"),
+    GridSpec("aerial", 205, 350, 0.5, "heavy", False, -1.0, 0.0, False, "mid", "this"),
+    GridSpec("aerial", 206, 250, 0.75, "on", True, 0.0, 0.03, True, "high", "this"),
+    GridSpec("aerial", 207, 300, 0.25, "off", True, -1.0, 0.03, True, "low", "next"),
+    GridSpec("aerial", 208, 400, 0.5, "on", True, 0.0, 0.0, False, "mid", "next"),
+    GridSpec("aerial", 209, 200, 0.75, "heavy", False, -1.0, 0.03, True, "high", "next"),
+    GridSpec("aerial", 210, 300, 1.0, "on", True, -1.0, 0.0, False, "low", "this"),
 )
 
 

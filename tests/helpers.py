@@ -59,3 +59,19 @@ def named_key(msg: str, path) -> str:
     prefix = f"{path}: key '"
     assert msg.startswith(prefix), f"no key named: {msg}"
     return msg[len(prefix):].split("'", 1)[0]
+
+
+#: the arrays of a synthetic ``synth.scene.Scene`` and of its sequence that two equal scenes share exactly
+SCENE_ARRAYS = ("world_T_imu_true", "twists_true", "landmark_ids", "landmark_positions", "landmark_point_index",
+                "points", "gyro_bias_true", "outlier")
+SEQUENCE_ARRAYS = ("time_stamps", "linear_velocity", "angular_velocity", "obs_ptr", "obs_ids", "obs_pixels")
+
+
+def assert_same_scene_arrays(a, b) -> None:
+    """Every array of two synthetic scenes and of their sequences equal, bit for bit."""
+    import numpy as np
+
+    for name in SCENE_ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for name in SEQUENCE_ARRAYS:
+        np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from helpers import SEQUENCE_ARRAYS, assert_same_scene_arrays
 from vislam.backend.config import Config
 from vislam.backend.data.npz import load_sequence
 from vislam.backend.data.tum import read_tum
@@ -344,16 +345,8 @@ import vislam.synth.observe as synth_observe
 from vislam.backend.data import npz as npz_module
 from vislam.backend.data.npz import save_sequence
 
-SCENE_ARRAYS = ("world_T_imu_true", "twists_true", "landmark_ids", "landmark_positions", "landmark_point_index",
-                "points", "gyro_bias_true", "outlier")
-SEQUENCE_ARRAYS = ("time_stamps", "linear_velocity", "angular_velocity", "obs_ptr", "obs_ids", "obs_pixels")
-
-
 def assert_identical_scene(a: Scene, b: Scene) -> None:
-    for name in SCENE_ARRAYS:
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-    for name in SEQUENCE_ARRAYS:
-        np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)
+    assert_same_scene_arrays(a, b)
     assert a.sequence.num_features == b.sequence.num_features
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from helpers import assert_same_scene_arrays
 from vislam.backend.data.npz import load_sequence
 from vislam.backend.errors import ConfigError
 from vislam.backend.geometry import se3
@@ -68,16 +69,8 @@ def track_slopes(scene: Scene, residual: np.ndarray, min_length: int = 4) -> tup
 #: (16 hex) of obs_ids and obs_ptr, the sum of obs_pixels, the number of observations
 DEFAULT_SCENE_PRINT = ("46f8e864c68034fd", 7173253.638935158, 4842)
 
-SCENE_ARRAYS = ("world_T_imu_true", "twists_true", "landmark_ids", "landmark_positions", "landmark_point_index",
-                "points", "gyro_bias_true", "outlier")
-SEQUENCE_ARRAYS = ("time_stamps", "linear_velocity", "angular_velocity", "obs_ptr", "obs_ids", "obs_pixels")
-
-
 def assert_identical(a: Scene, b: Scene) -> None:
-    for name in SCENE_ARRAYS:
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-    for name in SEQUENCE_ARRAYS:
-        np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)
+    assert_same_scene_arrays(a, b)
     assert a.sequence.tracker == b.sequence.tracker
 
 

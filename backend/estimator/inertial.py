@@ -73,7 +73,8 @@ from .state import FilterState
 
 __all__ = [
     "CORE_INERTIAL", "RHO", "PHI", "BG", "NU", "BA", "STANDARD_GRAVITY",
-    "InertialMean", "Propagation", "propagate", "interval_knots", "integrate_kernel", "propagate_covariance",
+    "InertialMean", "Propagation", "propagate", "integrate_samples", "interval_knots", "integrate_kernel",
+    "propagate_covariance",
     "retract_inertial", "InertialStart", "InertialModel",
 ]
 
@@ -159,10 +160,11 @@ def _error_matrices(R, v, p, gravity):
 
 
 @jit
-def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w):
+def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w, covariance=True):
     """(J3) and (J5) over the knots ``times`` (n,) with samples ``acc``, ``gyr`` (n,3) at them:
     returns (R, v, p, Phi (15,15), Q (15,15)) at the last knot. ``qc`` (12,): the continuous noise
-    variances [sigma_g^2 x3, sigma_a^2 x3, sigma_wg^2 x3, sigma_wa^2 x3]."""
+    variances [sigma_g^2 x3, sigma_a^2 x3, sigma_wg^2 x3, sigma_wa^2 x3]; ``covariance`` False: the
+    mean alone (Phi = I, Q = 0)."""
     Phi = np.eye(15)
     Q = np.zeros((15, 15))
     R = R.copy()
@@ -172,29 +174,30 @@ def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w):
         dt = times[k + 1] - times[k]
         w = 0.5 * (gyr[k] + gyr[k + 1]) - bg
         f = 0.5 * (acc[k] + acc[k + 1]) - ba
-        # A and G at the interval's midpoint (second order in dt; J3 over dt/2)
-        Eh, Jh, Nh = _so3_terms(w * (0.5 * dt))
-        h = 0.5 * dt
-        v_mid = v + gravity * h + (R @ (Jh @ f)) * h
-        p_mid = p + v * h + 0.5 * gravity * h * h + (R @ (Nh @ f)) * (h * h)
-        A, G = _error_matrices(R @ Eh, v_mid, p_mid, gravity)
-        GQG = np.zeros((15, 15))
-        for i in range(15):
-            for j in range(15):
-                s = 0.0
-                for t in range(12):
-                    s += G[i, t] * qc[t] * G[j, t]
-                GQG[i, j] = s
-        A2 = A @ A
-        A3 = A2 @ A
-        Phi_k = np.eye(15) + A * dt + A2 * (dt * dt / 2.0) + A3 * (dt * dt * dt / 6.0)
-        Qk = np.zeros((15, 15))
-        for j in range(gl_x.size):
-            s = gl_x[j] * dt
-            F = np.eye(15) + A * s + A2 * (s * s / 2.0) + A3 * (s * s * s / 6.0)
-            Qk += (gl_w[j] * dt) * (F @ GQG @ F.T)
-        Phi = Phi_k @ Phi
-        Q = Phi_k @ Q @ Phi_k.T + Qk
+        if covariance:
+            # A and G at the interval's midpoint (second order in dt; J3 over dt/2)
+            Eh, Jh, Nh = _so3_terms(w * (0.5 * dt))
+            h = 0.5 * dt
+            v_mid = v + gravity * h + (R @ (Jh @ f)) * h
+            p_mid = p + v * h + 0.5 * gravity * h * h + (R @ (Nh @ f)) * (h * h)
+            A, G = _error_matrices(R @ Eh, v_mid, p_mid, gravity)
+            GQG = np.zeros((15, 15))
+            for i in range(15):
+                for j in range(15):
+                    s = 0.0
+                    for t in range(12):
+                        s += G[i, t] * qc[t] * G[j, t]
+                    GQG[i, j] = s
+            A2 = A @ A
+            A3 = A2 @ A
+            Phi_k = np.eye(15) + A * dt + A2 * (dt * dt / 2.0) + A3 * (dt * dt * dt / 6.0)
+            Qk = np.zeros((15, 15))
+            for j in range(gl_x.size):
+                s = gl_x[j] * dt
+                F = np.eye(15) + A * s + A2 * (s * s / 2.0) + A3 * (s * s * s / 6.0)
+                Qk += (gl_w[j] * dt) * (F @ GQG @ F.T)
+            Phi = Phi_k @ Phi
+            Q = Phi_k @ Q @ Phi_k.T + Qk
         # the mean (J3)
         E, J, N = _so3_terms(w * dt)
         RJf = R @ (J @ f)
@@ -234,21 +237,41 @@ def continuous_variances(noise: ImuNoiseDensities) -> np.ndarray:
                                noise.gyroscope_random_walk, noise.accelerometer_random_walk]) ** 2, 3)
 
 
-def propagate(mean: InertialMean, imu: ImuSamples, t0: float, t1: float, noise: ImuNoiseDensities,
-              gravity: np.ndarray) -> tuple[InertialMean, Propagation]:
+def propagate(mean: InertialMean, imu: ImuSamples, t0: float, t1: float, noise: ImuNoiseDensities | None,
+              gravity: np.ndarray) -> tuple[InertialMean, Propagation | None]:
     """The mean at t1 from the mean at t0 by every IMU sample between (J3), and the core's transition
-    and noise over the interval (J5)."""
+    and noise over the interval (J5); ``noise`` None: the mean alone (the Propagation is None)."""
     times, acc, gyr = interval_knots(imu, t0, t1)
     T = mean.world_T_imu
+    qc = continuous_variances(noise) if noise is not None else np.zeros(12)
     R, v, p, Phi, Q = integrate_kernel(T[:3, :3], mean.velocity, T[:3, 3], mean.gyro_bias, mean.accel_bias,
-                                       times, acc, gyr, np.asarray(gravity, dtype=float), continuous_variances(noise),
-                                       _GL_X, _GL_W)
+                                       times, acc, gyr, np.asarray(gravity, dtype=float), qc, _GL_X, _GL_W,
+                                       noise is not None)
     out = mean.copy()
     out.world_T_imu = np.eye(4)
     out.world_T_imu[:3, :3] = R
     out.world_T_imu[:3, 3] = p
     out.velocity = v
-    return out, Propagation(Phi, Q)
+    return out, (Propagation(Phi, Q) if noise is not None else None)
+
+
+def integrate_samples(imu: ImuSamples, times: np.ndarray, gyro_bias: np.ndarray, accel_bias: np.ndarray | None = None,
+                      gravity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(J3) the mean alone from the identity at ``times[0]`` with zero velocity, at each of ``times``
+    (K,): (R (K,3,3), p (K,3), v (K,3)) in the first frame's axes (gravity default: none, the samples'
+    own motion; the biases removed)."""
+    zero = np.zeros(3)
+    ba = zero if accel_bias is None else np.asarray(accel_bias, dtype=float)
+    g = zero if gravity is None else np.asarray(gravity, dtype=float)
+    R, v, p = np.eye(3), zero, zero
+    Rs, ps, vs = [R], [p], [v]
+    for a, b in zip(times[:-1], times[1:]):
+        knots, acc, gyr = interval_knots(imu, a, b)
+        R, v, p, _, _ = integrate_kernel(R, v, p, gyro_bias, ba, knots, acc, gyr, g, np.zeros(12), _GL_X, _GL_W, False)
+        Rs.append(R)
+        ps.append(p)
+        vs.append(v)
+    return np.array(Rs), np.array(ps), np.array(vs)
 
 
 def propagate_covariance(P: np.ndarray, prop: Propagation, points: np.ndarray) -> np.ndarray:
@@ -341,8 +364,9 @@ class InertialModel(InvariantModel):
 def _warm_up() -> None:
     t = np.array([0.0, 0.005, 0.01])
     acc = np.tile([0.0, 0.0, 9.81], (3, 1))
-    integrate_kernel(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), t, acc, np.zeros((3, 3)),
-                     np.array([0.0, 0.0, -9.81]), np.ones(12) * 1e-6, _GL_X, _GL_W)
+    for covariance in (True, False):
+        integrate_kernel(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), t, acc, np.zeros((3, 3)),
+                         np.array([0.0, 0.0, -9.81]), np.ones(12) * 1e-6, _GL_X, _GL_W, covariance)
     # the invariant kernels with the landmark slots after the 15 core rows
     k = 2
     P = np.eye(CORE_INERTIAL + 3 * k)

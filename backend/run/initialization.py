@@ -37,7 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..data.inertial import ImuNoiseDensities, ImuSamples
-from ..estimator.inertial import BA, BG, CORE_INERTIAL, NU, PHI, RHO, InertialMean
+from ..estimator.inertial import BA, BG, CORE_INERTIAL, NU, PHI, RHO, InertialMean, integrate_samples
+from ..geometry.camera import StereoCamera
 
 __all__ = ["RestOptions", "Initialization", "initialize_at_rest", "rest_test", "vision_motion", "MotionOptions",
            "initialize_in_motion", "initialize_in_motion_over"]
@@ -123,19 +124,6 @@ def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
     return out
 
 
-def _imu_rotations(imu: ImuSamples, times: np.ndarray, gyro_bias: np.ndarray) -> np.ndarray:
-    """The gyro's rotations I0_R_Ik (K,3,3) at ``times`` (K,) from the first, with ``gyro_bias`` removed (J3)."""
-    from ..estimator.inertial import _GL_W, _GL_X, integrate_kernel, interval_knots
-
-    R, out = np.eye(3), [np.eye(3)]
-    for a, b in zip(times[:-1], times[1:]):
-        knots, acc, gyr = interval_knots(imu, a, b)
-        R, _, _, _, _ = integrate_kernel(R, np.zeros(3), np.zeros(3), gyro_bias, np.zeros(3), knots, acc, gyr,
-                                         np.zeros(3), np.zeros(12), _GL_X, _GL_W)
-        out.append(R)
-    return np.array(out)
-
-
 def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
     """The two-view fit (D2) of frames a and b, started from the gyro's rotation ``Ia_R_Ib`` (3,3) and a
     robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
@@ -171,7 +159,7 @@ def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> tuple[float, flo
     last = int(np.searchsorted(t, t[0] + window, side="right")) - 1
     if last < 1:
         return None
-    R = _imu_rotations(seq.imu, t[:last + 1], gyro_bias)
+    R = integrate_samples(seq.imu, t[:last + 1], gyro_bias)[0]
     direct = _fit_frames(seq, 0, last, R[last])
     if direct is not None:
         T = direct.b_T_a
@@ -272,14 +260,11 @@ def _motion_guess(za: np.ndarray, zb: np.ndarray, cam, b_R_a: np.ndarray, inlier
     ``inlier_px`` of their pixels in frame b (uL, vL, uR) are the matches kept (gross mismatches, which
     an undamped fit from a good start can still follow, are left out)."""
     fx, fy, cx, cy, b = cam
-
-    def points(z):
-        d = z[:, 0] - z[:, 2]
-        depth = fx * b / np.where(d > 0, d, np.nan)
-        return np.stack([(z[:, 0] - cx) / fx * depth, (z[:, 1] - cy) / fy * depth, depth], axis=1), d
-
-    (Pa, da), (Pb, db) = points(za), points(zb)
-    ok = np.isfinite(Pa).all(axis=1) & np.isfinite(Pb).all(axis=1)
+    camera = StereoCamera(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), b)
+    da, db = za[:, 0] - za[:, 2], zb[:, 0] - zb[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Pa, Pb = camera.triangulate(za), camera.triangulate(zb)
+    ok = (da > 0) & (db > 0) & np.isfinite(Pa).all(axis=1) & np.isfinite(Pb).all(axis=1)
     T = np.eye(4)
     T[:3, :3] = b_R_a
     if ok.sum() < 3:
@@ -368,7 +353,6 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     (M4) the world: up = -g0 (Z2), the velocity in it, the covariance of (v0, g0) from the fit, the
     accelerometer bias's tilt correlation as at rest (Z4: a constant bias is a gravity error).
     Returns ``at_rest`` False with the reason when vision cannot carry the window."""
-    from ..estimator.inertial import integrate_kernel, interval_knots, _GL_W, _GL_X
 
     imu = seq.imu
     t = seq.time_stamps
@@ -377,22 +361,12 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     if last > seq.num_steps:
         return Initialization(False, f"{seq.num_steps} frames, {options.min_frames + 1} needed to start in motion",
                               how="in motion")
-    qc = np.zeros(12)
-
     def integrate(bg: np.ndarray, frames):
         """R_k (K,3,3), dp_k (K,3), dv_k (K,3) at ``frames``: the samples from I0 with zero velocity and no gravity."""
-        R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
-        Rs, ps, vs = [R], [p], [v]
-        for a, b in zip(frames[:-1], frames[1:]):
-            times, acc, gyr = interval_knots(imu, t[a], t[b])
-            R, v, p, _, _ = integrate_kernel(R, v, p, bg, np.zeros(3), times, acc, gyr, np.zeros(3), qc, _GL_X, _GL_W)
-            Rs.append(R)
-            ps.append(p)
-            vs.append(v)
-        return np.array(Rs), np.array(ps), np.array(vs)
+        return integrate_samples(imu, t[list(frames)], bg)
 
     frames, poses, covs = _chain_vision(seq, range(0, last), options.min_points,
-                                        _imu_rotations(imu, t[:last], np.zeros(3)))
+                                        integrate_samples(imu, t[:last], np.zeros(3))[0])
     if frames is None:
         return Initialization(False, "vision cannot follow the first frames (no two-view fit with "
                                      f"{options.min_points} points within 3 frames)", how="in motion")
