@@ -18,13 +18,14 @@ from threadpoolctl import threadpool_limits
 from vislam.backend.config import Config
 from vislam.backend.data.sequence import Sequence
 from vislam.backend.errors import FilterError
-from vislam.backend.estimator import update
+from vislam.backend.estimator import covariance, update
 from vislam.backend.estimator.body import BodyModel
 from vislam.backend.estimator.ekf import ImuNoise, StepStats, VisualInertialEKF, check_full_state_size, make_error_model
 from vislam.backend.estimator.invariant import InvariantModel
-from vislam.backend.estimator.layout import BIAS, CORE, POSE
+from vislam.backend.estimator.layout import BIAS, CORE, POSE, landmark_rows, state_dimension
 from vislam.backend.estimator.propagation import dead_reckoning
 from vislam.backend.estimator.state import ID, TRACK_ROWS, FilterState
+from vislam.backend.estimator.state_helper import NewLandmarks, StateHelper
 from vislam.backend.estimator.tracks import slots_of as slots_of_index
 from vislam.backend.geometry import se3
 from vislam.backend.geometry.camera import StereoCamera
@@ -918,34 +919,39 @@ def test_points_at_near_infinite_depth_do_not_break_the_filter(kind):
 # 13 the filter's state (backend.estimator.state) and its error model
 
 
-def _landmark_batch(rng, ids, P_dim):
-    """Distinct parameters, anchors, counts and limits for landmarks ``ids``, and an SPD P of size P_dim."""
+def _landmark_batch(rng, ids):
+    """Distinct parameters, anchors, counts and limits for landmarks ``ids``, and their Jacobians
+    (NewLandmarks) for StateHelper.augment."""
     n = len(ids)
     theta = rng.normal(0.0, 10.0, (n, 3))
     anchors = np.array([random_pose(rng) for _ in range(n)])
     counts = rng.integers(1, 5, n)
     limits = rng.integers(5, 30, n)
-    return np.array(ids, dtype=np.int64), theta, anchors, counts, limits, random_spd(rng, P_dim, 1.0)
+    new = NewLandmarks(theta, anchors, rng.normal(size=(3 * n, 6)), rng.normal(size=(n, 3, 4)))
+    return np.array(ids, dtype=np.int64), theta, anchors, counts, limits, new
 
 
 def test_filter_state_keeps_landmarks_in_one_slot_order():
-    """add_landmarks appends theta, the track rows, theta_first and the anchors in the order of P's
-    landmark blocks; remove_landmarks drops the same slots from all of them and from P's rows and
-    columns, returns the new slot of each old one, rebuilds the id look-up, and stashes the RANSAC
-    rejection runs of removed tracks that go on (not ended; nonzero only), which come back when
-    such a track's landmark is added again."""
+    """StateHelper.augment appends P's rows (A1) and theta, the track rows, theta_first and the
+    anchors in the same order; StateHelper.marginalize drops the same slots from all of them and
+    from P's rows and columns, returns the new slot of each old one, rebuilds the id look-up, and
+    stashes the RANSAC rejection runs of removed tracks that go on (not ended; nonzero only),
+    which come back when such a track's landmark is added again."""
     rng = np.random.default_rng(21)
     st = FilterState(theta_first=np.zeros((0, 3)), anchors=np.zeros((0, 4, 4)))
-    ids1, theta1, anchors1, counts1, limits1, P1 = _landmark_batch(rng, [40, 7, 23], CORE + 9)
-    st.add_landmarks(P1, ids1, theta1, counts1, limits1, anchors1)
-    ids2, theta2, anchors2, counts2, limits2, P2 = _landmark_batch(rng, [5, 31], CORE + 15)
-    st.add_landmarks(P2, ids2, theta2, counts2, limits2, anchors2)
+    StateHelper.set_prior(st, random_spd(rng, CORE, 1.0))
+    ids1, theta1, anchors1, counts1, limits1, new1 = _landmark_batch(rng, [40, 7, 23])
+    StateHelper.augment(st, ids1, new1, 0.3, counts1, limits1)
+    ids2, theta2, anchors2, counts2, limits2, new2 = _landmark_batch(rng, [5, 31])
+    P1 = st.P.copy()
+    StateHelper.augment(st, ids2, new2, 0.3, counts2, limits2)
+    np.testing.assert_array_equal(st.P, covariance.augment(P1, new2.J_xi, new2.J_z, 0.3))
 
     ids = np.concatenate([ids1, ids2])
     theta = np.concatenate([theta1, theta2])
     anchors = np.concatenate([anchors1, anchors2])
     assert st.num_landmarks == 5 and st.track.shape == (len(TRACK_ROWS), 5)
-    assert st.P is P2
+    assert st.P.shape == (state_dimension(CORE, 5),) * 2
     np.testing.assert_array_equal(st.ids, ids)
     np.testing.assert_array_equal(st.track[ID], ids)
     np.testing.assert_array_equal(st.theta, theta)
@@ -966,10 +972,11 @@ def test_filter_state_keeps_landmarks_in_one_slot_order():
 
     mask = np.array([True, False, True, True, False])  # ids 40, 23, 5 leave
     ended = np.array([False, False, True, False, False])  # 23's track ended; 40's and 5's may go on
-    remap = st.remove_landmarks(mask, ended)
+    remap = StateHelper.marginalize(st, mask, ended)
     np.testing.assert_array_equal(remap, [-1, 0, -1, -1, 1])
     keep = np.array([1, 4])
-    rows = np.concatenate([np.arange(CORE), (CORE + 3 * keep[:, None] + np.arange(3)).ravel()])
+    rows = np.concatenate([np.arange(CORE), landmark_rows(CORE, keep).ravel()])
+    np.testing.assert_array_equal(rows[CORE:], CORE + 3 * np.repeat(keep, 3) + np.tile(np.arange(3), 2))
     np.testing.assert_array_equal(st.P, P[np.ix_(rows, rows)])
     np.testing.assert_array_equal(st.track, track[:, keep])
     np.testing.assert_array_equal(st.ids, [7, 31])
@@ -982,8 +989,8 @@ def test_filter_state_keeps_landmarks_in_one_slot_order():
     assert st.outlier_stash == {40: 2}  # 23 ended, 5 had no rejection run
 
     # 40's track comes back (re-anchored) with a new landmark 99: its run returns from the stash
-    ids3, theta3, anchors3, counts3, limits3, P3 = _landmark_batch(rng, [99, 40], CORE + 12)
-    st.add_landmarks(P3, ids3, theta3, counts3, limits3, anchors3)
+    ids3, theta3, anchors3, counts3, limits3, new3 = _landmark_batch(rng, [99, 40])
+    StateHelper.augment(st, ids3, new3, 0.3, counts3, limits3)
     np.testing.assert_array_equal(st.ids, [7, 31, 99, 40])
     np.testing.assert_array_equal(st.outlier_run, [1, 4, 0, 2])
     np.testing.assert_array_equal(st.theta_first[2:], theta3)
@@ -992,7 +999,7 @@ def test_filter_state_keeps_landmarks_in_one_slot_order():
     np.testing.assert_array_equal(slots_of_index(np.array([40, 99]), *st.index), [3, 2])
 
     # no ``ended``: every removed track may go on
-    remap = st.remove_landmarks(np.array([False, True, False, True]))
+    remap = StateHelper.marginalize(st, np.array([False, True, False, True]))
     np.testing.assert_array_equal(remap, [0, -1, 1, -1])
     np.testing.assert_array_equal(st.ids, [7, 99])
     assert st.outlier_stash == {31: 4, 40: 2}
@@ -1003,12 +1010,24 @@ def test_filter_state_without_per_landmark_extras():
     """A model that reads neither first estimates nor anchors: they stay None through adds and removals."""
     rng = np.random.default_rng(22)
     st = FilterState()
-    ids, theta, _, counts, limits, P = _landmark_batch(rng, [3, 1, 2], CORE + 9)
-    st.add_landmarks(P, ids, theta, counts, limits)
-    remap = st.remove_landmarks(np.array([False, True, False]), np.array([False, True, False]))
+    ids, theta, _, counts, limits, new = _landmark_batch(rng, [3, 1, 2])
+    StateHelper.augment(st, ids, dataclasses.replace(new, anchors=None), 1.0, counts, limits)
+    remap = StateHelper.marginalize(st, np.array([False, True, False]), np.array([False, True, False]))
     np.testing.assert_array_equal(remap, [0, -1, 1])
     np.testing.assert_array_equal(st.theta, theta[[0, 2]])
     assert st.theta_first is None and st.anchors is None
+
+
+def test_state_helper_refuses_a_prior_of_the_wrong_size_or_after_landmarks():
+    """set_prior takes the core's covariance only, and only before the first landmark."""
+    st = FilterState()
+    with pytest.raises(ValueError, match=r"\(9,9\)"):
+        StateHelper.set_prior(st, np.eye(CORE + 3))
+    rng = np.random.default_rng(23)
+    ids, _, _, counts, limits, new = _landmark_batch(rng, [1])
+    StateHelper.augment(st, ids, dataclasses.replace(new, anchors=None), 1.0, counts, limits)
+    with pytest.raises(ValueError, match="landmarks"):
+        StateHelper.set_prior(st, np.eye(CORE))
 
 
 @pytest.mark.parametrize(

@@ -127,8 +127,9 @@ def test_noise_moves_landmark_errors_with_the_rotation():
     # the compiled prediction from a zero covariance, no bias state: P = G diag(q^2) G^T
     dt, q = 0.3, np.array([0.2, 0.2, 0.2, 0.01, 0.02, 0.03]) * 0.3
     P = np.zeros((CORE + 3 * len(points), CORE + 3 * len(points)))
-    mu_next = invariant.predict_step(mu0, P, points, twist, q, dt, False, 0.0, 0.0)
+    mu_next, G_pose_next = invariant.predict_step(mu0, twist)
     np.testing.assert_allclose(mu_next, mu1, rtol=0, atol=1e-12)
+    P = invariant.InvariantTransition(G_pose_next, points, q, dt, False, 0.0).apply(P)
     G = np.zeros((P.shape[0], 6))
     G[POSE] = G_pose
     G[CORE:] = G_lm.reshape(-1, 6)
@@ -319,7 +320,8 @@ def test_error_models_agree_on_world_landmarks_and_pose_covariance():
     theta = rng.normal(0.0, 10.0, (n, 3))
     P = random_spd(rng, CORE + 3 * n, 1e-2)
     state = FilterState(mu=mu)
-    state.add_landmarks(P, np.array([8, 2, 5, 11]), theta, np.ones(n, dtype=np.int64), np.full(n, 10))
+    state.append_landmarks(np.array([8, 2, 5, 11]), theta, np.ones(n, dtype=np.int64), np.full(n, 10))
+    state.P = P  # a given covariance over the pose, bias and the 4 landmarks
     inv = InvariantModel(CAMERA, IMU_T_CAM, "xyz", True, True)
     body = BodyModel(CAMERA, IMU_T_CAM, "xyz", True, True, first_estimate_jacobians=False)
     slots = np.array([2, 0, 3])

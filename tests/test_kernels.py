@@ -11,6 +11,8 @@ import pytest
 from vislam.backend import compiled
 from vislam.backend.estimator import covariance, invariant, tracks, update
 from vislam.backend.estimator.layout import CORE
+from vislam.backend.estimator.state import FilterState
+from vislam.backend.estimator.state_helper import NewLandmarks, StateHelper
 from vislam.backend.geometry import se3
 from test_se3 import _exp_se3_and_left_jacobian_jit, _right_jacobian_se3_jit
 
@@ -172,8 +174,9 @@ def test_compiled_se3_matches_backend_se3(angle):
 
 
 def test_predict_step_is_mean_propagation_then_invariant_covariance():
-    """One compiled prediction = mu exp(tau u^), the landmark walk on the landmark diagonal, then (I2)
-    with the noise Jacobian Ad(mu_next) J_r(twist) at the propagated pose."""
+    """One prediction = the compiled mean mu exp(tau u^) with the noise Jacobian Ad(mu_next) J_r(twist)
+    at the propagated pose, then StateHelper.propagate: (I2) and the landmark walk on the landmark
+    diagonal."""
     rng = np.random.default_rng(3)
     K = 5
     D = CORE + 3 * K
@@ -181,12 +184,17 @@ def test_predict_step_is_mean_propagation_then_invariant_covariance():
     lm_walk = 2e-4
     mu_next = mu @ _exp_se3(twist)
     expected = P.copy()
-    expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
     invariant.predict_covariance_inplace(expected, *_noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk)
-    out = P.copy()
-    pose = invariant.predict_step(mu, out, points, twist, q, dt, True, walk, lm_walk)
+    expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
+    pose, G_pose = invariant.predict_step(mu, twist)
     np.testing.assert_allclose(pose, mu_next, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(G_pose, _noise_jacobian_pose(mu_next, twist)[0], rtol=0, atol=1e-12)
+    state = FilterState(mu=pose)
+    state.append_landmarks(np.arange(K), points, np.ones(K, dtype=np.int64), np.full(K, 10))
+    state.P = P.copy()
+    StateHelper.propagate(state, invariant.InvariantTransition(G_pose, points, q, dt, True, walk), lm_walk)
+    np.testing.assert_allclose(state.P, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert np.array_equal(state.P, state.P.T)
 
 
 def test_retract_invariant_equals_the_group_update():
@@ -279,8 +287,8 @@ def test_gather_landmarks_keeps_pose_bias_and_the_kept_slots():
 
 @pytest.mark.parametrize("pose", [True, False])
 def test_initialize_invariant_is_triangulation_then_augmentation(pose):
-    """One compiled call = ``backend.estimator.landmarks.initialize`` (xyz, unscented mean), (I4) J_xi = [I 0]
-    (zero with poses held fixed) and the augmentation."""
+    """One compiled call = ``backend.estimator.landmarks.initialize`` (xyz, unscented mean) and (I4)
+    J_xi = [I 0] (zero with poses held fixed); StateHelper.augment then adds them by (A1)."""
     from vislam.backend.geometry.camera import StereoCamera
     from vislam.backend.estimator.landmarks import initialize
 
@@ -295,11 +303,18 @@ def test_initialize_invariant_is_triangulation_then_augmentation(pose):
     if pose:
         J_xi[:, :3] = np.tile(np.eye(3), (5, 1))
     expected = covariance.augment(P, J_xi, np.ascontiguousarray(J_z), SIGMA2)
-    out, points = invariant.initialize(P, pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx, camera.cy,
-                                       camera.baseline, 1.3, SIGMA2, pose)
+    points, J_xi_out, J_z_out = invariant.initialize(pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx,
+                                                     camera.cy, camera.baseline, 1.3, pose)
     np.testing.assert_allclose(points, theta, rtol=0, atol=1e-11)
-    np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
-    assert np.array_equal(out, out.T)
+    np.testing.assert_array_equal(J_xi_out, J_xi)
+    np.testing.assert_allclose(J_z_out, J_z, rtol=1e-12, atol=1e-12 * np.abs(J_z).max())
+    state = FilterState()  # two landmarks in the state already
+    state.append_landmarks(np.arange(2), rng.normal(size=(2, 3)), np.ones(2, dtype=np.int64), np.full(2, 10))
+    state.P = P.copy()
+    StateHelper.augment(state, np.arange(2, 7), NewLandmarks(points, None, J_xi_out, J_z_out), SIGMA2,
+                        np.ones(5, dtype=np.int64), np.full(5, 10))
+    np.testing.assert_allclose(state.P, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    assert np.array_equal(state.P, state.P.T) and state.num_landmarks == 7
 
 
 def test_one_point_ransac_hypotheses_are_single_observation_updates():

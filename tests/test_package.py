@@ -158,3 +158,44 @@ def test_every_subpackage_is_listed_for_the_wheel():
         and p.parent != root
     }
     assert listed == found
+
+
+def _is_covariance(node: ast.AST) -> bool:
+    return isinstance(node, ast.Attribute) and node.attr == "P"
+
+
+def _writes_to_covariance(path: Path) -> list[int]:
+    """Lines of ``path`` that may change an attribute ``P``: assignments to it or to part of it
+    (``x.P = ...``, ``x.P[...] += ...``), an alias of it (``P = x.P``), or a call of an in-place
+    kernel (``*_inplace``, ``repair_if_indefinite``) with it as an argument."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        targets = []
+        if isinstance(node, ast.Assign):
+            targets = node.targets
+            if _is_covariance(node.value):
+                lines.append(node.lineno)
+        elif isinstance(node, (ast.AugAssign, ast.AnnAssign)):
+            targets = [node.target]
+        elif isinstance(node, ast.Call):
+            name = getattr(node.func, "attr", getattr(node.func, "id", ""))
+            if (name.endswith("_inplace") or name == "repair_if_indefinite") and any(map(_is_covariance, node.args)):
+                lines.append(node.lineno)
+        for target in targets:
+            while isinstance(target, ast.Subscript):
+                target = target.value
+            if _is_covariance(target):
+                lines.append(node.lineno)
+    return lines
+
+
+def test_only_the_state_helper_writes_the_covariance():
+    """OpenVINS's rule: one owner of P. No module of the package assigns to a state's P (or to
+    part of it) but ``backend/estimator/state_helper.py`` and the state's own default in ``state.py``;
+    the check finds the writes it must (the helper's), so it can fail."""
+    found = {path.relative_to(ROOT).as_posix(): _writes_to_covariance(path)
+             for path in _python_files("backend", "frontend", "synth", "tools")}
+    writers = {name for name, lines in found.items() if lines}
+    assert "backend/estimator/state_helper.py" in writers
+    assert writers <= {"backend/estimator/state_helper.py", "backend/estimator/state.py"}, writers
+    assert len(found["backend/estimator/state.py"]) == 1  # __post_init__: the empty core

@@ -35,10 +35,10 @@ import numpy as np
 from ..geometry import se3
 from ..geometry.camera import dpi_dq, pi
 from . import landmarks
-from .covariance import augment
-from .layout import BIAS, CORE, POSE, SQRT_HALF
+from .layout import BIAS, CORE, POSE, SQRT_HALF, landmark_rows
 from .model import ErrorModel
 from .state import FilterState
+from .state_helper import CoreTransition, NewLandmarks
 from .update import Innovation, innovation_covariance, three_rows
 
 
@@ -53,23 +53,19 @@ class BodyModel(ErrorModel):
         self.per_landmark = per + (("anchors",) if self.parametrization != "xyz" else ())
 
     # ---------------------------------------------------------------- prediction (B1)
-    def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
+    def predict(self, state, twist, q, dt, bias_walk_var) -> CoreTransition | None:
         step = se3.exp_se3(twist)
-        self.predict_mean_only(state, step, landmark_walk_var)
+        self.predict_mean_only(state, step)
         if not self.estimate_pose:
-            return
+            return None
         Phi = np.eye(CORE)
         Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
+        q_var = np.zeros(CORE)
+        q_var[POSE] = q * q
         if self.estimate_bias:
             Phi[POSE, BIAS] = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
-        P = state.P
-        P[:CORE, :] = Phi @ P[:CORE, :]
-        P[:, :CORE] = P[:, :CORE] @ Phi.T
-        P[CORE:, :CORE] = P[:CORE, CORE:].T  # exact symmetry of the cross blocks
-        P[:CORE, :CORE] = 0.5 * (P[:CORE, :CORE] + P[:CORE, :CORE].T)
-        P[np.arange(6), np.arange(6)] += q * q
-        if self.estimate_bias:
-            P[np.arange(6, 9), np.arange(6, 9)] += bias_walk_var
+            q_var[BIAS] = bias_walk_var
+        return CoreTransition(Phi, q_var)
 
     # ---------------------------------------------------------------- observation (B2, B3)
     def _project(self, state: FilterState, mu_inv: np.ndarray, theta: np.ndarray, slots: np.ndarray):
@@ -115,13 +111,12 @@ class BodyModel(ErrorModel):
         return Innovation(residual, off_row, H_x, H_m, HP, S, nis, in_front)
 
     # ---------------------------------------------------------------- landmarks (B4)
-    def initialize(self, state, pixels, sigma, pixel_var):
+    def initialize(self, state, pixels, sigma) -> NewLandmarks:
         theta, anchors, J_z, J_xi = landmarks.initialize(self.parametrization, self.camera, pixels, state.mu,
                                                          self.imu_T_cam, sigma or None)
         n = pixels.shape[0]
         J_xi = J_xi.reshape(3 * n, 6) if self.estimate_pose else np.zeros((3 * n, 6))
-        P = augment(state.P, np.ascontiguousarray(J_xi), np.ascontiguousarray(J_z), pixel_var)
-        return P, theta, anchors
+        return NewLandmarks(theta, anchors, J_xi, J_z)
 
     def correct(self, state, dx) -> None:
         if self.estimate_pose:
@@ -130,7 +125,7 @@ class BodyModel(ErrorModel):
         state.theta += dx[CORE:].reshape(-1, 3)
 
     def world_landmarks(self, state, slots):
-        idx = CORE + 3 * slots[:, None] + np.arange(3)
+        idx = landmark_rows(state.core, slots)
         cov = state.P[idx[:, :, None], idx[:, None, :]]  # the 3x3 diagonal blocks
         anchors = state.anchors[slots] if state.anchors is not None else None
         return landmarks.to_world(self.parametrization, state.theta[slots], anchors, cov)

@@ -1,5 +1,6 @@
-"""Operations on the filter's covariance P as a whole: symmetry, augmentation, marginalization,
-and the positive-definiteness check (the OpenVINS ``StateHelper`` part of the filter).
+"""The compiled operations on the filter's covariance P as a whole: symmetry, augmentation,
+marginalization, and the positive-definiteness check (``StateHelper`` of
+``backend.estimator.state_helper`` applies them to the state).
 
 New landmarks theta = g(z, mu) from a stereo observation z (pixel noise sigma^2 I) seen from the
 pose mu with error xi, with Jacobians J_xi = dg/dxi (3n,6) and J_z = dg/dz (n,3,4), augment the
@@ -19,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..compiled import jit, warms_up
-from .layout import CORE
+from .layout import CORE, landmark_row
 
 
 @jit
@@ -47,12 +48,13 @@ def gather_symmetric(P, keep):
 def gather_landmarks(P, keep, core=CORE):
     """(A2) P over the first ``core`` rows (pose, bias; velocity and accelerometer bias in the inertial
     state) and the landmark slots ``keep`` (the others marginalized)."""
-    idx = np.empty(core + 3 * keep.size, dtype=np.int64)
+    idx = np.empty(landmark_row(core, keep.size), dtype=np.int64)
     for i in range(core):
         idx[i] = i
     for i in range(keep.size):
+        new, old = landmark_row(core, i), landmark_row(core, keep[i])
         for a in range(3):
-            idx[core + 3 * i + a] = core + 3 * keep[i] + a
+            idx[new + a] = old + a
     return gather_symmetric(P, idx)
 
 

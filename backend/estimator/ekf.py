@@ -12,8 +12,11 @@ Each step is ``predict(dt, v, w)`` then ``update(ids, pixels)``:
   tracks start landmarks from their stereo pair (A1 with I4, or B4); the health is watched (H1,
   H2).
 
-State layout, error models and every equation: ``backend.estimator.layout``, ``.model``,
-``.invariant``, ``.body``, ``.covariance``, ``.update``, ``.tracks``; ``docs/design.md`` maps each
+The error models move the mean and say what each step does to the covariance; ``StateHelper``
+(``backend.estimator.state_helper``) is the only code that changes it (propagate, update,
+augment, marginalize, repair). State layout, error models and every equation:
+``backend.estimator.layout``, ``.state_helper``, ``.model``, ``.invariant``, ``.body``,
+``.covariance``, ``.update``, ``.tracks``; ``docs/design.md`` maps each
 equation to the function that runs it and the test that checks it.
 """
 
@@ -30,17 +33,16 @@ from ..config import Choice, Config, ErrorModel as ErrorModelKind, Mode
 from ..errors import FilterError
 from ..geometry.camera import StereoCamera
 from .body import BodyModel
-from .covariance import repair_if_indefinite
 from ..data.inertial import ImuSamples
 from .health import HealthMonitor
 from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
-from .layout import BIAS, CORE, POSE
+from .layout import BIAS, CORE, POSE, state_dimension
 from .model import ErrorModel
 from .propagation import ImuNoise
 from .state import FilterState
+from .state_helper import StateHelper
 from .tracks import admit_landmarks, plan_update
-from .update import select_and_update_inplace
 
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
 
@@ -69,7 +71,7 @@ class StepStats:
 
 def check_full_state_size(num_landmarks: int, max_state_mib: float) -> None:
     """Refuse a full state whose dense covariance would not fit in ``max_state_mib``."""
-    dim = CORE + 3 * num_landmarks
+    dim = state_dimension(CORE, num_landmarks)
     mib = 8.0 * dim * dim / 2**20
     if mib > max_state_mib:
         raise FilterError(
@@ -190,7 +192,7 @@ class VisualInertialEKF:
             self.state = FilterState(mu=np.array(m.world_T_imu, dtype=float), gyro_bias=np.array(m.gyro_bias, float),
                                      core=CORE_INERTIAL, velocity=np.array(m.velocity, float),
                                      accel_bias=np.array(m.accel_bias, float))
-            self.state.P = np.array(inertial.covariance, dtype=float)
+            StateHelper.set_prior(self.state, inertial.covariance)
         else:
             self.model = make_error_model(config, camera, imu_T_cam)
             self.state = FilterState(
@@ -198,10 +200,12 @@ class VisualInertialEKF:
                 theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
                 anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
             )
+            prior = np.zeros((CORE, CORE))
             if self.estimate_pose:
-                self.state.P[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
+                prior[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
                 if est.estimate_gyro_bias:
-                    self.state.P[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+                    prior[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+            StateHelper.set_prior(self.state, prior)
         if noise.pixel_sigma is None:
             raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
                               "(vislam.OnlineRun, vislam.run_sequence)")
@@ -249,8 +253,8 @@ class VisualInertialEKF:
         covariance prediction (I2 or B1)."""
         self.step_index += 1
         twist, q = self._imu_twist(dt, linear_velocity, angular_velocity)
-        self.model.predict(self.state, twist, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt,
-                           self._landmark_walk * dt)
+        transition = self.model.predict(self.state, twist, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt)
+        StateHelper.propagate(self.state, transition, self._landmark_walk * dt)
 
     def propagate(self, imu: ImuSamples, t0: float, t1: float) -> None:
         """Move the inertial state from t0 to t1 by every IMU sample between (J3, J5, J6 of
@@ -258,7 +262,8 @@ class VisualInertialEKF:
         if not self.inertial:
             raise TypeError("propagate() needs the inertial state: VisualInertialEKF(..., inertial=InertialStart(...))")
         self.step_index += 1
-        self.model.propagate(self.state, imu, t0, t1, self._landmark_walk)
+        transition = self.model.propagate(self.state, imu, t0, t1)
+        StateHelper.propagate(self.state, transition, self._landmark_walk * (t1 - t0))
 
     @property
     def velocity(self) -> np.ndarray | None:
@@ -294,9 +299,10 @@ class VisualInertialEKF:
         bias_walk = self.config.noise.gyro_bias_random_walk**2 * dt
         if not self.model.freezes:
             self.finish()
-            self.model.predict(self.state, twist, q, dt, bias_walk, self._landmark_walk * dt)
-            return
-        self.model.predict_frozen(self.state, twist, q, dt, bias_walk, self._landmark_walk * dt, weight[3:6])
+            transition = self.model.predict(self.state, twist, q, dt, bias_walk)
+        else:
+            transition = self.model.predict_frozen(self.state, twist, q, dt, bias_walk, weight[3:6])
+        StateHelper.propagate(self.state, transition, self._landmark_walk * dt)
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -337,14 +343,14 @@ class VisualInertialEKF:
         st = self.state
         inn = self.model.innovation(st, slots, pixels, self._pixel_var)
         upd = self.config.update
-        status, dx, use = select_and_update_inplace(
-            st.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, self._gate,
-            upd.ransac_threshold_px, self._pixel_var, st.outlier_run, upd.persistent_outlier_steps, st.gated_run)
-        if status:  # numerically degenerate step: the prior is kept
+        result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, self._pixel_var,
+                                    upd.persistent_outlier_steps)
+        use = result.used
+        if result.status:  # numerically degenerate step: the prior is kept
             self.health.report(f"step {self.step_index}: update skipped (innovation covariance not positive "
-                               f"definite, potrf info {status})")
+                               f"definite, potrf info {result.status})")
         elif use.any():
-            self.model.correct(st, dx)
+            self.model.correct(st, result.dx)
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(inn.nis[use].sum())
@@ -392,8 +398,8 @@ class VisualInertialEKF:
         if ok.size < ids.size:
             ids, pixels = ids[ok], pixels[ok]
         sigma = self.config.noise.pixel_sigma if lm.unbiased_triangulation else 0.0
-        P, theta, anchors = self.model.initialize(self.state, pixels, sigma, self._pixel_var)
-        self.state.add_landmarks(P, ids, theta, counts, limits, anchors)
+        StateHelper.augment(self.state, ids, self.model.initialize(self.state, pixels, sigma), self._pixel_var,
+                            counts, limits)
         stats.initialized = ids.size
 
     def _remove(self, mask: np.ndarray, to_map: bool, ended: np.ndarray | None = None) -> np.ndarray:
@@ -405,7 +411,7 @@ class VisualInertialEKF:
             if not finite.all():  # points at infinity (inverse depth <= 0) have no position
                 slots, pos, cov = slots[finite], pos[finite], cov[finite]
             self.map.add(self.state.ids[slots], pos, cov)
-        return self.state.remove_landmarks(mask, ended)
+        return StateHelper.marginalize(self.state, mask, ended)
 
     def finish(self) -> None:
         """Marginalize every active landmark into the map (end of the sequence)."""
@@ -440,7 +446,7 @@ class VisualInertialEKF:
     def _check_covariance(self) -> None:
         """(H2): say so (once per episode) when P is not positive definite, and repair it."""
         estimated = self.state.estimated(self.estimate_pose, self.config.estimator.estimate_gyro_bias or self.inertial)
-        worst = repair_if_indefinite(self.state.P, estimated)
+        worst = StateHelper.repair(self.state, estimated)
         if worst is not None:
             self.health.report(f"step {self.step_index}: covariance lost positive definiteness (min eigenvalue "
                                f"{worst:.3g}); eigenvalues clipped")

@@ -74,7 +74,7 @@ from .state import FilterState
 __all__ = [
     "CORE_INERTIAL", "RHO", "PHI", "BG", "NU", "BA", "STANDARD_GRAVITY",
     "InertialMean", "Propagation", "propagate", "integrate_samples", "interval_knots", "integrate_kernel",
-    "propagate_covariance",
+    "propagate_covariance", "InertialTransition",
     "retract_inertial", "InertialStart", "InertialModel",
 ]
 
@@ -297,6 +297,18 @@ def propagate_covariance(P: np.ndarray, prop: Propagation, points: np.ndarray) -
     return 0.5 * (out + out.T)
 
 
+@dataclass
+class InertialTransition:
+    """(J6) for one frame interval: :func:`propagate_covariance` with the interval's ``prop`` and the
+    world landmarks ``points`` (K,3)."""
+
+    prop: Propagation
+    points: np.ndarray
+
+    def apply(self, P: np.ndarray) -> np.ndarray:
+        return propagate_covariance(P, self.prop, self.points)
+
+
 def retract_inertial(mean: InertialMean, points: np.ndarray, dx: np.ndarray) -> InertialMean:
     """(J7): X <- exp(dx) X_hat for dx = [rho, phi, db_g, nu, db_a, zeta_1 .. zeta_K]; the world
     ``points`` (K,3) move in place."""
@@ -338,20 +350,16 @@ class InertialModel(InvariantModel):
         self.noise = start.noise
         self.gravity = np.asarray(start.gravity, dtype=float)
 
-    def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
+    def predict(self, state, twist, q, dt, bias_walk_var) -> None:
         raise TypeError("the inertial state moves by IMU samples: VisualInertialEKF.propagate(imu, t0, t1)")
 
-    def propagate(self, state: FilterState, imu: ImuSamples, t0: float, t1: float, landmark_walk_var: float = 0.0) -> None:
-        """The mean by (J3) and P by (J5, J6) from t0 to t1, the landmarks' random walk of variance
-        ``landmark_walk_var`` per second added; with the pose held fixed (mapping), the mean only."""
+    def propagate(self, state: FilterState, imu: ImuSamples, t0: float, t1: float) -> InertialTransition | None:
+        """The mean by (J3) from t0 to t1; returns P's prediction (J5, J6), None with the pose held
+        fixed (mapping: the mean only)."""
         mean = InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias)
-        new, prop = propagate(mean, imu, t0, t1, self.noise, self.gravity)
+        new, prop = propagate(mean, imu, t0, t1, self.noise if self.estimate_pose else None, self.gravity)
         state.mu, state.velocity = new.world_T_imu, new.velocity
-        if self.estimate_pose:
-            state.P = propagate_covariance(state.P, prop, state.theta)
-        if landmark_walk_var and state.num_landmarks:
-            diag = np.arange(state.core, state.P.shape[0])
-            state.P[diag, diag] += landmark_walk_var * (t1 - t0)
+        return InertialTransition(prop, state.theta) if prop is not None else None
 
     def correct(self, state: FilterState, dx: np.ndarray) -> None:
         mean = retract_inertial(InertialMean(state.mu, state.velocity, state.gyro_bias, state.accel_bias),

@@ -20,7 +20,7 @@ does not depend on the estimate:
 
   where Ad_X of a pose vector (rho, phi) is  (R rho + p^ R phi, R phi; m_i^ R phi for each i).
   The pose-pose Jacobian is the identity: the error is autonomous; noise and bias enter through G.
-  (:func:`predict_step`, :func:`predict_covariance_inplace`)
+  (:func:`predict_step`, :class:`InvariantTransition`, :func:`predict_covariance_inplace`)
 - Observation  s = T^-1 m = T_hat^-1 E^-1 m ~ T_hat^-1 (m_hat + zeta - rho):
 
       dz/drho = -M,   dz/dphi = 0,   dz/dzeta = M,   M = Ks dpi/dq cam_T_imu T_hat^-1 [I; 0]        (I3)
@@ -28,7 +28,7 @@ does not depend on the estimate:
   No rotation column: a rotation of the whole world is unobservable for every estimate, which is
   why this filter needs no first-estimate Jacobians. (:func:`observe`, :func:`innovation`)
 - Landmark initialization  m = T g(z):  zeta = rho + R_hat imu_R_cam dg/dz dz  (no phi column).   (I4)
-  (:func:`initialize`, with A1 of ``backend.estimator.covariance``)
+  (:func:`initialize`; ``StateHelper.augment`` applies A1)
 - Correction  X_hat <- exp(dx) X_hat, i.e. (I1) with (rho, phi, zeta) = dx.                       (I5)
   (:func:`retract_inplace`)
 - World covariance of a landmark:  dm = zeta - m_hat^ phi  (:func:`world_covariances`).          (I6)
@@ -41,23 +41,27 @@ does not depend on the estimate:
       m_hat_k = T_hat_k T_hat_k-1^-1 m_hat_k-1                                                     (I8)
 
   with rho_k - rho_k-1 the translation rows of (I2)'s bias and noise terms; P <- F P F^T + G Q G^T
-  applied as a row map twice (O(D^2)). (:func:`predict_frozen`)
+  applied as a row map twice (O(D^2)). (:func:`predict_frozen`, :class:`FrozenTransition`)
 
-The prediction, the innovation, the initialization and the correction are each one compiled call.
+The model moves the mean; P's prediction is a transition (:class:`InvariantTransition`,
+:class:`FrozenTransition`) that ``StateHelper.propagate`` applies. The prediction, the
+innovation, the initialization and the correction are each one compiled call.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..compiled import jit, warms_up
 from ..geometry import se3
 from ..geometry.camera import triangulate_rows
-from .covariance import augment
-from .layout import CORE, POSE, SQRT_HALF
+from .covariance import mirror_lower_inplace
+from .layout import CORE, POSE, SQRT_HALF, landmark_row
 from .linalg import add_product_lower
 from .model import ErrorModel
-from .covariance import mirror_lower_inplace
+from .state_helper import NewLandmarks
 from .update import Innovation, innovation_covariance
 
 
@@ -82,7 +86,7 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
     G[:6] = G_pose
     for i in range(K):
         W = se3.hat3(points[i])
-        r = CORE + 3 * i
+        r = landmark_row(CORE, i)
         for a in range(3):  # rows of m_i^ R_phi
             for c in range(6):
                 G[r + a, c] = W[a, 0] * R_phi[0, c] + W[a, 1] * R_phi[1, c] + W[a, 2] * R_phi[2, c]
@@ -110,65 +114,93 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
 
 
 @jit
-def predict_step(world_T_imu, P, points, twist, q, dt, bias, bias_walk_var, landmark_walk_var):
-    """One prediction: mu <- mu exp(tau u^) (P1 of ``backend.estimator.propagation``), the landmark
-    random walk (P_mm += ``landmark_walk_var`` I) and (I2) by :func:`predict_covariance_inplace` with
-    G_pose = Ad(mu_next) J_r(twist) and R_phi = R_next J_r[3:6] (its rotation rows).
-    Returns mu_next; P is changed in place."""
+def predict_step(world_T_imu, twist):
+    """One prediction's mean and noise map: mu_next = mu exp(tau u^) (P1 of
+    ``backend.estimator.propagation``) and G_pose = Ad(mu_next) J_r(twist) of (I2); its rotation
+    rows R_phi = G_pose[3:6]. Returns (mu_next (4,4), G_pose (6,6))."""
     step = se3.exp_se3(twist)
     mu = np.empty((4, 4))
     for i in range(4):
         for j in range(4):
             mu[i, j] = world_T_imu[i, 0] * step[0, j] + world_T_imu[i, 1] * step[1, j] \
                 + world_T_imu[i, 2] * step[2, j] + world_T_imu[i, 3] * step[3, j]
-    if landmark_walk_var != 0.0:
-        for i in range(CORE, P.shape[0]):
-            P[i, i] += landmark_walk_var
-    G_pose = se3.small_matmul(se3.adjoint(mu), se3.right_jacobian_se3(twist))
-    predict_covariance_inplace(P, G_pose, np.ascontiguousarray(G_pose[3:6]), points, q, dt, bias, bias_walk_var)
-    return mu
+    return mu, se3.small_matmul(se3.adjoint(mu), se3.right_jacobian_se3(twist))
 
 
-def predict_frozen(world_T_imu: np.ndarray, P: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray,
-                   dt: float, bias: bool, bias_walk_var: float, landmark_walk_var: float,
-                   bias_weight: np.ndarray | None = None) -> np.ndarray:
-    """(I8) one frozen step: returns mu_next = mu exp(twist^); P and the world ``points`` (K,3) change in
-    place. ``q`` (6,): the twist's noise sigmas; ``bias_weight`` (3,): the share of the rotation that
-    came from the gyro (1: all; less when the twist fuses another prediction), scaling its bias column."""
+@dataclass
+class InvariantTransition:
+    """(I2) for one step: :func:`predict_covariance_inplace` with the noise map ``G_pose`` (6,6) at
+    the propagated pose, the world ``points`` (K,3), twist noise ``q`` (6,), ``dt``, the bias in the
+    state or not and its walk's variance."""
+
+    G_pose: np.ndarray
+    points: np.ndarray
+    q: np.ndarray
+    dt: float
+    bias: bool
+    bias_walk_var: float
+
+    def apply(self, P: np.ndarray) -> np.ndarray:
+        predict_covariance_inplace(P, self.G_pose, np.ascontiguousarray(self.G_pose[3:6]), self.points, self.q,
+                                   self.dt, self.bias, self.bias_walk_var)
+        return P
+
+
+@dataclass
+class FrozenTransition:
+    """(I8) for one frozen step: P <- F P F^T + N N^T with F the row map of (I8) (``dR``, the bias
+    columns ``g`` (6,3) of the pose rows) and N the noise map (``G`` (6,6) scaled by ``q`` on the
+    pose and on every landmark's translation rows), and the bias walk."""
+
+    dR: np.ndarray
+    g: np.ndarray
+    G: np.ndarray
+    q: np.ndarray
+    bias: bool
+    bias_walk_var: float
+
+    def apply(self, P: np.ndarray) -> np.ndarray:
+        D = P.shape[0]
+        K = (D - CORE) // 3
+        dR, g = self.dR, self.g
+        I_dR = np.eye(3) - dR
+
+        def rows(M: np.ndarray) -> np.ndarray:
+            """F M for the linear map F of (I8) on the rows of M (D, n)."""
+            out = M.copy()
+            out[POSE] += g @ M[6:9]
+            if K:
+                lm = M[CORE:].reshape(K, 3, -1)
+                out[CORE:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
+            return out
+
+        FP = rows(P)
+        new = rows(np.ascontiguousarray(FP.T))
+        N = np.zeros((D, 6))
+        N[POSE] = self.G * self.q[None, :]
+        if K:
+            N[CORE:] = np.tile(self.G[0:3] * self.q[None, :], (K, 1))
+        new += N @ N.T
+        if self.bias:
+            new[np.arange(6, 9), np.arange(6, 9)] += self.bias_walk_var
+        P[...] = 0.5 * (new + new.T)
+        return P
+
+
+def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray, dt: float,
+                   bias: bool, bias_walk_var: float, bias_weight: np.ndarray | None = None):
+    """(I8) one frozen step: returns (mu_next = mu exp(twist^), P's :class:`FrozenTransition`); the
+    world ``points`` (K,3) move in place with the body. ``q`` (6,): the twist's noise sigmas;
+    ``bias_weight`` (3,): the share of the rotation that came from the gyro (1: all; less when the
+    twist fuses another prediction), scaling its bias column."""
     mu = world_T_imu @ se3.exp_se3(twist)
-    D = P.shape[0]
-    K = (D - CORE) // 3
     G = se3.adjoint(mu) @ se3.right_jacobian_se3(twist)  # (6,6) body twist error -> (rho, phi)
     g = -dt * G[:, 3:6] * (np.ones(3) if bias_weight is None else bias_weight)[None, :] if bias else np.zeros((6, 3))
     dR = mu[:3, :3] @ world_T_imu[:3, :3].T
-    I_dR = np.eye(3) - dR
-
-    def rows(M: np.ndarray) -> np.ndarray:
-        """F M for the linear map F of (I8) on the rows of M (D, n)."""
-        out = M.copy()
-        out[POSE] += g @ M[6:9]
-        if K:
-            lm = M[CORE:].reshape(K, 3, -1)
-            out[CORE:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
-        return out
-
-    FP = rows(P)
-    new = rows(np.ascontiguousarray(FP.T))
-    N = np.zeros((D, 6))
-    N[POSE] = G * q[None, :]
-    if K:
-        N[CORE:] = np.tile(G[0:3] * q[None, :], (K, 1))
-    new += N @ N.T
-    if bias:
-        new[np.arange(6, 9), np.arange(6, 9)] += bias_walk_var
-    if landmark_walk_var and K:
-        diag = np.arange(CORE, D)
-        new[diag, diag] += landmark_walk_var
-    P[...] = 0.5 * (new + new.T)
-    if K:
+    if points.shape[0]:
         step = mu @ se3.inverse(world_T_imu)
         points[...] = points @ step[:3, :3].T + step[:3, 3]
-    return mu
+    return mu, FrozenTransition(dR, g, G, np.asarray(q, dtype=float), bias, bias_walk_var)
 
 
 # ---------------------------------------------------------------- observation (I3, U1)
@@ -237,11 +269,11 @@ def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline
 
 # ---------------------------------------------------------------- initialization (I4)
 @jit
-def initialize(P, pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigma, pixel_var, pose):
+def initialize(pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigma, pose):
     """New world-xyz landmarks from stereo pixels (n,4), in one call: m = world_T_imu imu_T_cam
     triangulate(z) (the unscented mean for sigma > 0, S3 of ``backend.geometry.camera``),
     J_z = world_R_cam d triangulate/dz and (I4) J_xi = [I 0] (zero when ``pose`` is False: poses
-    held fixed), then (A1). Returns (the augmented P, m (n,3))."""
+    held fixed). Returns (m (n,3), J_xi (3n,6), J_z (n,3,4)) for (A1)."""
     n = pixels.shape[0]
     p_cam, dp_dz = triangulate_rows(pixels, fx, fy, cx, cy, baseline, sigma)
     world_T_cam = world_T_imu @ imu_T_cam
@@ -257,7 +289,7 @@ def initialize(P, pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigm
                                 + world_T_cam[a, 2] * dp_dz[i, 2, t])
             if pose:
                 J_xi[3 * i + a, a] = 1.0
-    return augment(P, J_xi, J_z, pixel_var), points
+    return points, J_xi, J_z
 
 
 # ---------------------------------------------------------------- correction (I5)
@@ -272,7 +304,8 @@ def retract_inplace(world_T_imu, points, dx, core=CORE):
             pose[i, j] = E[i, 0] * world_T_imu[0, j] + E[i, 1] * world_T_imu[1, j] + E[i, 2] * world_T_imu[2, j] \
                 + E[i, 3] * world_T_imu[3, j]
     for k in range(points.shape[0]):
-        z = dx[core + 3 * k:core + 3 * k + 3]
+        r = landmark_row(core, k)
+        z = dx[r:r + 3]
         x0, x1, x2 = points[k, 0], points[k, 1], points[k, 2]
         for i in range(3):
             points[k, i] = (E[i, 0] * x0 + E[i, 1] * x1 + E[i, 2] * x2
@@ -289,7 +322,7 @@ def world_covariances(P, slots, points, core=CORE):
     k = slots.size
     out = np.empty((k, 3, 3))
     for i in range(k):
-        s = core + 3 * slots[i]
+        s = landmark_row(core, slots[i])
         for a in range(3):
             for b in range(3):
                 out[i, a, b] = P[s + a, s + b]
@@ -328,19 +361,19 @@ class InvariantModel(ErrorModel):
 
     freezes = True
 
-    def predict_frozen(self, state, twist, q, dt, bias_walk_var, landmark_walk_var, bias_weight=None) -> None:
+    def predict_frozen(self, state, twist, q, dt, bias_walk_var, bias_weight=None) -> FrozenTransition:
         if not self.estimate_pose:  # mapping: the poses are held, the landmarks move with them
             q = np.zeros(6)
-        state.mu = predict_frozen(state.mu, state.P, state.theta, twist, q, dt,
-                                  self.estimate_bias and self.estimate_pose, bias_walk_var, landmark_walk_var,
-                                  bias_weight)
+        state.mu, transition = predict_frozen(state.mu, state.theta, twist, q, dt,
+                                              self.estimate_bias and self.estimate_pose, bias_walk_var, bias_weight)
+        return transition
 
-    def predict(self, state, twist, q, dt, bias_walk_var, landmark_walk_var) -> None:
+    def predict(self, state, twist, q, dt, bias_walk_var) -> InvariantTransition | None:
         if not self.estimate_pose:
-            self.predict_mean_only(state, se3.exp_se3(twist), landmark_walk_var)
-            return
-        state.mu = predict_step(state.mu, state.P, state.theta, twist, q, dt, self.estimate_bias, bias_walk_var,
-                                landmark_walk_var)
+            self.predict_mean_only(state, se3.exp_se3(twist))
+            return None
+        state.mu, G_pose = predict_step(state.mu, twist)
+        return InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var)
 
     def innovation(self, state, slots, pixels, pixel_var) -> Innovation:
         cam = self.camera
@@ -349,11 +382,11 @@ class InvariantModel(ErrorModel):
             pixels, pixel_var, self.estimate_pose, state.core)
         return Innovation(residual, off_row, H_x, H_m, HP, S, nis, in_front)
 
-    def initialize(self, state, pixels, sigma, pixel_var):
+    def initialize(self, state, pixels, sigma) -> NewLandmarks:
         cam = self.camera
-        P, theta = initialize(state.P, pixels, state.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
-                              sigma, pixel_var, self.estimate_pose)
-        return P, theta, None
+        theta, J_xi, J_z = initialize(pixels, state.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
+                                      sigma, self.estimate_pose)
+        return NewLandmarks(theta, None, J_xi, J_z)
 
     def correct(self, state, dx) -> None:
         state.mu = retract_inplace(state.mu, state.theta, dx)
@@ -375,10 +408,10 @@ def _warm_up() -> None:
     points = np.ones((k, 3))
     twist = np.full(6, 0.01)
     predict_covariance_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)
-    pose = predict_step(np.eye(4), P.copy(), points, twist, np.ones(6), 0.1, True, 1e-8, 1e-6)
+    pose, _ = predict_step(np.eye(4), twist)
     retract_inplace(pose, points.copy(), np.full(D, 1e-3))
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
     observe(points + 5.0, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels)
     innovation(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True)
-    initialize(P, pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, 1.0, True)
+    initialize(pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, True)
     world_covariances(P, slots, points)

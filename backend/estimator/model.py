@@ -2,16 +2,18 @@
 
 The filter's mean is the pose mu = world_T_imu, the gyro bias and the landmark parameters; its
 covariance P is over an error state whose meaning the model defines, and with it the
-prediction of P, the observation Jacobians, the Jacobians of a new landmark, the correction of
-the mean by an update dx, and the covariances reported in the world and body frames:
+prediction of P (a ``Transition`` that ``StateHelper.propagate`` applies), the observation
+Jacobians, the Jacobians of a new landmark (``StateHelper.augment`` adds it), the correction of
+the mean by an update dx, and the covariances reported in the world and body frames. A model
+moves the mean; it never writes P (``backend.estimator.state_helper``):
 
 - :class:`~vislam.backend.estimator.invariant.InvariantModel`: the right-invariant error of pose
   and world-xyz landmarks (I1-I7; the default);
 - :class:`~vislam.backend.estimator.body.BodyModel`: the course's right perturbation
   mu exp(xi^) (B1-B4), for xyz or inverse-depth landmarks.
 
-When the poses are held fixed (mapping) only the mean moves in the prediction, by (P1), and
-the landmarks take their random walk; that part is common to both models.
+When the poses are held fixed (mapping) only the mean moves in the prediction, by (P1): the
+prediction returns no transition.
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ import numpy as np
 from ..config import Parametrization
 from ..geometry import se3
 from ..geometry.camera import StereoCamera
-from .layout import CORE
 from .state import FilterState
+from .state_helper import NewLandmarks, Transition
 from .update import Innovation
 
 
@@ -48,18 +50,18 @@ class ErrorModel(abc.ABC):
     per_landmark: tuple[str, ...] = ()
 
     @abc.abstractmethod
-    def predict(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float, bias_walk_var: float,
-                landmark_walk_var: float) -> None:
-        """Move the mean by the body twist ``twist`` (6,) = tau u and P by the model's prediction, with
-        twist noise sigmas times tau ``q`` (6,), the bias walk's and the landmarks' variances per step."""
+    def predict(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float,
+                bias_walk_var: float) -> Transition | None:
+        """Move the mean by the body twist ``twist`` (6,) = tau u; returns P's prediction, with twist
+        noise sigmas times tau ``q`` (6,) and the bias walk's variance per step (None: poses held)."""
 
     @abc.abstractmethod
     def innovation(self, state: FilterState, slots: np.ndarray, pixels: np.ndarray, pixel_var: float) -> Innovation:
         """The prior innovation (3-row form, U1) of the observations ``pixels`` (k,4) of landmarks ``slots``."""
 
     @abc.abstractmethod
-    def initialize(self, state: FilterState, pixels: np.ndarray, sigma: float, pixel_var: float):
-        """New landmarks from stereo pixels (n,4): (the augmented P (A1), theta (n,3), anchors (n,4,4) or None).
+    def initialize(self, state: FilterState, pixels: np.ndarray, sigma: float) -> NewLandmarks:
+        """New landmarks from stereo pixels (n,4): their parameters and Jacobians (A1).
         ``sigma`` > 0: start xyz points at the expected triangulation under that pixel noise (S3)."""
 
     @abc.abstractmethod
@@ -78,16 +80,13 @@ class ErrorModel(abc.ABC):
     freezes: bool = False
 
     def predict_frozen(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float, bias_walk_var: float,
-                       landmark_walk_var: float, bias_weight: np.ndarray | None = None) -> None:
+                       bias_weight: np.ndarray | None = None) -> Transition | None:
         """A step whose frame repeats the previous one: the pose moves by ``twist`` as in :meth:`predict`
         while the landmarks keep their coordinates in the body frame (the content froze: the world
-        moved with the camera). Only models with ``freezes`` implement it."""
+        moved with the camera); returns P's prediction. Only models with ``freezes`` implement it."""
         raise NotImplementedError(f"{type(self).__name__} does not carry landmarks through a frozen step")
 
-    def predict_mean_only(self, state: FilterState, step: np.ndarray, landmark_walk_var: float) -> None:
-        """(P1) mu <- mu step for step = exp(tau u^), and the landmarks' random walk
-        (``landmark_walk_var`` added to their variances); P of the pose untouched."""
+    @staticmethod
+    def predict_mean_only(state: FilterState, step: np.ndarray) -> None:
+        """(P1) mu <- mu step for step = exp(tau u^)."""
         state.mu = state.mu @ step
-        if landmark_walk_var and state.num_landmarks:
-            diag = np.arange(state.core, state.P.shape[0])
-            state.P[diag, diag] += landmark_walk_var

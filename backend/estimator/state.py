@@ -7,7 +7,8 @@ the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, t
 it was not used, the observations since it was anchored and how many it may have (R1 of
 ``backend.estimator.tracks``), and the steps in a row the RANSAC rejected its track; and, where
 the error model reads them, ``theta_first`` (the first estimates, for FEJ) and ``anchors``
-(inverse depth). Adding and removing landmarks keeps all of them in the same slot order.
+(inverse depth). Adding and removing landmarks keeps all of them in the same slot order; only
+``backend.estimator.state_helper.StateHelper`` changes P.
 """
 
 from __future__ import annotations
@@ -16,12 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .covariance import gather_landmarks
 from .layout import BIAS, CORE
-from .tracks import plan_removal
 
 TRACK_ROWS = ID, GATED, COUNT, LIMIT, OUTLIER = range(5)  # rows of FilterState.track
-_NONE = np.zeros(0, dtype=bool)  # an empty mask: no track ended
 
 
 @dataclass
@@ -97,19 +95,19 @@ class FilterState:
         self._ids_order = np.argsort(self.ids, kind="stable")
         self._ids_sorted = self.ids[self._ids_order]
 
-    # ---------------------------------------------------------------- adding and removing landmarks
-    def add_landmarks(self, P: np.ndarray, ids: np.ndarray, theta: np.ndarray, counts: np.ndarray,
-                      limits: np.ndarray, anchors: np.ndarray | None = None) -> None:
-        """Append landmarks ``ids`` with parameters ``theta`` (n,3) after P was augmented to ``P`` (A1);
-        their observation counts and limits (R1, R2); a track's RANSAC rejection run comes back from
-        the stash."""
+    # ---------------------------------------------------------------- landmark bookkeeping
+    # (P's rows and columns are StateHelper's: augment and marginalize call these)
+    def append_landmarks(self, ids: np.ndarray, theta: np.ndarray, counts: np.ndarray, limits: np.ndarray,
+                         anchors: np.ndarray | None = None) -> None:
+        """Append landmarks ``ids`` with parameters ``theta`` (n,3) after the last slot, as P's rows
+        were (A1); their observation counts and limits (R1, R2); a track's RANSAC rejection run
+        comes back from the stash."""
         n = ids.size
         stash = self.outlier_stash
         runs = (np.array([stash.pop(i, 0) for i in ids.tolist()], dtype=np.int64) if stash
                 else np.zeros(n, dtype=np.int64))
         rows = np.empty((len(TRACK_ROWS), n), dtype=np.int64)
         rows[ID], rows[GATED], rows[COUNT], rows[LIMIT], rows[OUTLIER] = ids, 0, counts, limits, runs
-        self.P = P
         self.track = np.concatenate([self.track, rows], axis=1)
         self.theta = np.concatenate([self.theta, theta])
         if self.theta_first is not None:
@@ -118,14 +116,13 @@ class FilterState:
             self.anchors = np.concatenate([self.anchors, anchors])
         self._reindex()
 
-    def remove_landmarks(self, mask: np.ndarray, ended: np.ndarray | None = None) -> np.ndarray:
-        """Marginalize the landmarks in ``mask`` (A2: their rows and columns of P dropped); returns the
-        new slot of each old one (-1: removed). The RANSAC rejection runs of tracks that may go on
-        (not ``ended``; None: none ended) are stashed by track id."""
-        _, keep, remap, counted = plan_removal(mask, _NONE if ended is None else ended, self.outlier_run)
-        if counted.size:
-            self.outlier_stash.update(zip(self.ids[counted].tolist(), self.outlier_run[counted].tolist()))
-        self.P = gather_landmarks(self.P, keep, self.core)  # C-ordered, one pass
+    def stash_outlier_runs(self, slots: np.ndarray) -> None:
+        """Keep the RANSAC rejection runs of landmarks ``slots`` (leaving, their tracks may go on) by track id."""
+        if slots.size:
+            self.outlier_stash.update(zip(self.ids[slots].tolist(), self.outlier_run[slots].tolist()))
+
+    def keep_landmarks(self, keep: np.ndarray) -> None:
+        """Keep the landmarks of slots ``keep`` (increasing), in that order, as P's rows were (A2)."""
         self.track = np.take(self.track, keep, axis=1)  # C-ordered (a[:, idx] is not): contiguous rows
         self.theta = self.theta[keep]
         if self.theta_first is not None:
@@ -133,4 +130,3 @@ class FilterState:
         if self.anchors is not None:
             self.anchors = self.anchors[keep]
         self._reindex()
-        return remap

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..compiled import jit, warms_up
-from .layout import CORE, SQRT_HALF
+from .layout import CORE, SQRT_HALF, landmark_row
 from .linalg import cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 from .covariance import mirror_lower_inplace
 
@@ -105,7 +105,7 @@ def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row, core
     m = 3 * k
     HP = np.zeros((m, D))
     for i in range(k):
-        base = core + 3 * slots[i]
+        base = landmark_row(core, slots[i])
         for a in range(3):
             r = 3 * i + a
             out = HP[r]
@@ -126,7 +126,7 @@ def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row, core
         for r2 in range(r + 1):
             i2 = r2 // 3
             b = r2 - 3 * i2
-            base = core + 3 * slots[i2]
+            base = landmark_row(core, slots[i2])
             s = 0.0
             for j in range(6):
                 s += hp[j] * H_x[r2, j]

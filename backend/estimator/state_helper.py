@@ -1,0 +1,145 @@
+"""The only code that changes the filter's covariance (OpenVINS's ``StateHelper``).
+
+Every change of ``FilterState.P`` is one of these operations, each one function of
+:class:`StateHelper`:
+
+- ``set_prior``: the core's covariance before the first step.
+- ``propagate``: P <- F P F^T + G Q G^T by the error model's :class:`Transition` (I2, I8, B1, J6),
+  then the landmarks' random walk (P_mm += q I).
+- ``update``: the joint update with the gate, RANSAC and rescue (U2-U5).
+- ``augment``: new landmarks from their stereo pixels (A1).
+- ``marginalize``: landmarks leave the state (A2).
+- ``repair``: eigenvalues clipped when P lost positive definiteness (H2).
+
+The error models say what a prediction does to P (a :class:`Transition`, derived beside its
+model) and what a new landmark's Jacobians are (:class:`NewLandmarks`); they never write P.
+Landmark slot s owns rows ``layout.landmark_rows(core, s)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .covariance import augment, gather_landmarks, repair_if_indefinite
+from .state import FilterState
+from .tracks import plan_removal
+from .update import Innovation, select_and_update_inplace
+
+__all__ = ["StateHelper", "Transition", "CoreTransition", "NewLandmarks", "UpdateResult"]
+
+_NONE = np.zeros(0, dtype=bool)  # an empty mask: no track ended
+
+
+class Transition(Protocol):
+    """What one prediction does to P, in the structured form its error model derived."""
+
+    def apply(self, P: np.ndarray) -> np.ndarray:
+        """P <- F P F^T + G Q G^T: returns the new P (``P`` itself, changed in place, or a new array)."""
+
+
+@dataclass
+class CoreTransition:
+    """A transition that moves only the core (pose, bias): F = blockdiag(Phi, I) and Q on the core,
+
+        P_cc <- Phi P_cc Phi^T + diag(q_var),   P_c,l <- Phi P_c,l                  (B1)
+
+    ``Phi`` (c,c), ``q_var`` (c,) for a core of c rows."""
+
+    Phi: np.ndarray
+    q_var: np.ndarray
+
+    def apply(self, P: np.ndarray) -> np.ndarray:
+        c = self.Phi.shape[0]
+        P[:c, :] = self.Phi @ P[:c, :]
+        P[:, :c] = P[:, :c] @ self.Phi.T
+        P[c:, :c] = P[:c, c:].T  # exact symmetry of the cross blocks
+        P[:c, :c] = 0.5 * (P[:c, :c] + P[:c, :c].T)
+        P[np.arange(c), np.arange(c)] += self.q_var
+        return P
+
+
+@dataclass
+class NewLandmarks:
+    """New landmarks from their first stereo observations, as an error model makes them (I4, B4):
+    parameters ``theta`` (n,3), ``anchors`` (n,4,4) or None, the Jacobians ``J_xi`` (3n,6) on the
+    pose (zero with the poses held fixed) and ``J_z`` (n,3,4) on the pixels (A1)."""
+
+    theta: np.ndarray
+    anchors: np.ndarray | None
+    J_xi: np.ndarray
+    J_z: np.ndarray
+
+
+@dataclass
+class UpdateResult:
+    """What the joint update did: ``status`` (0, or the Cholesky's info when S was not positive
+    definite and the prior was kept), the error-state correction ``dx`` (D,) and the observations
+    ``used`` (k,) bool."""
+
+    status: int
+    dx: np.ndarray
+    used: np.ndarray
+
+
+class StateHelper:
+    """The operations that change P (module docstring); the filter's only writer of the covariance."""
+
+    @staticmethod
+    def set_prior(state: FilterState, covariance: np.ndarray) -> None:
+        """Start P as ``covariance`` (core, core) of the core states; no landmark may be in the state."""
+        if state.num_landmarks:
+            raise ValueError("set_prior: the state already holds landmarks")
+        cov = np.array(covariance, dtype=float)
+        if cov.shape != (state.core, state.core):
+            raise ValueError(f"set_prior: covariance must be ({state.core},{state.core}), got {cov.shape}")
+        state.P = 0.5 * (cov + cov.T)
+
+    @staticmethod
+    def propagate(state: FilterState, transition: Transition | None, landmark_walk_var: float = 0.0) -> None:
+        """P by the model's ``transition`` (None: poses held fixed, P of the core unchanged), then
+        the landmarks' random walk: ``landmark_walk_var`` added to each landmark row's variance."""
+        if transition is not None:
+            state.P = transition.apply(state.P)
+        if landmark_walk_var and state.num_landmarks:
+            diag = np.arange(state.core, state.P.shape[0])
+            state.P[diag, diag] += landmark_walk_var
+
+    @staticmethod
+    def update(state: FilterState, inn: Innovation, slots: np.ndarray, gate: float, ransac_threshold_px: float,
+               pixel_var: float, persistent_outlier_steps: int) -> UpdateResult:
+        """The gate (U4), 1-point RANSAC (U5), the rescue (U3) and the joint update (U2) of P in one
+        compiled call, with the prior innovation ``inn`` of landmarks ``slots``; the landmarks'
+        RANSAC and gating runs are counted in the state's track rows. The mean is the caller's to
+        correct by ``dx`` (the error model's retraction)."""
+        status, dx, used = select_and_update_inplace(
+            state.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, gate,
+            ransac_threshold_px, pixel_var, state.outlier_run, persistent_outlier_steps, state.gated_run)
+        return UpdateResult(int(status), dx, used)
+
+    @staticmethod
+    def augment(state: FilterState, ids: np.ndarray, new: NewLandmarks, pixel_var: float, counts: np.ndarray,
+                limits: np.ndarray) -> None:
+        """(A1) landmarks ``ids`` (n,) enter the state after the last slot, with the Jacobians of
+        ``new`` and white pixel noise ``pixel_var``; their observation counts and limits (R1, R2)."""
+        state.P = augment(state.P, np.ascontiguousarray(new.J_xi), np.ascontiguousarray(new.J_z), pixel_var)
+        state.append_landmarks(ids, new.theta, counts, limits, new.anchors)
+
+    @staticmethod
+    def marginalize(state: FilterState, mask: np.ndarray, ended: np.ndarray | None = None) -> np.ndarray:
+        """(A2) the landmarks in ``mask`` leave the state (their rows and columns of P dropped);
+        returns the new slot of each old one (-1: removed). The RANSAC rejection runs of tracks
+        that may go on (not ``ended``; None: none ended) are kept by track id."""
+        _, keep, remap, counted = plan_removal(mask, _NONE if ended is None else ended, state.outlier_run)
+        state.stash_outlier_runs(counted)
+        state.P = gather_landmarks(state.P, keep, state.core)  # C-ordered, one pass
+        state.keep_landmarks(keep)
+        return remap
+
+    @staticmethod
+    def repair(state: FilterState, estimated: np.ndarray) -> float | None:
+        """(H2) P over the ``estimated`` states (bool (D,)) made positive definite if it is not;
+        returns the smallest eigenvalue found then (else None)."""
+        return repair_if_indefinite(state.P, estimated)
