@@ -35,7 +35,7 @@ from .images import stereo_intrinsics
 __all__ = [
     "OXTS_FIELDS", "EARTH_RADIUS", "RawCalibration", "read_cam_to_cam", "read_rigid_calibration",
     "cam_rect_T_imu", "read_drive_calibration", "frame_numbers", "parse_timestamp", "read_timestamps",
-    "read_oxts", "oxts_velocities", "mercator_scale", "oxts_world_T_imu",
+    "read_oxts", "oxts_velocities", "oxts_inertial", "mercator_scale", "oxts_world_T_imu",
 ]
 
 #: The 30 numbers of an OXTS line, in order (the devkit's dataformat.txt): position (deg, deg, m),
@@ -45,7 +45,7 @@ __all__ = [
 OXTS_FIELDS = ("lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu", "ax", "ay", "az",
                "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu", "pos_accuracy", "vel_accuracy",
                "navstat", "numsats", "posmode", "velmode", "orimode")
-_VF, _WF = OXTS_FIELDS.index("vf"), OXTS_FIELDS.index("wf")
+_VF, _AF, _WF = OXTS_FIELDS.index("vf"), OXTS_FIELDS.index("af"), OXTS_FIELDS.index("wf")
 
 #: Equatorial radius (m) of the devkit's Mercator conversion (WGS84).
 EARTH_RADIUS = 6378137.0
@@ -246,6 +246,13 @@ def oxts_velocities(oxts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (np.ascontiguousarray(oxts[:, _VF:_VF + 3]), np.ascontiguousarray(oxts[:, _WF:_WF + 3]))
 
 
+def oxts_inertial(oxts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(specific force (n,3) m/s^2, angular rate (n,3) rad/s) in the IMU frame: ``af al au`` and
+    ``wf wl wu``, a real IMU's samples (the accelerometer reads about +9.81 up at rest; the inertial
+    run's initialization tests that and refuses otherwise)."""
+    return (np.ascontiguousarray(oxts[:, _AF:_AF + 3]), np.ascontiguousarray(oxts[:, _WF:_WF + 3]))
+
+
 def mercator_scale(lat0_deg: float) -> float:
     """The devkit's Mercator scale ``cos(lat0 * pi / 180)`` of the first record's latitude."""
     return float(np.cos(np.deg2rad(lat0_deg)))
@@ -261,15 +268,17 @@ def _rotations(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarr
     return R
 
 
-def oxts_world_T_imu(oxts: np.ndarray) -> np.ndarray:
+def oxts_world_T_imu(oxts: np.ndarray, level: bool = False) -> np.ndarray:
     """(n,4,4) ``world_T_imu`` of OXTS records (n, >=6: lat lon alt roll pitch yaw first), world =
-    the IMU frame at the first record: the devkit's ``convertOxtsToPose``.
+    the IMU frame at the first record: the devkit's ``convertOxtsToPose``; ``level``: world = the
+    first record's position with z up and x along its heading (gravity-aligned, as an inertial
+    filter's world: the first pose keeps its roll and pitch).
 
     With ``s = cos(lat_0 pi/180)`` (:func:`mercator_scale`) and ``er`` = :data:`EARTH_RADIUS`::
 
         t = [s er lon pi/180,  s er ln(tan((90 + lat) pi/360)),  alt]
         R = Rz(yaw) Ry(pitch) Rx(roll)
-        world_T_imu_k = [R_0 t_0; 0 1]^-1 [R_k t_k; 0 1]
+        world_T_imu_k = [R_0 t_0; 0 1]^-1 [R_k t_k; 0 1]          (level: Rz(yaw_0) in place of R_0)
     """
     oxts = np.asarray(oxts, dtype=np.float64)
     lat, lon, alt, roll, pitch, yaw = oxts[:, :6].T
@@ -278,8 +287,11 @@ def oxts_world_T_imu(oxts: np.ndarray) -> np.ndarray:
                          scale * EARTH_RADIUS * np.log(np.tan(np.deg2rad(90.0 + lat) / 2.0)),
                          alt])
     R = _rotations(roll, pitch, yaw)
+    zero = np.zeros(1)
+    first = _rotations(zero, zero, yaw[:1])[0] if level else R[0]
     poses = np.tile(np.eye(4), (len(oxts), 1, 1))
-    poses[:, :3, :3] = R[0].T @ R
-    poses[:, :3, 3] = (t - t[0]) @ R[0]  # R_0^T (t_k - t_0)
-    poses[0] = np.eye(4)  # R_0^T R_0, without its rounding
+    poses[:, :3, :3] = first.T @ R
+    poses[:, :3, 3] = (t - t[0]) @ first  # first^T (t_k - t_0)
+    if not level:
+        poses[0] = np.eye(4)  # R_0^T R_0, without its rounding
     return poses

@@ -1,5 +1,10 @@
 """A KITTI raw ``_sync`` drive as one input: its stereo frames, IMU velocities and ground truth.
 
+The OXTS records carry both IMU inputs: the velocities ``vf vl vu`` with the rates ``wf wl wu``
+(the default, the velocity model) and the specific force ``af al au`` with the same rates, one
+sample a frame, as a real IMU's samples for the inertial state (``--imu-input inertial``); the
+ground truth of an inertial run is the OXTS poses in a gravity-aligned world (z up).
+
 ``DATE/DATE_drive_NNNN_sync/`` (the drive) holds ``image_00/data/*.png`` and ``image_01/data/*.png``
 (rectified grey, left and right), ``image_00/timestamps.txt`` and ``oxts/data/*.txt``; ``DATE/``
 holds the calibration (:mod:`~vislam.frontend.kitti_raw` reads every file). Frame
@@ -17,11 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..backend.data.inertial import ImuSamples, check_imu_samples
 from ..backend.errors import InputError
 from .images import LEFT_DIR, StereoDirectory, open_stereo_directory, paired_frame_names, stereo_directory
 from .imu_input import ImuVelocities, with_imu_T_cam
 from .kitti_raw import (
-    frame_numbers, oxts_velocities, oxts_world_T_imu, read_drive_calibration, read_oxts, read_timestamps,
+    frame_numbers, oxts_inertial, oxts_velocities, oxts_world_T_imu, read_drive_calibration, read_oxts,
+    read_timestamps,
 )
 
 __all__ = ["RawDrive", "is_raw_drive", "open_raw_drive", "open_images", "drive_imu", "RAW_LEFT", "RAW_RIGHT"]
@@ -37,6 +44,15 @@ class RawDrive:
     stereo: StereoDirectory
     imu: ImuVelocities  # one sample a frame, the frames' time stamps, imu_T_cam from the calibration
     world_T_imu: np.ndarray  # (n,4,4) OXTS poses, world = the IMU frame at the first frame
+    oxts: np.ndarray  # (n,30) the records, columns kitti_raw.OXTS_FIELDS
+
+    def inertial_samples(self) -> ImuSamples:
+        """``af al au`` and ``wf wl wu`` at the frames' stamps as a real IMU's samples (no noise
+        densities: the run measures them); InputError when they cannot be (a gap over
+        ``MAX_IMU_STEP`` between frames)."""
+        specific_force, rate = oxts_inertial(self.oxts)
+        return check_imu_samples(self.ground_truth_source, self.imu.time_stamps, specific_force, rate,
+                                 keys=("image_00/timestamps.txt", "af al au", "wf wl wu"))
 
     @property
     def ground_truth_source(self) -> str:
@@ -47,6 +63,12 @@ class RawDrive:
     def ground_truth(self) -> tuple[str, np.ndarray, np.ndarray]:
         """(source, time stamps (n,), world_T_imu (n,4,4)): the form ``vislam run --gt`` reads."""
         return self.ground_truth_source, self.imu.time_stamps, self.world_T_imu
+
+    @property
+    def level_ground_truth(self) -> tuple[str, np.ndarray, np.ndarray]:
+        """:attr:`ground_truth` in a gravity-aligned world (z up, x along the first heading; an
+        inertial run's): :func:`~frontend.kitti_raw.oxts_world_T_imu` with ``level``."""
+        return self.ground_truth_source, self.imu.time_stamps, oxts_world_T_imu(self.oxts, level=True)
 
 
 def is_raw_drive(path) -> bool:
@@ -70,7 +92,7 @@ def open_raw_drive(path) -> RawDrive:
     linear, angular = oxts_velocities(oxts)
     imu = ImuVelocities(times, linear, angular, calibration.imu_T_cam, source=str(root / "oxts"),
                         notes=calibration.notes)
-    return RawDrive(stereo, imu, oxts_world_T_imu(oxts))
+    return RawDrive(stereo, imu, oxts_world_T_imu(oxts), oxts)
 
 
 def open_images(path) -> tuple[StereoDirectory, RawDrive | None]:

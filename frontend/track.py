@@ -191,15 +191,37 @@ def track_euroc(data, config: TrackerConfig | None = None, progress: Callable[[i
     if min(w, h) < config.min_image_side:
         raise InputError(f"{data.root}: images of {w}x{h} px are smaller than tracker.min_image_side = "
                          f"{config.min_image_side}")
-    tracker = StereoTracker(config, data.K, data.baseline)
+    return _inertial_sequence(data.pairs(), data.frames.times, data.K, data.baseline, data.imu_T_cam,
+                              data.imu.samples, str(data.root), config, progress, draw_dir)
+
+
+def track_raw_inertial(drive, config: TrackerConfig | None = None, progress: Callable[[int, int], None] | None = None,
+                       draw_dir=None) -> Sequence:
+    """Track every frame of a KITTI raw drive (:class:`~frontend.raw_drive.RawDrive`) into an
+    inertial sequence: the OXTS accelerations and rates as the IMU's samples
+    (``RawDrive.inertial_samples``), the calibrated K, baseline and ``imu_T_cam``. Checks (image
+    size, ``draw_dir``, the samples) before the first frame."""
+    config = config if config is not None else TrackerConfig()
+    stereo = drive.stereo
+    check_image_size(stereo, config)
+    if draw_dir is not None:
+        check_draw_dir(draw_dir)
+    samples = drive.inertial_samples()
+    return _inertial_sequence(stereo.frames(), drive.imu.time_stamps, stereo.K, stereo.baseline, drive.imu.imu_T_cam,
+                              samples, str(stereo.root), config, progress, draw_dir)
+
+
+def _inertial_sequence(frames: Iterator, times: np.ndarray, K: np.ndarray, baseline: float, imu_T_cam: np.ndarray,
+                       samples, source: str, config: TrackerConfig, progress, draw_dir) -> Sequence:
+    """The inertial sequence of the tracked (index, left, right) ``frames`` at ``times`` with the IMU's ``samples``."""
+    tracker = StereoTracker(config, K, baseline)
     drawer = TrackDrawer(draw_dir) if draw_dir is not None else None
-    n = len(data.frames)
+    n = len(times)
     ids, pixels = [], []
-    for k, i, z in _tracked_frames(data.pairs(), config, tracker, drawer):
+    for k, i, z in _tracked_frames(frames, config, tracker, drawer):
         ids.append(i)
         pixels.append(z)
         if progress is not None:
             progress(k, n)
-    return Sequence.from_steps(data.frames.times, None, None, ids, pixels, data.K, data.baseline, data.imu_T_cam,
-                               num_features=tracker.num_ids, source=str(data.root), tracker=VISLAM_TRACKER,
-                               imu=data.imu.samples)
+    return Sequence.from_steps(times, None, None, ids, pixels, K, baseline, imu_T_cam, num_features=tracker.num_ids,
+                               source=source, tracker=VISLAM_TRACKER, imu=samples)

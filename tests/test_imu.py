@@ -10,7 +10,7 @@ from vislam.backend.geometry import se3
 from vislam.backend.estimator.propagation import dead_reckoning, step_velocities
 from vislam.backend.config import Config
 from vislam.backend.run.decisions import decide
-from vislam.backend.run.noise import estimate_white_noise
+from vislam.backend.run.noise import estimate_white_noise, hold_error
 
 
 def smooth_signal(n: int = 3000, dt: float = 0.1) -> np.ndarray:
@@ -49,6 +49,24 @@ def test_white_noise_robust_to_manoeuvres():
 
 def test_white_noise_short_signal():
     np.testing.assert_array_equal(estimate_white_noise(np.ones((4, 3))), np.zeros(3))
+
+
+def test_hold_error_by_hand_and_against_the_exact_step_mean():
+    """(N4) a ramp x_k = a k dt holds each sample a dt/2 off its step's mean: exactly that RMS; a
+    constant holds nothing; and on a smooth vehicle-like signal the RMS of (step mean - sample at
+    the step start), integrated finely, is what N4 says within 5 % (both timings)."""
+    dt = 0.1
+    ramp = np.outer(np.arange(50) * dt, [2.0, -1.0, 0.0])
+    np.testing.assert_allclose(hold_error(ramp), [0.1, 0.05, 0.0], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(hold_error(np.ones((10, 3))), np.zeros(3))
+    np.testing.assert_array_equal(hold_error(np.ones((1, 3))), np.zeros(3))
+    fine = 50
+    t = np.arange(300 * fine + 1) * (dt / fine)
+    signal = np.stack([8.0 + 2.0 * np.sin(0.7 * t), 0.5 * np.cos(0.4 * t), 0.2 * np.sin(1.3 * t + 1.0)], axis=1)
+    samples = signal[::fine]
+    means = np.array([np.trapezoid(signal[k * fine:(k + 1) * fine + 1], dx=dt / fine, axis=0) / dt for k in range(300)])
+    for held in (samples[:-1], samples[1:]):  # the timings "this" and "next"
+        np.testing.assert_allclose(np.sqrt(np.mean((means - held) ** 2, axis=0)), hold_error(samples), rtol=0.05)
 
 
 def test_step_velocities_select_samples():
@@ -146,10 +164,17 @@ def test_imu_noise_configured_wins_else_the_white_noise(short_scene):
     assert set(mixed.as_dict()) >= {"linear_velocity_sigma", "angular_velocity_sigma", "linear_decided_by",
                                     "angular_decided_by", "white_noise_linear", "white_noise_angular"}
 
-    clean = imu({}, (smooth_signal(), smooth_signal()))  # no floor: far below the old 0.05 m/s
+    # clean samples: their white noise is tiny, and what holding them over a step costs (N4) is the
+    # floor, measured from their own changes (no hand floor: far below the old 0.05 m/s)
+    clean = imu({}, (smooth_signal(), smooth_signal()))
     np.testing.assert_array_equal(clean.white_linear, estimate_white_noise(smooth_signal()))
-    np.testing.assert_array_equal(clean.linear_sigma, np.maximum(clean.white_linear, 1e-6))
-    assert np.all(clean.linear_sigma < 1e-3)
+    assert np.all(clean.white_linear < 1e-3)
+    np.testing.assert_array_equal(clean.linear_sigma, np.maximum(clean.white_linear, hold_error(smooth_signal())))
+    np.testing.assert_array_equal(clean.hold_linear, hold_error(smooth_signal()))
+    assert "(N4)" in clean.linear_source and np.all(clean.linear_sigma < 0.02)
+    # noisy samples: their white noise exceeds the hold error, so N1 stands alone
+    np.testing.assert_array_equal(estimated.linear_sigma, estimated.white_linear)
+    assert np.all(estimated.hold_linear < estimated.white_linear)
     # without imu_velocities: the sequence's own samples
     own = decide(short_scene, Config.from_values(dead)).imu
     np.testing.assert_array_equal(own.white_linear, estimate_white_noise(short_scene.linear_velocity))

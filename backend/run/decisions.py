@@ -34,7 +34,7 @@ from ..data.sequence import Sequence
 from .conventions import ConventionDecision, decide_conventions, reprojection_error
 from .drift import DriftDecision, decide_track_drift
 from .noise import (
-    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, imu_vs_vision,
+    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, hold_error, imu_vs_vision,
     pixel_noise,
 )
 from .stereo_offset import StereoOffset, offset_from_fits
@@ -163,6 +163,10 @@ def _velocity_correction(seq: Sequence, conventions: ConventionDecision, vision:
     return VelocityCorrection(), numbers
 
 
+#: The source of an IMU sigma taken from the samples' white noise alone (N1)
+WHITE_NOISE = "white noise of the samples"
+
+
 def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray,
                vision: ImuVsVision | None) -> ImuNoiseDecision:
     """Per kind (linear, angular): the configured value wins; else (N3) where vision is the smaller part
@@ -174,7 +178,7 @@ def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray,
             return np.full(3, float(configured)), "configured"
         if usable:
             return np.maximum(measured, white), "IMU against vision"
-        return white, "white noise of the samples"
+        return white, WHITE_NOISE
 
     lin, lin_src = one(config.noise.linear_velocity_sigma, vision and vision.linear_sigma, white_lin)
     ang, ang_src = one(config.noise.angular_velocity_sigma, vision and vision.angular_sigma, white_ang)
@@ -223,7 +227,26 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
                           guard)
     if vision_used and (imu.linear_source != "configured" or imu.angular_source != "configured") and vision is None:
         decisions = _imu_by_likelihood(seq, decisions, config)
-    return decisions
+    return _at_least_hold(decisions, hold_error(np.asarray(lin)), hold_error(np.asarray(ang)))
+
+
+def _at_least_hold(decisions: Decisions, hold_lin: np.ndarray, hold_ang: np.ndarray) -> Decisions:
+    """Per axis, an IMU sigma taken from the samples' white noise (N1, blind to smooth changes) is
+    at least the error of holding a sample over its step (N4). Sigmas measured against vision (N3)
+    or by the filter's likelihood (L2) already hold that error, and a configured one is the user's:
+    those are kept."""
+    imu = decisions.imu
+
+    def floor(sigma, source, hold):
+        if source != WHITE_NOISE or not np.any(hold > sigma):
+            return sigma, source
+        return np.maximum(sigma, hold), f"{source}, at least the samples' change over a step (N4)"
+
+    lin, lin_src = floor(imu.linear_sigma, imu.linear_source, hold_lin)
+    ang, ang_src = floor(imu.angular_sigma, imu.angular_source, hold_ang)
+    return dataclasses.replace(decisions, imu=dataclasses.replace(
+        imu, linear_sigma=lin, angular_sigma=ang, linear_source=lin_src, angular_source=ang_src,
+        hold_linear=hold_lin, hold_angular=hold_ang))
 
 
 #: Candidate IMU sigmas of (L2): the white noise times these factors, up to the caps.

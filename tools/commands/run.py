@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -24,8 +25,10 @@ def add_parser(sub) -> None:
                                  "or a course .npz)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
     p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
-                   help="a feature file with both IMU inputs (velocities and a real IMU's samples): which one to use "
-                        "(default: auto, which refuses such a file)")
+                   help="which IMU input to use: a feature file with both (velocities and a real IMU's samples) needs "
+                        "one; a KITTI raw drive runs on its OXTS velocities vf vl vu (auto, velocity) or on its "
+                        "accelerations af al au with the rates wf wl wu as a real IMU (inertial). Default: auto, the "
+                        "one input the data has")
     p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG "
                                                  "(left image on top with track tails, right image below with the stereo matches)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
@@ -76,6 +79,8 @@ def main(args: argparse.Namespace) -> int:
             drive = euroc_truth = None
             if images and _is_euroc(args.data):
                 (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
+            elif images and args.imu_input == "inertial":
+                (result, notes), gt, drive = _run_raw_inertial(args, config, tracker, gt, say, recorder)
             elif images:
                 (result, notes), gt, drive = _run_images(args, config, tracker, gt, say, recorder)
             else:
@@ -85,7 +90,11 @@ def main(args: argparse.Namespace) -> int:
         if euroc_truth is not None:
             write_tum(staging / GROUND_TRUTH, euroc_truth.times, euroc_truth.world_T_imu,
                       header=f"world_T_imu from {euroc_truth.source} (EuRoC ground truth of the body = IMU frame)")
-        if drive is not None:
+        if drive is not None and result.inertial:
+            write_tum(staging / GROUND_TRUTH, *drive.level_ground_truth[1:],
+                      header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
+                             "convertOxtsToPose; world = the first frame's position, z up, x along its heading)")
+        elif drive is not None:
             write_tum(staging / GROUND_TRUTH, drive.imu.time_stamps, drive.world_T_imu,
                       header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
                              "convertOxtsToPose; world = the IMU frame at the first frame)")
@@ -156,6 +165,8 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
     if args.imu or args.imu_T_cam:
         raise InputError(f"{args.data}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
                          "carries its IMU and calibration")
+    if args.imu_input == "velocity":
+        raise InputError(f"{args.data}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
     t0 = time.perf_counter()
     data = read_euroc(args.data)
     truth = data.ground_truth if gt is None else None
@@ -179,6 +190,50 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
         result = run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
                               observer=None if recorder is None else recorder.observer)
     return (result, notes), gt, truth
+
+
+def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
+    """A KITTI raw drive with ``--imu-input inertial``: every frame tracked
+    (``frontend.track.track_raw_inertial``), then the filter with the inertial state, the OXTS
+    accelerations and rates as the IMU's samples. Returns ((result, notes), ground truth, the drive):
+    without ``--gt`` its OXTS poses in a gravity-aligned world."""
+    from ...backend.run.runner import run_sequence
+    from ...frontend.raw_drive import is_raw_drive, open_raw_drive
+    from ...frontend.track import track_raw_inertial
+
+    if not is_raw_drive(args.data):
+        raise InputError(f"{args.data}: --imu-input inertial needs a real IMU's samples: a KITTI raw drive (its OXTS "
+                         "accelerations), an EuRoC folder or an inertial .npz; an odometry-layout directory's --imu "
+                         "gives velocities")
+    if args.imu:
+        raise InputError(f"{args.imu}: --imu is for an odometry-layout directory; the KITTI raw drive {args.data} "
+                         "carries its IMU in oxts/")
+    t0 = time.perf_counter()
+    drive = open_raw_drive(args.data)
+    if args.imu_T_cam:
+        from ...frontend.imu_input import with_imu_T_cam
+
+        drive = dataclasses.replace(drive, imu=with_imu_T_cam(drive.imu, args.imu_T_cam))
+    notes = list(drive.imu.notes)
+    if gt is None:
+        gt = drive.level_ground_truth
+        notes.append(f"ground truth: the OXTS poses of {drive.ground_truth_source} in a gravity-aligned world "
+                     f"({GROUND_TRUTH})")
+    _check_ground_truth(gt, drive.imu.time_stamps)
+    say(f"vislam run {args.data}: KITTI raw drive, {len(drive.stereo)} stereo pairs, the OXTS accelerations "
+        "af al au and rates wf wl wu as the IMU's samples (one a frame)")
+    for note in notes:
+        say(f"note: {note}")
+    say(console.configuration_text(args.verbose, config, tracker))
+    with console.progress_bar(len(drive.stereo), "track", "frame", console.progress_off(args)) as progress:
+        seq = track_raw_inertial(drive, tracker, progress, args.draw)
+    load_seconds = time.perf_counter() - t0
+    if recorder is not None:
+        recorder.time_stamps = seq.time_stamps
+    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
+        result = run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
+                              observer=None if recorder is None else recorder.observer)
+    return (result, notes), gt, drive
 
 
 def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):

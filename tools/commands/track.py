@@ -1,5 +1,6 @@
 """``vislam track``: stereo images (KITTI odometry layout + IMU, or a KITTI raw drive with its OXTS
-velocities) -> observations in the course .npz layout."""
+velocities) -> observations in the course .npz layout; an EuRoC folder, or a raw drive with
+``--imu-input inertial``, -> the inertial layout (the IMU's samples)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,10 @@ def add_parser(sub) -> None:
     p.add_argument("--imu", help="IMU velocities: CSV t,vx,vy,vz,wx,wy,wz or a course .npz (frame i = step i); "
                                  "needed with the odometry layout (a raw drive has its oxts/)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="4x4 text imu_T_cam (needed with a CSV)")
+    p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
+                   help="a KITTI raw drive: write its OXTS velocities vf vl vu (auto, velocity: the course layout) or "
+                        "its accelerations af al au with the rates wf wl wu as a real IMU's samples (inertial: the "
+                        "inertial layout). Default: auto")
     p.add_argument("--out", required=True, help="output .npz (refused if it exists, unless --force)")
     p.add_argument("--force", action="store_true")
     p.add_argument("--draw", metavar="DIR", help="write each frame's tracks as PNG (left image on top with track "
@@ -37,6 +42,8 @@ def main(args: argparse.Namespace) -> int:
 
     if is_euroc(args.images):
         return _track_euroc(args, config, out)
+    if args.imu_input == "inertial":
+        return _track_raw_inertial(args, config, out)
     directory, imu, _ = open_tracking_input(args.images, args.imu, args.imu_T_cam, config, args.draw)
     say = console.sayer(args.quiet)
     for note in imu.notes:
@@ -52,6 +59,39 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_raw_inertial(args: argparse.Namespace, config, out) -> int:
+    """A KITTI raw drive -> the inertial layout (its tracks, the OXTS accelerations and rates as the IMU's samples)."""
+    import dataclasses
+
+    from ...backend.data.npz import save_sequence
+    from ...backend.errors import InputError
+    from ...frontend.imu_input import with_imu_T_cam
+    from ...frontend.raw_drive import is_raw_drive, open_raw_drive
+    from ...frontend.track import track_raw_inertial
+
+    if not is_raw_drive(args.images):
+        raise InputError(f"{args.images}: --imu-input inertial needs a real IMU's samples: a KITTI raw drive (its OXTS "
+                         "accelerations) or an EuRoC folder; an odometry-layout directory's --imu gives velocities")
+    if args.imu:
+        raise InputError(f"{args.imu}: --imu is for an odometry-layout directory; the KITTI raw drive {args.images} "
+                         "carries its IMU in oxts/")
+    drive = open_raw_drive(args.images)
+    if args.imu_T_cam:
+        drive = dataclasses.replace(drive, imu=with_imu_T_cam(drive.imu, args.imu_T_cam))
+    say = console.sayer(args.quiet)
+    for note in drive.imu.notes:
+        say(f"note: {note}")
+    say(console.configuration_text(args.verbose, config))
+    with console.progress_bar(len(drive.stereo), "track", "frame", console.progress_off(args)) as progress:
+        seq = track_raw_inertial(drive, config, progress, args.draw)
+    save_sequence(seq, out)
+    if not args.quiet:
+        print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
+              f"({seq.num_observations / seq.num_steps:.0f} per frame), {seq.imu.num_samples} IMU samples; "
+              f"wrote {out} (inertial layout)")
+    return 0
+
+
 def _track_euroc(args: argparse.Namespace, config, out) -> int:
     """An EuRoC ASL folder -> the inertial layout (rectified pairs' tracks, the IMU's samples)."""
     from ...backend.data.npz import save_sequence
@@ -62,6 +102,8 @@ def _track_euroc(args: argparse.Namespace, config, out) -> int:
     if args.imu or args.imu_T_cam:
         raise InputError(f"{args.images}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
                          "carries its IMU and calibration")
+    if args.imu_input == "velocity":
+        raise InputError(f"{args.images}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
     data = read_euroc(args.images)
     say = console.sayer(args.quiet)
     for note in data.notes:
