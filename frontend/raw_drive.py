@@ -17,6 +17,7 @@ raw drive, anything else an odometry-layout directory (:func:`~vislam.frontend.i
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,8 @@ from .kitti_raw import (
     read_timestamps,
 )
 
-__all__ = ["RawDrive", "is_raw_drive", "open_raw_drive", "open_images", "drive_imu", "RAW_LEFT", "RAW_RIGHT"]
+__all__ = ["RawDrive", "is_raw_drive", "open_raw_drive", "open_inertial_drive", "open_images", "drive_imu", "RAW_LEFT",
+           "RAW_RIGHT"]
 
 RAW_LEFT, RAW_RIGHT = "image_00/data", "image_01/data"
 _LAYOUT = f"KITTI raw drive: {RAW_LEFT}/ left and {RAW_RIGHT}/ right .png frames"
@@ -110,3 +112,16 @@ def drive_imu(drive: RawDrive, imu_path=None, imu_T_cam_path=None) -> ImuVelocit
         raise InputError(f"{imu_path}: --imu is for an odometry-layout directory; the KITTI raw drive "
                          f"{drive.stereo.root} carries its IMU velocities in oxts/")
     return with_imu_T_cam(drive.imu, imu_T_cam_path) if imu_T_cam_path is not None else drive.imu
+
+
+def open_inertial_drive(path, imu_path=None, imu_T_cam_path=None) -> RawDrive:
+    """The raw drive ``path`` for ``--imu-input inertial`` (its OXTS accelerations as the IMU), with
+    the extrinsic of ``imu_T_cam_path`` when given; InputError (one line) for anything but a raw
+    drive (an odometry-layout directory's ``--imu`` gives velocities) or with an IMU file."""
+    if not is_raw_drive(path):
+        raise InputError(f"{path}: --imu-input inertial needs a real IMU's samples: a KITTI raw drive (its OXTS "
+                         "accelerations), an EuRoC folder or an inertial .npz; an odometry-layout directory's --imu "
+                         "gives velocities")
+    drive = open_raw_drive(path)
+    imu = drive_imu(drive, imu_path, imu_T_cam_path)
+    return drive if imu is drive.imu else dataclasses.replace(drive, imu=imu)

@@ -113,6 +113,24 @@ def test_likelihood_prefers_the_true_imu_noise(clean, clean_decisions):
     assert scores[0.2] > scores[0.02] and scores[0.2] > scores[2.0]
 
 
+def test_hold_error_is_left_out_where_the_truth_moves_by_the_held_samples():
+    """The project's velocity-model scenes move by exactly the held twists (piecewise constant), so
+    holding a sample costs nothing there: on a grid scene whose IMU noise comes from the white noise
+    alone (vision dominates the comparison, N1), the innovation likelihood (L2) compares the hold
+    floor (N4) with none and keeps none; the numbers are in the record. (On continuous motion it keeps
+    the floor: ``test_kitti_raw.py::test_exact_velocities_cost_what_holding_them_over_a_step_costs``.)"""
+    from vislam.synth.grid import scenes
+
+    spec = next(sc for name, sc in scenes("tuning") if "s207" in name)
+    seq = make_scene(spec).sequence
+    imu = decide(seq, Config()).imu
+    assert np.any(imu.hold_angular > imu.white_angular)  # a floor would bind ...
+    table = imu.likelihood
+    assert table["white noise (N1)"] > table["at least the hold error (N4)"]  # ... and is less likely
+    np.testing.assert_array_equal(imu.angular_sigma, np.maximum(imu.white_angular, 1e-7))
+    assert "N4 less likely" in imu.angular_source and "(N4)" not in imu.angular_source
+
+
 def test_configured_values_win(clean):
     """noise.pixel_sigma and the IMU sigmas set in the configuration are used as given."""
     config = Config().with_assignments(["noise.pixel_sigma=0.8", "noise.linear_velocity_sigma=0.3",

@@ -14,7 +14,9 @@ each by a test whose numbers it keeps:
      removed when significant and dead reckoning agrees, and the IMU's noise per axis;
 4. the IMU noise: configured, else against vision (N3) where enough step pairs exist, else the
    filter's own innovation likelihood over the first steps (sparse tracks), with the white noise
-   of the samples (N1) as the smallest candidate: no floor is set by hand;
+   of the samples (N1) as the smallest candidate: no floor is set by hand; a sigma from the white
+   noise alone covers the error of holding a sample over its step (N4) where the likelihood
+   prefers it;
 5. whether the gyro bias is estimated (enough stereo observations a step to tell it from drift).
 
 :class:`~vislam.backend.run.online.OnlineRun` applies the record; ``decisions.describe()`` says
@@ -103,7 +105,6 @@ class Decisions:
         v = self.imu.vision
         if v is None:
             return "IMU lever arm and velocity offset: not tested (too few step pairs with enough tracks)"
-        r, c = self.velocity.lever_arm, self.velocity.offset
         est = (f"lever arm [{', '.join(f'{x:+.2f}' for x in v.lever_arm)}] m, offset "
                f"[{', '.join(f'{x:+.3f}' for x in v.offset)}] m/s (chi2 {v.chi2:.0f}, {v.pairs} step pairs)")
         if self.velocity.active:
@@ -227,26 +228,60 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
                           guard)
     if vision_used and (imu.linear_source != "configured" or imu.angular_source != "configured") and vision is None:
         decisions = _imu_by_likelihood(seq, decisions, config)
-    return _at_least_hold(decisions, hold_error(np.asarray(lin)), hold_error(np.asarray(ang)))
+    return _hold_decision(seq, decisions, config, hold_error(np.asarray(lin)), hold_error(np.asarray(ang)),
+                          vision_used)
 
 
-def _at_least_hold(decisions: Decisions, hold_lin: np.ndarray, hold_ang: np.ndarray) -> Decisions:
-    """Per axis, an IMU sigma taken from the samples' white noise (N1, blind to smooth changes) is
-    at least the error of holding a sample over its step (N4). Sigmas measured against vision (N3)
-    or by the filter's likelihood (L2) already hold that error, and a configured one is the user's:
-    those are kept."""
+#: The source of an IMU sigma floored by the hold error (N4)
+HOLD = "at least the samples' change over a step (N4)"
+
+
+def _at_least_hold(decisions: Decisions, hold_lin: np.ndarray, hold_ang: np.ndarray, why: str = "") -> Decisions:
+    """Per axis, an IMU sigma taken from the samples' white noise (N1, blind to smooth changes) at
+    least the error of holding a sample over its step (N4); others are kept."""
     imu = decisions.imu
 
     def floor(sigma, source, hold):
         if source != WHITE_NOISE or not np.any(hold > sigma):
             return sigma, source
-        return np.maximum(sigma, hold), f"{source}, at least the samples' change over a step (N4)"
+        return np.maximum(sigma, hold), f"{source}, {HOLD}{why}"
 
     lin, lin_src = floor(imu.linear_sigma, imu.linear_source, hold_lin)
     ang, ang_src = floor(imu.angular_sigma, imu.angular_source, hold_ang)
     return dataclasses.replace(decisions, imu=dataclasses.replace(
-        imu, linear_sigma=lin, angular_sigma=ang, linear_source=lin_src, angular_source=ang_src,
-        hold_linear=hold_lin, hold_angular=hold_ang))
+        imu, linear_sigma=lin, angular_sigma=ang, linear_source=lin_src, angular_source=ang_src))
+
+
+def _hold_decision(seq: Sequence, decisions: Decisions, config: Config, hold_lin: np.ndarray, hold_ang: np.ndarray,
+                   vision_used: bool) -> Decisions:
+    """Whether an IMU sigma from the white noise alone (N1) must also cover the hold error (N4).
+    Sigmas measured against vision (N3) or by the likelihood's search (L2) already include it, and
+    a configured one is the user's: only N1 ones are floored. Motion sampled from a continuous
+    trajectory makes the hold error real; a sequence whose truth moves by exactly the held samples
+    (piecewise-constant twists, as some simulators make) has none. The filter's own innovation
+    likelihood over the first steps (L2) tells them apart: the floor is kept where it is the more
+    likely of the two; without vision (dead reckoning) it is kept (continuous motion)."""
+    imu = dataclasses.replace(decisions.imu, hold_linear=hold_lin, hold_angular=hold_ang)
+    decisions = dataclasses.replace(decisions, imu=imu)
+    floored = _at_least_hold(decisions, hold_lin, hold_ang)
+    if floored.imu.linear_source == imu.linear_source and floored.imu.angular_source == imu.angular_source:
+        return decisions  # nothing to floor
+    if not vision_used:
+        return floored
+    from .likelihood import log_likelihood
+
+    ll_white, _ = log_likelihood(seq, decisions, config)
+    ll_hold, _ = log_likelihood(seq, floored, config)
+    table = dict(imu.likelihood, **{"white noise (N1)": ll_white, "at least the hold error (N4)": ll_hold})
+    if ll_hold > ll_white:
+        chosen = _at_least_hold(decisions, hold_lin, hold_ang, "; the more likely (L2)")
+    else:
+        chosen = dataclasses.replace(decisions, imu=dataclasses.replace(
+            imu, linear_source=f"{imu.linear_source} (the hold error N4 less likely, L2)"
+            if imu.linear_source == WHITE_NOISE else imu.linear_source,
+            angular_source=f"{imu.angular_source} (the hold error N4 less likely, L2)"
+            if imu.angular_source == WHITE_NOISE else imu.angular_source))
+    return dataclasses.replace(chosen, imu=dataclasses.replace(chosen.imu, likelihood=table))
 
 
 #: Candidate IMU sigmas of (L2): the white noise times these factors, up to the caps.
@@ -266,7 +301,6 @@ def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> D
     best = decisions
 
     def search(kind: str, white: np.ndarray, cap: float) -> Decisions:
-        nonlocal best
         base = np.maximum(white, 1e-4 if kind == "linear" else 1e-5)
         scores = []
         for f in LIKELIHOOD_FACTORS:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import time
 import warnings
 from pathlib import Path
@@ -130,22 +129,17 @@ def _recorder(args: argparse.Namespace):
 
 def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     from ...backend.data.npz import load_sequence
-    from ...backend.run.runner import run_sequence
 
     t0 = time.perf_counter()
     seq = load_sequence(args.data, image_size=config.input.image_size, imu=args.imu_input)  # refused before any waiting
     load_seconds = time.perf_counter() - t0
     _check_ground_truth(gt, seq.time_stamps)
-    if recorder is not None:
-        recorder.time_stamps = seq.time_stamps
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
         f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))
     for note in seq.notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config))
-    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
-        return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
-                            observer=None if recorder is None else recorder.observer), list(seq.notes)
+    return _filter(args, seq, config, load_seconds, say, recorder), list(seq.notes)
 
 
 def _is_euroc(path) -> bool:
@@ -158,7 +152,6 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
     """An EuRoC ASL folder: every pair rectified and tracked (``frontend.track.track_euroc``), then the
     filter with the inertial state over the sequence. Returns ((result, notes), ground truth, the
     folder's ground truth or None): without ``--gt`` its state_groundtruth_estimate0 is the ground truth."""
-    from ...backend.run.runner import run_sequence
     from ...frontend.euroc import read_euroc
     from ...frontend.track import track_euroc
 
@@ -182,14 +175,20 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
     say(console.configuration_text(args.verbose, config))
     with console.progress_bar(len(data.frames), "track", "frame", console.progress_off(args)) as progress:
         seq = track_euroc(data, tracker, progress, args.draw)
-    load_seconds = time.perf_counter() - t0
     _check_ground_truth(gt, seq.time_stamps)
+    return (_filter(args, seq, config, time.perf_counter() - t0, say, recorder), notes), gt, truth
+
+
+def _filter(args: argparse.Namespace, seq, config: Config, load_seconds: float, say, recorder=None):
+    """The filter over a whole sequence (a feature file, or tracked from an EuRoC folder or a raw drive's
+    inertial input), with its progress bar and the recorder's time stamps."""
+    from ...backend.run.runner import run_sequence
+
     if recorder is not None:
         recorder.time_stamps = seq.time_stamps
     with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
-        result = run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
-                              observer=None if recorder is None else recorder.observer)
-    return (result, notes), gt, truth
+        return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
+                            observer=None if recorder is None else recorder.observer)
 
 
 def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
@@ -197,23 +196,11 @@ def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say
     (``frontend.track.track_raw_inertial``), then the filter with the inertial state, the OXTS
     accelerations and rates as the IMU's samples. Returns ((result, notes), ground truth, the drive):
     without ``--gt`` its OXTS poses in a gravity-aligned world."""
-    from ...backend.run.runner import run_sequence
-    from ...frontend.raw_drive import is_raw_drive, open_raw_drive
+    from ...frontend.raw_drive import open_inertial_drive
     from ...frontend.track import track_raw_inertial
 
-    if not is_raw_drive(args.data):
-        raise InputError(f"{args.data}: --imu-input inertial needs a real IMU's samples: a KITTI raw drive (its OXTS "
-                         "accelerations), an EuRoC folder or an inertial .npz; an odometry-layout directory's --imu "
-                         "gives velocities")
-    if args.imu:
-        raise InputError(f"{args.imu}: --imu is for an odometry-layout directory; the KITTI raw drive {args.data} "
-                         "carries its IMU in oxts/")
     t0 = time.perf_counter()
-    drive = open_raw_drive(args.data)
-    if args.imu_T_cam:
-        from ...frontend.imu_input import with_imu_T_cam
-
-        drive = dataclasses.replace(drive, imu=with_imu_T_cam(drive.imu, args.imu_T_cam))
+    drive = open_inertial_drive(args.data, args.imu, args.imu_T_cam)
     notes = list(drive.imu.notes)
     if gt is None:
         gt = drive.level_ground_truth
@@ -227,13 +214,7 @@ def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say
     say(console.configuration_text(args.verbose, config, tracker))
     with console.progress_bar(len(drive.stereo), "track", "frame", console.progress_off(args)) as progress:
         seq = track_raw_inertial(drive, tracker, progress, args.draw)
-    load_seconds = time.perf_counter() - t0
-    if recorder is not None:
-        recorder.time_stamps = seq.time_stamps
-    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
-        result = run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
-                              observer=None if recorder is None else recorder.observer)
-    return (result, notes), gt, drive
+    return (_filter(args, seq, config, time.perf_counter() - t0, say, recorder), notes), gt, drive
 
 
 def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):

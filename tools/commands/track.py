@@ -61,40 +61,16 @@ def main(args: argparse.Namespace) -> int:
 
 def _track_raw_inertial(args: argparse.Namespace, config, out) -> int:
     """A KITTI raw drive -> the inertial layout (its tracks, the OXTS accelerations and rates as the IMU's samples)."""
-    import dataclasses
-
-    from ...backend.data.npz import save_sequence
-    from ...backend.errors import InputError
-    from ...frontend.imu_input import with_imu_T_cam
-    from ...frontend.raw_drive import is_raw_drive, open_raw_drive
+    from ...frontend.raw_drive import open_inertial_drive
     from ...frontend.track import track_raw_inertial
 
-    if not is_raw_drive(args.images):
-        raise InputError(f"{args.images}: --imu-input inertial needs a real IMU's samples: a KITTI raw drive (its OXTS "
-                         "accelerations) or an EuRoC folder; an odometry-layout directory's --imu gives velocities")
-    if args.imu:
-        raise InputError(f"{args.imu}: --imu is for an odometry-layout directory; the KITTI raw drive {args.images} "
-                         "carries its IMU in oxts/")
-    drive = open_raw_drive(args.images)
-    if args.imu_T_cam:
-        drive = dataclasses.replace(drive, imu=with_imu_T_cam(drive.imu, args.imu_T_cam))
-    say = console.sayer(args.quiet)
-    for note in drive.imu.notes:
-        say(f"note: {note}")
-    say(console.configuration_text(args.verbose, config))
-    with console.progress_bar(len(drive.stereo), "track", "frame", console.progress_off(args)) as progress:
-        seq = track_raw_inertial(drive, config, progress, args.draw)
-    save_sequence(seq, out)
-    if not args.quiet:
-        print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
-              f"({seq.num_observations / seq.num_steps:.0f} per frame), {seq.imu.num_samples} IMU samples; "
-              f"wrote {out} (inertial layout)")
-    return 0
+    drive = open_inertial_drive(args.images, args.imu, args.imu_T_cam)
+    return _write_inertial(args, config, out, drive.imu.notes, len(drive.stereo),
+                           lambda progress: track_raw_inertial(drive, config, progress, args.draw))
 
 
 def _track_euroc(args: argparse.Namespace, config, out) -> int:
     """An EuRoC ASL folder -> the inertial layout (rectified pairs' tracks, the IMU's samples)."""
-    from ...backend.data.npz import save_sequence
     from ...backend.errors import InputError
     from ...frontend.euroc import read_euroc
     from ...frontend.track import track_euroc
@@ -105,12 +81,21 @@ def _track_euroc(args: argparse.Namespace, config, out) -> int:
     if args.imu_input == "velocity":
         raise InputError(f"{args.images}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
     data = read_euroc(args.images)
+    return _write_inertial(args, config, out, data.notes, len(data.frames),
+                           lambda progress: track_euroc(data, config, progress, args.draw))
+
+
+def _write_inertial(args: argparse.Namespace, config, out, notes, frames: int, track) -> int:
+    """Say the input's notes and the configuration, ``track(progress)`` its ``frames`` into an
+    inertial sequence, and write it to ``out`` in the inertial layout."""
+    from ...backend.data.npz import save_sequence
+
     say = console.sayer(args.quiet)
-    for note in data.notes:
+    for note in notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config))
-    with console.progress_bar(len(data.frames), "track", "frame", console.progress_off(args)) as progress:
-        seq = track_euroc(data, config, progress, args.draw)
+    with console.progress_bar(frames, "track", "frame", console.progress_off(args)) as progress:
+        seq = track(progress)
     save_sequence(seq, out)
     if not args.quiet:
         print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
