@@ -65,6 +65,11 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
         timing["sequence_seconds"] / sum(timing[p] for p in parts), rel=1e-9)
     assert timing["wall_seconds"] == pytest.approx(sum(timing[p] for p in parts), rel=1e-9)
     assert "kernel_seconds" in timing  # compiling or loading the kernels, once per process, reported apart
+    # the time the user waited: called in-process, from the command's start (no process start-up),
+    # and it holds every part, the outputs included
+    assert timing["startup_seconds"] is None
+    assert timing["process_seconds"] >= timing["wall_seconds"] + timing["outputs_seconds"] > timing["wall_seconds"]
+    assert timing["process_real_time_factor"] == pytest.approx(timing["sequence_seconds"] / timing["process_seconds"])
     latency = timing["step_ms"]  # README: the latency of one step
     assert 0 < latency["median"] <= latency["p99"] <= latency["max"] < 1e3 * timing["filter_seconds"]
     # evo reads the trajectory
@@ -160,6 +165,30 @@ def test_version(capsys):
     if script.is_file():
         done = subprocess.run([str(script), "--version"], capture_output=True, text=True, timeout=120)
         assert done.returncode == 0 and done.stdout.strip() == f"vislam {vislam.__version__}"
+
+
+def test_real_time_factor_keeps_its_decimals_below_ten():
+    from vislam.tools.report import real_time_text
+
+    assert [real_time_text(x) for x in (0.42, 0.051, 1.09, 9.94, 35.2, float("nan"))] == [
+        "0.42x", "0.05x", "1.1x", "9.9x", "35x", "n/a"]
+
+
+@needs_data
+def test_the_command_counts_from_the_process_start(short_0027, tmp_path):
+    """``python -m vislam.tools.cli run`` (the command is the process): the summary's whole time
+    counts from the operating system's start of the process, so it holds the start-up (the
+    interpreter and the imports before the command) and every part, and the screen leads with it."""
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, "-m", "vislam.tools.cli", "run", str(short_0027), "--out", str(out),
+                           "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    t = json.loads((out / "summary.json").read_text())["timing"]
+    assert t["startup_seconds"] > 0.05  # an interpreter and numpy take longer than that to start
+    assert t["process_seconds"] > t["startup_seconds"] + t["wall_seconds"] + t["outputs_seconds"]
+    line = next(x for x in done.stdout.splitlines() if "s of data" in x)
+    assert line.startswith(f"{t['process_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data")
+    assert f"start-up {t['startup_seconds']:.2f}" in line and f"outputs {t['outputs_seconds']:.2f}" in line
 
 
 @needs_data

@@ -12,7 +12,7 @@ import sys
 
 from .. import __version__
 from ..backend.errors import VislamError
-from . import console
+from . import clock, console
 from .commands import COMMANDS
 
 EXIT_USAGE = 2
@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None, sigint_after=None) -> int:
     """:func:`main`; ``sigint_after``: the SIGINT handler to leave in place (default: the one before)."""
     args = build_parser().parse_args(argv)
+    clock.mark_command_start()
     with console.interrupt_handler(sigint_after) as interrupted:
         rc = _dispatch(args)
     if interrupted() and rc != EXIT_INTERRUPTED:  # pressed, but swallowed where Python ignores exceptions
@@ -82,6 +83,7 @@ def entry() -> None:  # pragma: no cover - the console script; tests call main()
     the teardown of native libraries would change the exit code: open3d reports "memory leaks" and
     exits 1 when an import or a write of it was interrupted); once the work is done, a Ctrl-C during
     the interpreter's teardown is ignored."""
+    clock.count_from_process_start()  # the user waits from the process's start: the figures say so
     rc = _main(None, sigint_after=signal.SIG_IGN)  # done: a Ctrl-C during the teardown changes nothing
     if rc == EXIT_INTERRUPTED:
         sys.stdout.flush()

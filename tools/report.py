@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -29,7 +30,7 @@ from ..backend.data.tum import write_tum
 from ..backend.evaluation.consistency import trajectory_nees
 from ..backend.evaluation.metrics import ate_per_pose, trajectory_errors
 from ..backend.run.online import RunResult
-from . import outputs, plots
+from . import clock, outputs, plots
 
 
 def evaluate(result: RunResult, gt_t: np.ndarray, gt_poses: np.ndarray) -> dict:
@@ -106,6 +107,7 @@ def write_run_outputs(
     """Write every output file (each atomically) and return the summary dict; ``tracker``: the
     front end's options of a run from images (recorded in summary.json and config.toml);
     ``notes``: what the readers accepted with a remark (listed in summary.json)."""
+    t0 = time.perf_counter()
     errors = evaluate(result, *gt) if gt is not None else None
     notes = list(notes)
     write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
@@ -129,11 +131,33 @@ def write_run_outputs(
                          result.time_stamps, *gt)
     summary = summary_dict(result, source, errors, tracker)
     summary["notes"] = notes
+    summary["timing"].update(process_timing(summary["timing"], time.perf_counter() - t0))
     outputs.write_json(out_dir / "summary.json", summary)
     toml = result.config.to_toml() + ("\n" + tracker.to_toml() if tracker is not None else "")
     with atomic_write(out_dir / "config.toml") as tmp:
         tmp.write_text(toml)
     return summary
+
+
+def process_timing(timing: dict, outputs_seconds: float) -> dict:
+    """The whole command's figures beside a run's parts (``timing`` of :func:`summary_dict`): the wall
+    seconds the user waited up to the summary (``tools.clock``: from the process's start for the
+    ``vislam`` command, start-up and imports included), the start-up before the command (None when
+    not counted), the outputs, and the real-time factor of the whole."""
+    whole = clock.process_seconds()
+    return {
+        "process_seconds": whole,
+        "startup_seconds": clock.startup_seconds(),
+        "outputs_seconds": outputs_seconds,
+        "process_real_time_factor": timing["sequence_seconds"] / max(whole, 1e-9),
+    }
+
+
+def real_time_text(factor: float) -> str:
+    """A real-time factor as the user reads it: whole above 10, one decimal above 1, two below."""
+    if not math.isfinite(factor):
+        return "n/a"
+    return f"{factor:.0f}x" if factor >= 10 else f"{factor:.1f}x" if factor >= 1 else f"{factor:.2f}x"
 
 
 def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t: np.ndarray, gt_poses: np.ndarray,
@@ -170,6 +194,23 @@ def _nis_text(mean_nis: float) -> str:
     return f"{mean_nis:.2f}" if math.isfinite(mean_nis) else "n/a (no observation used)"
 
 
+def _timing_text(t: dict) -> str:
+    """The time a user waited (the whole process, when known) and its parts."""
+    if "process_seconds" not in t:
+        return (f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
+                f"({real_time_text(t['real_time_factor'])} real time)")
+    startup = t.get("startup_seconds")
+    parts = {"start-up": startup or 0.0, "kernels": t["kernel_seconds"],
+             "input": t["load_seconds"] + t["input_seconds"], "decisions": t["setup_seconds"],
+             "filter": t["filter_seconds"], "outputs": t["outputs_seconds"]}
+    parts["imports on the way"] = max(t["process_seconds"] - sum(parts.values()), 0.0)
+    if startup is None:
+        del parts["start-up"]
+    return (f"{t['process_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
+            f"({real_time_text(t['process_real_time_factor'])} real time; "
+            + ", ".join(f"{name} {seconds:.2f}" for name, seconds in parts.items()) + " s)")
+
+
 def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     """A few lines for the terminal (the health warnings go apart, to stderr: :func:`print_health`)."""
     t = summary["timing"]
@@ -178,8 +219,7 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     lines = [
         f"steps {summary['steps']}, observations used {obs['used']} (gated {100 * obs['gated_share']:.1f} %), "
         f"landmarks mapped {lm['mapped']} (active mean {lm['active_mean']:.1f}, max {lm['active_max']})",
-        f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
-        f"({t['real_time_factor']:.0f}x real time); mean NIS per observation " + _nis_text(summary['mean_nis_per_observation']),
+        _timing_text(t) + "; mean NIS per observation " + _nis_text(summary['mean_nis_per_observation']),
     ]
     if t.get("kernel_seconds", 0.0) >= 2.0:
         lines.append(f"compiled the filter's kernels in {t['kernel_seconds']:.1f} s first (once after an install; "
