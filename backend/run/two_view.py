@@ -8,7 +8,7 @@ disparity offset beta (D1 of ``backend.run.stereo_offset``). They minimize the r
     z_k   = [u, v, u - d - beta, v]
     z_k+h = [pi_L(T q(u, v, d)), pi_R(T q(u, v, d)) - beta],  q = the point triangulated at k        (D2)
 
-by Gauss-Newton with the points eliminated (Schur complement). Both frames' pixels are
+by Gauss-Newton with the points eliminated (Schur complement), one compiled call a fit. Both frames' pixels are
 measurements, so pixel noise in either biases neither the motion nor beta (triangulating at k and
 fitting k+h alone would: errors in variables). Pairs whose rows disagree (|vL - vR| > ``ROW_PX``)
 are left out, and after a first fit the points with a residual beyond ``TRIM_PX`` are dropped and
@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..compiled import jit, warms_up
 from ..data.sequence import Sequence
 from ..geometry import se3
 
@@ -84,94 +85,260 @@ def pooled_mean_square(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[f
 def _predict(T: np.ndarray, beta: float, p: np.ndarray, cam, jacobians: bool = False):
     """Predicted pixels (n,8), ``uL vL uR vR`` at k then at k+h, of the points ``p`` (n,3) = (u, v,
     true disparity) at k moved by ``T`` (4,4, camera k -> k+h) and seen with the offset ``beta``
-    (D2). With ``jacobians``: also d/dp (n,8,3) and d/d(delta, beta) (n,8,7), where
-    ``T <- exp(delta^) T``, ``delta = (rho, phi)`` (so dq/drho = I, dq/dphi = -q^)."""
-    fx, fy, cx, cy, baseline = cam
-    fb = fx * baseline
+    (D2), by the compiled model the fit uses (:func:`_point`). With ``jacobians``: also d/dp
+    (n,8,3) and d/d(delta, beta) (n,8,7), where ``T <- exp(delta^) T``, ``delta = (rho, phi)``
+    (so dq/drho = I, dq/dphi = -q^)."""
+    fx, fy, cx, cy, baseline = map(float, cam)
+    pred, Jp, Jg = _predict_all(np.ascontiguousarray(T, dtype=float), float(beta), np.ascontiguousarray(p, dtype=float),
+                                fx, fy, cx, cy, fx * baseline, jacobians)
+    return (pred, Jp, Jg) if jacobians else pred
+
+
+@jit
+def _predict_all(T, beta, p, fx, fy, cx, cy, fb, jac):
+    """:func:`_point` for every point: (pred (n,8), Jp (n,8,3), Jg (n,8,7); zeros without ``jac``)."""
     n = p.shape[0]
-    depth = fb / p[:, 2]
-    x = np.stack([(p[:, 0] - cx) * depth / fx, (p[:, 1] - cy) * depth / fy, depth], axis=1)
-    q = x @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(q[:, 2], 1e-6)
-    u = fx * q[:, 0] / z + cx
-    v = fy * q[:, 1] / z + cy
-    pred = np.stack([p[:, 0], p[:, 1], p[:, 0] - p[:, 2] - beta, p[:, 1],
-                     u, v, u - fb / z - beta, v], axis=1)
-    if not jacobians:
-        return pred
+    pred = np.empty((n, 8))
     Jp = np.zeros((n, 8, 3))
-    Jp[:, 0, 0] = Jp[:, 2, 0] = 1.0
-    Jp[:, 1, 1] = Jp[:, 3, 1] = 1.0
-    Jp[:, 2, 2] = -1.0
-    # d pi / d q for the rows uL, vL, uR, vR at k+h
-    iz = 1.0 / z
-    P = np.zeros((n, 4, 3))
-    P[:, 0, 0] = P[:, 2, 0] = fx * iz
-    P[:, 0, 2] = -fx * q[:, 0] * iz * iz
-    P[:, 2, 2] = P[:, 0, 2] + fb * iz * iz
-    P[:, 1, 1] = P[:, 3, 1] = fy * iz
-    P[:, 1, 2] = P[:, 3, 2] = -fy * q[:, 1] * iz * iz
-    dx_dp = np.zeros((n, 3, 3))
-    dx_dp[:, 0, 0] = depth / fx
-    dx_dp[:, 1, 1] = depth / fy
-    dx_dp[:, :, 2] = -x / p[:, 2:3]
-    Jp[:, 4:, :] = P @ (T[:3, :3] @ dx_dp)
     Jg = np.zeros((n, 8, 7))
-    Jg[:, 4:, 0:3] = P
-    hat = np.zeros((n, 3, 3))
-    hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
-    hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = q[:, 2], -q[:, 1], q[:, 0]
-    Jg[:, 4:, 3:6] = -P @ hat
-    Jg[:, 2, 6] = Jg[:, 6, 6] = -1.0
+    work = np.empty((4, 4, 3))
+    for i in range(n):
+        _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred[i], Jp[i], Jg[i], jac, work)
     return pred, Jp, Jg
+
+
+@jit
+def _solve_small(A, b):
+    """x with A x = b for a small square A (Gaussian elimination, partial pivoting); ok False when singular."""
+    n = A.shape[0]
+    M = A.copy()
+    x = b.copy()
+    for c in range(n):
+        piv = c
+        best = abs(M[c, c])
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > best:
+                best = abs(M[r, c])
+                piv = r
+        if not best > 0.0:
+            return x, False
+        if piv != c:
+            for k in range(n):
+                M[c, k], M[piv, k] = M[piv, k], M[c, k]
+            x[c], x[piv] = x[piv], x[c]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            if f != 0.0:
+                for k in range(c, n):
+                    M[r, k] -= f * M[c, k]
+                x[r] -= f * x[c]
+    for c in range(n - 1, -1, -1):
+        s = x[c]
+        for k in range(c + 1, n):
+            s -= M[c, k] * x[k]
+        x[c] = s / M[c, c]
+    return x, True
+
+
+@jit
+def _inverse3(H, out):
+    """out = H^-1 of a 3x3 (adjugate); False when singular."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    g, h, i = H[2, 0], H[2, 1], H[2, 2]
+    A = e * i - f * h
+    B = -(d * i - f * g)
+    C = d * h - e * g
+    det = a * A + b * B + c * C
+    if det == 0.0 or not np.isfinite(det):
+        return False
+    inv = 1.0 / det
+    out[0, 0], out[0, 1], out[0, 2] = A * inv, -(b * i - c * h) * inv, (b * f - c * e) * inv
+    out[1, 0], out[1, 1], out[1, 2] = B * inv, (a * i - c * g) * inv, -(a * f - c * d) * inv
+    out[2, 0], out[2, 1], out[2, 2] = C * inv, -(a * h - b * g) * inv, (a * e - b * d) * inv
+    return True
+
+
+@jit
+def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
+    """(D2) for one point (u, v, d) at k: its 8 predicted pixels into ``pred``; with ``jac`` d/dp
+    (8,3) and d/d(delta, beta) (8,7) into ``Jp``, ``Jg``; ``work`` (4,4,3) scratch."""
+    depth = fb / p2
+    x0 = (p0 - cx) * depth / fx
+    x1 = (p1 - cy) * depth / fy
+    x2 = depth
+    q0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3]
+    q1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3]
+    q2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3]
+    z = max(q2, 1e-6)
+    u = fx * q0 / z + cx
+    v = fy * q1 / z + cy
+    pred[0], pred[1], pred[2], pred[3] = p0, p1, p0 - p2 - beta, p1
+    pred[4], pred[5], pred[6], pred[7] = u, v, u - fb / z - beta, v
+    if not jac:
+        return
+    Jp[:] = 0.0
+    Jg[:] = 0.0
+    Jp[0, 0] = Jp[2, 0] = 1.0
+    Jp[1, 1] = Jp[3, 1] = 1.0
+    Jp[2, 2] = -1.0
+    iz = 1.0 / z
+    P = work[0]
+    P[:] = 0.0
+    P[0, 0] = P[2, 0] = fx * iz
+    P[0, 2] = -fx * q0 * iz * iz
+    P[2, 2] = P[0, 2] + fb * iz * iz
+    P[1, 1] = P[3, 1] = fy * iz
+    P[1, 2] = P[3, 2] = -fy * q1 * iz * iz
+    D = work[1, :3]  # dx/dp
+    D[:] = 0.0
+    D[0, 0] = depth / fx
+    D[1, 1] = depth / fy
+    D[0, 2] = -x0 / p2
+    D[1, 2] = -x1 / p2
+    D[2, 2] = -x2 / p2
+    RD = work[2, :3]
+    for a in range(3):
+        for b in range(3):
+            RD[a, b] = T[a, 0] * D[0, b] + T[a, 1] * D[1, b] + T[a, 2] * D[2, b]
+    hat = work[3, :3]
+    hat[:] = 0.0
+    hat[0, 1], hat[0, 2], hat[1, 2] = -q2, q1, -q0
+    hat[1, 0], hat[2, 0], hat[2, 1] = q2, -q1, q0
+    for r in range(4):
+        for b in range(3):
+            Jp[4 + r, b] = P[r, 0] * RD[0, b] + P[r, 1] * RD[1, b] + P[r, 2] * RD[2, b]
+            Jg[4 + r, b] = P[r, b]
+            Jg[4 + r, 3 + b] = -(P[r, 0] * hat[0, b] + P[r, 1] * hat[1, b] + P[r, 2] * hat[2, b])
+    Jg[2, 6] = Jg[6, 6] = -1.0
+
+
+@jit
+def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, huber):
+    """The Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement), in one
+    compiled call: (ok, T, beta, S (g,g) of the last iteration, residuals (n,8) at the end); ok
+    False when a residual is not finite or a normal matrix is singular."""
+    g = 7 if offset else 6
+    n = za.shape[0]
+    fb = fx * baseline
+    T = T0.copy()
+    beta = 0.0
+    p = np.empty((n, 3))
+    for i in range(n):
+        p[i, 0], p[i, 1], p[i, 2] = za[i, 0], za[i, 1], za[i, 0] - za[i, 2]
+    z = np.empty((n, 8))
+    z[:, :4] = za
+    z[:, 4:] = zb
+    S = np.zeros((g, g))
+    pred = np.empty(8)
+    Jp = np.zeros((8, 3))
+    Jg = np.zeros((8, 7))
+    Hinv = np.empty((n, 3, 3))
+    Hpg = np.empty((n, 3, g))
+    bp = np.empty((n, 3))
+    r = np.empty(8)
+    w = np.empty(8)
+    Hpp = np.empty((3, 3))
+    work = np.empty((4, 4, 3))
+    c = np.empty(3)
+    rhs = np.zeros(g)
+    for _ in range(iterations):
+        S[:] = 0.0
+        rhs[:] = 0.0
+        for i in range(n):
+            _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, Jp, Jg, True, work)
+            for j in range(8):
+                r[j] = pred[j] - z[i, j]
+                if not np.isfinite(r[j]):
+                    return False, T, beta, S, np.zeros((n, 8))
+                a = abs(r[j])
+                w[j] = 1.0 if a <= huber else huber / max(a, 1e-12)
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for j in range(8):
+                        s += Jp[j, a] * w[j] * Jp[j, b]
+                    Hpp[a, b] = s + (1e-9 if a == b else 0.0)
+                for b in range(g):
+                    s = 0.0
+                    for j in range(8):
+                        s += Jp[j, a] * w[j] * Jg[j, b]
+                    Hpg[i, a, b] = s
+                s = 0.0
+                for j in range(8):
+                    s += Jp[j, a] * w[j] * r[j]
+                bp[i, a] = s
+            for a in range(g):
+                for b in range(g):
+                    s = 0.0
+                    for j in range(8):
+                        s += Jg[j, a] * Jg[j, b] * w[j]
+                    S[a, b] += s
+                s = 0.0
+                for j in range(8):
+                    s += Jg[j, a] * w[j] * r[j]
+                rhs[a] += s
+            if not _inverse3(Hpp, Hinv[i]):
+                return False, T, beta, S, np.zeros((n, 8))
+            # S -= Hgp Hpp^-1 Hpg, rhs -= Hgp Hpp^-1 bp
+            for a in range(g):
+                t0 = Hpg[i, 0, a] * Hinv[i, 0, 0] + Hpg[i, 1, a] * Hinv[i, 1, 0] + Hpg[i, 2, a] * Hinv[i, 2, 0]
+                t1 = Hpg[i, 0, a] * Hinv[i, 0, 1] + Hpg[i, 1, a] * Hinv[i, 1, 1] + Hpg[i, 2, a] * Hinv[i, 2, 1]
+                t2 = Hpg[i, 0, a] * Hinv[i, 0, 2] + Hpg[i, 1, a] * Hinv[i, 1, 2] + Hpg[i, 2, a] * Hinv[i, 2, 2]
+                for b in range(g):
+                    S[a, b] -= t0 * Hpg[i, 0, b] + t1 * Hpg[i, 1, b] + t2 * Hpg[i, 2, b]
+                rhs[a] -= t0 * bp[i, 0] + t1 * bp[i, 1] + t2 * bp[i, 2]
+        A = S.copy()
+        for a in range(g):
+            A[a, a] += 1e-9
+        dg, ok = _solve_small(A, rhs)
+        if not ok:
+            return False, T, beta, S, np.zeros((n, 8))
+        for a in range(g):
+            dg[a] = -dg[a]
+        for i in range(n):
+            for a in range(3):
+                s = bp[i, a]
+                for b in range(g):
+                    s += Hpg[i, a, b] * dg[b]
+                c[a] = s
+            for a in range(3):
+                p[i, a] -= Hinv[i, a, 0] * c[0] + Hinv[i, a, 1] * c[1] + Hinv[i, a, 2] * c[2]
+            p[i, 2] = max(p[i, 2], 1e-3)
+        E = se3.exp_se3(dg[:6])
+        T = se3.small_matmul(E, T)
+        if offset:
+            beta += dg[6]
+        small = True
+        for a in range(6):
+            if not abs(dg[a]) < 1e-6:
+                small = False
+        if (not offset or abs(dg[6]) < 1e-4) and small:
+            break
+    res = np.empty((n, 8))
+    for i in range(n):
+        _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, Jp, Jg, False, work)
+        for j in range(8):
+            res[i, j] = pred[j] - z[i, j]
+    return True, T, beta, S, res
 
 
 def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations: int = 8,
                    initial: np.ndarray | None = None):
     """(T, beta, S^-1 of the motion (and beta), residuals (n,8), dof, sigma^2) or None: the
-    Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement); ``offset``:
-    beta is fitted (7 unknowns besides the points), else held at 0 (6); ``initial``: the motion to
-    start from (default: none)."""
+    Huber-weighted Gauss-Newton of (D2) with the points eliminated (:func:`_gauss_newton`);
+    ``offset``: beta is fitted (7 unknowns besides the points), else held at 0 (6); ``initial``:
+    the motion to start from (default: none)."""
     g = 7 if offset else 6
-    z = np.concatenate([za, zb], axis=1)  # (n,8)
-    T = np.eye(4) if initial is None else np.array(initial, dtype=float)
-    beta = 0.0
-    p = np.stack([za[:, 0], za[:, 1], za[:, 0] - za[:, 2]], axis=1)
-    S = None
-    for _ in range(iterations):
-        pred, Jp, Jg = _predict(T, beta, p, cam, jacobians=True)
-        Jg = Jg[:, :, :g]
-        r = pred - z
-        if not np.all(np.isfinite(r)):
-            return None
-        a = np.abs(r)
-        w = np.where(a <= HUBER_PX, 1.0, HUBER_PX / np.maximum(a, 1e-12))
-        JpW = (Jp * w[:, :, None]).transpose(0, 2, 1)  # (n,3,8)
-        Hpp = JpW @ Jp + 1e-9 * np.eye(3)
-        Hpg = JpW @ Jg  # (n,3,g)
-        Jg2 = Jg.reshape(-1, g)
-        Hgg = Jg2.T @ (Jg2 * w.reshape(-1, 1))
-        bp = (JpW @ r[:, :, None])[:, :, 0]
-        bg = Jg2.T @ (w * r).reshape(-1)
-        try:
-            Hpp_inv = np.linalg.inv(Hpp)
-            HgpHinv = Hpg.transpose(0, 2, 1) @ Hpp_inv  # (n,g,3)
-            S = Hgg - (HgpHinv @ Hpg).sum(axis=0)
-            rhs = bg - (HgpHinv @ bp[:, :, None]).sum(axis=0)[:, 0]
-            dg = -np.linalg.solve(S + 1e-9 * np.eye(g), rhs)
-        except np.linalg.LinAlgError:
-            return None
-        dp = -(Hpp_inv @ (bp + Hpg @ dg)[:, :, None])[:, :, 0]
-        T = se3.exp_se3(dg[:6]) @ T
-        if offset:
-            beta += dg[6]
-        p += dp
-        p[:, 2] = np.maximum(p[:, 2], 1e-3)
-        if (not offset or abs(dg[6]) < 1e-4) and np.all(np.abs(dg[:6]) < 1e-6):
-            break
-    r = _predict(T, beta, p, cam) - z
+    T0 = np.eye(4) if initial is None else np.array(initial, dtype=float)
+    fx, fy, cx, cy, baseline = map(float, cam)
+    ok, T, beta, S, r = _gauss_newton(np.ascontiguousarray(za, dtype=float), np.ascontiguousarray(zb, dtype=float),
+                                      fx, fy, cx, cy, baseline, offset, iterations, T0, HUBER_PX)
+    if not ok:
+        return None
+    n = za.shape[0]
     inliers = np.abs(r) <= 3 * HUBER_PX
-    dof = int(inliers.sum()) - 3 * z.shape[0] - g
+    dof = int(inliers.sum()) - 3 * n - g
     if dof < 20 or not np.all(np.isfinite(r)):
         return None
     sigma2 = float(np.sum(r[inliers] ** 2) / dof)
@@ -185,7 +352,7 @@ def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations
         var = float(S_inv[6, 6]) * sigma2
         if not (np.isfinite(beta) and np.isfinite(var) and var > 0 and abs(beta) < 20):
             return None
-    return T, beta, S_inv, r, r.size - 3 * z.shape[0] - g, sigma2
+    return T, beta, S_inv, r, r.size - 3 * n - g, sigma2
 
 
 def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_points: int = 12,
@@ -254,3 +421,14 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
         if fit is not None:
             fits.append(fit)
     return fits
+
+
+@warms_up
+def _warm_up() -> None:
+    rng = np.random.default_rng(0)
+    za = np.column_stack([rng.uniform(100, 1100, 30), rng.uniform(50, 300, 30), np.zeros(30), np.zeros(30)])
+    za[:, 2], za[:, 3] = za[:, 0] - rng.uniform(5, 50, 30), za[:, 1]
+    cam = (700.0, 700.0, 600.0, 180.0, 0.5)
+    for offset in (True, False):
+        _bundle_adjust(za, za.copy(), cam, offset, iterations=1)
+    _predict(np.eye(4), 0.0, np.ones((2, 3)) * 10.0, cam, jacobians=True)
