@@ -165,7 +165,7 @@ def test_imu_noise_configured_wins_else_the_white_noise(short_scene):
                                     "angular_decided_by", "white_noise_linear", "white_noise_angular"}
 
     # clean samples: their white noise is tiny, and what holding them over a step costs (N4) is the
-    # floor, measured from their own changes (no hand floor: far below the old 0.05 m/s)
+    # floor, measured from their own changes (no hand floor: far below a hand-set 0.05 m/s)
     clean = imu({}, (smooth_signal(), smooth_signal()))
     np.testing.assert_array_equal(clean.white_linear, estimate_white_noise(smooth_signal()))
     assert np.all(clean.white_linear < 1e-3)

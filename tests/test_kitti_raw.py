@@ -454,7 +454,7 @@ def test_exact_velocities_cost_what_holding_them_over_a_step_costs(street_drive,
     """The same rendered drive on its exact OXTS velocities (the default input): their white noise is
     ~1e-5-1e-3 m/s, yet holding a sample over a 0.1 s step while the car accelerates is off by up to
     0.07 m/s; the IMU noise is at least that (N4), and the ATE stays within 0.03 m over the ~70 m
-    (0.007 m measured; with the white noise alone it was 0.10 m, dead reckoning 0.18 m)."""
+    (0.007 m measured; the white noise alone gives 0.10 m, dead reckoning 0.18 m)."""
     drive, _ = street_drive
     out = tmp_path / "run"
     assert main(["run", str(drive), "--out", str(out), "--quiet"]) == 0
