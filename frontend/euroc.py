@@ -47,7 +47,8 @@ from .images import read_grey
 
 __all__ = [
     "CameraCalibration", "EurocImu", "StereoFrames", "GroundTruth", "StereoRectification", "EurocDataset",
-    "read_camera_yaml", "read_imu", "read_frames", "read_ground_truth", "read_euroc", "find_mav0",
+    "read_camera_yaml", "read_imu", "read_frames", "read_ground_truth", "read_euroc", "open_euroc_input", "is_euroc",
+    "find_mav0",
     "ns_to_seconds", "IMU_COLUMNS", "GROUND_TRUTH_COLUMNS", "CAMERA_COLUMNS", "QUATERNION_TOL",
 ]
 
@@ -368,9 +369,22 @@ def ns_to_seconds(ns) -> np.ndarray:
 
 def is_euroc(path) -> bool:
     """``path`` is an EuRoC ASL folder (``mav0`` or its parent, with cam0/, cam1/, imu0/)."""
-    p = Path(path)
-    root = p / "mav0" if (p / "mav0").is_dir() else p
-    return p.is_dir() and all((root / name).is_dir() for name in ("cam0", "cam1", "imu0"))
+    try:
+        find_mav0(path)
+    except InputError:
+        return False
+    return True
+
+
+def open_euroc_input(path, imu_path=None, imu_T_cam_path=None, imu_input: str = "auto") -> "EurocDataset":
+    """The EuRoC folder ``path`` as a command's input (:func:`read_euroc`); InputError (one line) with
+    an IMU file or extrinsic (the folder carries both) or ``imu_input`` "velocity" (it has none)."""
+    if imu_path or imu_T_cam_path:
+        raise InputError(f"{path}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
+                         "carries its IMU and calibration")
+    if imu_input == "velocity":
+        raise InputError(f"{path}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
+    return read_euroc(path)
 
 
 def find_mav0(path) -> Path:

@@ -18,6 +18,7 @@ raw drive, anything else an odometry-layout directory (:func:`~vislam.frontend.i
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,7 +67,7 @@ class RawDrive:
         """(source, time stamps (n,), world_T_imu (n,4,4)): the form ``vislam run --gt`` reads."""
         return self.ground_truth_source, self.imu.time_stamps, self.world_T_imu
 
-    @property
+    @functools.cached_property
     def level_ground_truth(self) -> tuple[str, np.ndarray, np.ndarray]:
         """:attr:`ground_truth` in a gravity-aligned world (z up, x along the first heading; an
         inertial run's): :func:`~frontend.kitti_raw.oxts_world_T_imu` with ``level``."""

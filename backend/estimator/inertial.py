@@ -255,14 +255,13 @@ def propagate(mean: InertialMean, imu: ImuSamples, t0: float, t1: float, noise: 
     return out, (Propagation(Phi, Q) if noise is not None else None)
 
 
-def integrate_samples(imu: ImuSamples, times: np.ndarray, gyro_bias: np.ndarray, accel_bias: np.ndarray | None = None,
-                      gravity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def integrate_samples(imu: ImuSamples, times: np.ndarray,
+                      gyro_bias: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(J3) the mean alone from the identity at ``times[0]`` with zero velocity, at each of ``times``
-    (K,): (R (K,3,3), p (K,3), v (K,3)) in the first frame's axes (gravity default: none, the samples'
-    own motion; the biases removed)."""
+    (K,): (R (K,3,3), p (K,3), v (K,3)) in the first frame's axes, of the samples' own motion (no
+    gravity, no accelerometer bias; the gyro bias removed)."""
     zero = np.zeros(3)
-    ba = zero if accel_bias is None else np.asarray(accel_bias, dtype=float)
-    g = zero if gravity is None else np.asarray(gravity, dtype=float)
+    ba = g = zero
     R, v, p = np.eye(3), zero, zero
     Rs, ps, vs = [R], [p], [v]
     for a, b in zip(times[:-1], times[1:]):
@@ -285,9 +284,7 @@ def propagate_covariance(P: np.ndarray, prop: Propagation, points: np.ndarray) -
     if points.shape[0]:
         Delta = Phi[PHI].copy()
         Delta[:, PHI] -= np.eye(3)
-        x, y, z = points.T
-        zero = np.zeros_like(x)
-        L = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=1).reshape(-1, 3)  # (3K,3): the m_i^ stacked
+        L = se3.hat3(points).reshape(-1, 3)  # (3K,3): the m_i^ stacked
         cross = Phi @ Pcl + (Phi @ Pcc @ Delta.T + Q[:, PHI]) @ L.T
         out[:c, c:] = cross
         out[c:, :c] = cross.T

@@ -366,7 +366,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
 
         align = [np.eye(4)]  # an inertial run's world is the truth's up to yaw and position (E5)
 
-        aligned = scene.sequence.imu is not None  # a real IMU: a gravity-aligned world of its own
+        aligned = scene.sequence.inertial  # a real IMU: a gravity-aligned world of its own
 
         def record(k, ekf, step_stats) -> None:
             if k == 0 and aligned:

@@ -274,14 +274,14 @@ def _hold_decision(seq: Sequence, decisions: Decisions, config: Config, hold_lin
     ll_hold, _ = log_likelihood(seq, floored, config)
     table = dict(imu.likelihood, **{"white noise (N1)": ll_white, "at least the hold error (N4)": ll_hold})
     if ll_hold > ll_white:
-        chosen = _at_least_hold(decisions, hold_lin, hold_ang, "; the more likely (L2)")
+        chosen = _at_least_hold(decisions, hold_lin, hold_ang, "; the more likely (L2)").imu
     else:
-        chosen = dataclasses.replace(decisions, imu=dataclasses.replace(
-            imu, linear_source=f"{imu.linear_source} (the hold error N4 less likely, L2)"
-            if imu.linear_source == WHITE_NOISE else imu.linear_source,
-            angular_source=f"{imu.angular_source} (the hold error N4 less likely, L2)"
-            if imu.angular_source == WHITE_NOISE else imu.angular_source))
-    return dataclasses.replace(chosen, imu=dataclasses.replace(chosen.imu, likelihood=table))
+
+        def tag(source: str) -> str:
+            return f"{source} (the hold error N4 less likely, L2)" if source == WHITE_NOISE else source
+
+        chosen = dataclasses.replace(imu, linear_source=tag(imu.linear_source), angular_source=tag(imu.angular_source))
+    return dataclasses.replace(decisions, imu=dataclasses.replace(chosen, likelihood=table))
 
 
 #: Candidate IMU sigmas of (L2): the white noise times these factors, up to the caps.

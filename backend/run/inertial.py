@@ -137,7 +137,8 @@ def decide_inertial(seq: Sequence, config: Config) -> InertialDecisions:
             raise InputError(f"{seq.source}: key 'features': the inertial state cannot start: not at rest after the "
                              f"first frame ({rest}), and in motion {init.reason}")
     noise, reason = _noise(seq.imu, init)
-    fits = {1: fit_pairs(seq, 1, PAIRS_GAP1, offset=True, min_points=NOISE_MIN_POINTS)}
+    configured = config.noise.pixel_sigma is not None  # then the fits would feed nothing
+    fits = {} if configured else {1: fit_pairs(seq, 1, PAIRS_GAP1, offset=True, min_points=NOISE_MIN_POINTS)}
     pixels = pixel_noise(seq, gap_statistics(fits), 1, config.noise.pixel_sigma)
     sigma, why = pixels.sigma, pixels.source
     if pixels.source == "two-view fits":

@@ -213,28 +213,36 @@ def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: I
     T = np.eye(4)
     T[:3, :3] = R
     mean = InertialMean(T, np.zeros(3), m["gyro_mean"].copy(), np.zeros(3))
-    P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
-    P[RHO, RHO] = np.eye(3) * options.pose_sigma0**2
+    P = _first_pose_and_bias_prior(R, g, options.accel_bias_sigma0, options.pose_sigma0)
     moved = m.get("vision_translation", 0.0) / max(m["window_s"], 1e-9)  # a velocity vision allows
     P[NU, NU] = np.eye(3) * max(m["velocity_wander"], moved, options.min_velocity_sigma0) ** 2
     se = m["gyro_se"]
     if noise is not None:  # the white noise's share when the vibration is smaller than it (never on a real rig)
         se = np.maximum(se, noise.gyroscope_noise_density / np.sqrt(max(m["window_s"], 1e-9)))
     P[BG, BG] = np.diag(se**2)
-    # (Z4): phi = C db_a for roll and pitch, yaw independent; db_a ~ N(0, s^2 I)
-    s2 = options.accel_bias_sigma0**2
-    C = np.zeros((3, 3))
-    C[0] = -R[1] / g
-    C[1] = R[0] / g
-    P[PHI, PHI] = s2 * C @ C.T
-    P[3 + 2, 3 + 2] += options.pose_sigma0**2
-    P[PHI, BA] = s2 * C
-    P[BA, PHI] = s2 * C.T
-    P[BA, BA] = np.eye(3) * s2
     m.update(gravity_in_imu=m["accel_mean"] / np.linalg.norm(m["accel_mean"]),
              specific_force=float(np.linalg.norm(m["accel_mean"])), gyro_bias=m["gyro_mean"],
              tilt_sigma_deg=float(np.degrees(options.accel_bias_sigma0 / g)), accel_bias_sigma0=options.accel_bias_sigma0)
     return Initialization(True, "", mean, 0.5 * (P + P.T), m)
+
+
+def _first_pose_and_bias_prior(R: np.ndarray, g: float, accel_bias_sigma0: float, pose_sigma0: float) -> np.ndarray:
+    """The core covariance (15,15) of (J1) a start shares, at rest (Z4) or in motion (M4): the
+    first position and yaw known to ``pose_sigma0`` (they define the frame), and the accelerometer
+    bias db_a ~ N(0, s^2 I), s = ``accel_bias_sigma0``, which the attitude R (3,3) cannot tell from a
+    tilt: phi = C db_a for roll and pitch with C = [-R[1]; R[0]; 0] / |g|."""
+    P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
+    P[RHO, RHO] = np.eye(3) * pose_sigma0**2
+    s2 = accel_bias_sigma0**2
+    C = np.zeros((3, 3))
+    C[0] = -R[1] / g
+    C[1] = R[0] / g
+    P[PHI, PHI] = s2 * C @ C.T
+    P[5, 5] += pose_sigma0**2  # yaw
+    P[PHI, BA] = s2 * C
+    P[BA, PHI] = s2 * C.T
+    P[BA, BA] = np.eye(3) * s2
+    return P
 
 
 # ------------------------------------------------------------------------------------------ in motion
@@ -245,8 +253,8 @@ class MotionOptions:
     window: float = 1.0  # seconds of frames after the first one
     min_frames: int = 5  # at least this many frame pairs chained
     min_points: int = 12  # points of a two-view fit
-    accel_bias_sigma0: float = 0.1  # m/s^2 per axis: the accelerometer bias prior (it fakes gravity: Z4)
-    pose_sigma0: float = 1e-6  # position (m) and yaw (rad) of the first pose: it defines the frame
+    accel_bias_sigma0: float = RestOptions.accel_bias_sigma0  # the same accelerometer bias prior (Z4)
+    pose_sigma0: float = RestOptions.pose_sigma0  # the same first pose: it defines the frame
     max_gravity_misfit: float = 0.1  # refuse when the fitted gravity's length is off by more than this share
     max_rotation_residual_deg: float = 0.5  # ... or vision's rotations and the gyro's differ by more (RMS)
     max_tilt_sigma_deg: float = 2.0  # a longer window while gravity's direction is more uncertain than this
@@ -328,13 +336,18 @@ def initialize_in_motion(seq, gravity: np.ndarray, noise: ImuNoiseDensities | No
         out = initialize_in_motion_over(seq, gravity, noise, dataclasses.replace(options, window=factor * options.window))
         if out.ok and out.measured["tilt_sigma_deg"] <= options.max_tilt_sigma_deg:
             return out
-        if not out.ok and "frames," in out.reason:  # the sequence is too short for a longer window
-            break
+        if not out.ok and _window_end(seq.time_stamps, factor * options.window, options) > seq.num_steps:
+            break  # the sequence is too short for this window, let alone a longer one
     if out.ok:
         return Initialization(False, f"gravity's direction stays uncertain by +- {out.measured['tilt_sigma_deg']:.1f} deg "
                                      f"over {out.measured['window_s']:.1f} s of frames (at most "
                                      f"{options.max_tilt_sigma_deg:g})", measured=out.measured, how="in motion")
     return out
+
+
+def _window_end(t: np.ndarray, window: float, options: MotionOptions) -> int:
+    """The frames (from the first) a start in motion over ``window`` seconds of stamps ``t`` uses."""
+    return max(int(np.searchsorted(t, t[0] + window, side="right")), options.min_frames + 1)
 
 
 def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities | None = None,
@@ -356,14 +369,10 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
 
     imu = seq.imu
     t = seq.time_stamps
-    last = int(np.searchsorted(t, t[0] + options.window, side="right"))
-    last = max(last, options.min_frames + 1)
+    last = _window_end(t, options.window, options)
     if last > seq.num_steps:
         return Initialization(False, f"{seq.num_steps} frames, {options.min_frames + 1} needed to start in motion",
                               how="in motion")
-    def integrate(bg: np.ndarray, frames):
-        """R_k (K,3,3), dp_k (K,3), dv_k (K,3) at ``frames``: the samples from I0 with zero velocity and no gravity."""
-        return integrate_samples(imu, t[list(frames)], bg)
 
     frames, poses, covs = _chain_vision(seq, range(0, last), options.min_points,
                                         integrate_samples(imu, t[:last], np.zeros(3))[0])
@@ -377,7 +386,7 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     R_vis = poses[:, :3, :3]
 
     def rot_residual(b):
-        Rs, _, _ = integrate(b, frames)
+        Rs, _, _ = integrate_samples(imu, t[list(frames)], b)
         return np.concatenate([se3.log_so3(Rs[k].T @ R_vis[k]) for k in range(1, len(frames))])
 
     for _ in range(3):
@@ -395,7 +404,7 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     R_end = R_vis[-1]  # the residual log(R_imu^T R_vis) is in the last frame's body axes
     bg_cov = J_inv @ (R_end.T @ covs[-1][3:, 3:] @ R_end) @ J_inv.T
     # (M3) gravity and velocity in the first IMU frame
-    Rs, dp, _ = integrate(bg, frames)
+    Rs, dp, _ = integrate_samples(imu, t[list(frames)], bg)  # from I0, zero velocity, no gravity
     tk = t[list(frames)] - t[0]
     n = len(frames) - 1
     A = np.zeros((3 * n, 6))
@@ -429,28 +438,20 @@ def initialize_in_motion_over(seq, gravity: np.ndarray, noise: ImuNoiseDensities
     T = np.eye(4)
     T[:3, :3] = R
     mean = InertialMean(T, R @ v0, bg, np.zeros(3))
-    P = np.zeros((CORE_INERTIAL, CORE_INERTIAL))
-    P[RHO, RHO] = np.eye(3) * options.pose_sigma0**2
+    P = _first_pose_and_bias_prior(R, g_norm, options.accel_bias_sigma0, options.pose_sigma0)
     P[NU, NU] = R @ x_cov[:3, :3] @ R.T
     P[BG, BG] = bg_cov
     s2 = options.accel_bias_sigma0**2
-    C = np.zeros((3, 3))
-    C[0] = -R[1] / g_norm
-    C[1] = R[0] / g_norm
     # the gravity direction's own uncertainty from the fit, projected on roll and pitch (world frame)
     G = R @ x_cov[3:, 3:] @ R.T / g_norm**2
     tilt = np.zeros((3, 3))
     tilt[:2, :2] = [[G[1, 1], -G[1, 0]], [-G[0, 1], G[0, 0]]]
-    P[PHI, PHI] = s2 * C @ C.T + tilt
+    P[PHI, PHI] += tilt
     # the fit's velocity and gravity errors are correlated (p = v0 t + g0 t^2/2): with nu = -R e_v and
     # phi = -M R e_g / |g| (M e = e_z x e, the tilt a gravity error makes), Cov(nu, phi) = R C_vg R^T M^T / |g|
     M = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     P[NU, PHI] = R @ x_cov[:3, 3:] @ R.T @ M.T / g_norm
     P[PHI, NU] = P[NU, PHI].T
-    P[5, 5] += options.pose_sigma0**2
-    P[PHI, BA] = s2 * C
-    P[BA, PHI] = s2 * C.T
-    P[BA, BA] = np.eye(3) * s2
     up = -g0 / g_norm
     measured = {"frames": len(frames), "window_s": float(tk[-1]), "gravity_in_imu": up, "gyro_bias": bg,
                 "velocity": R @ v0, "speed": float(np.linalg.norm(v0)),

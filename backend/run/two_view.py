@@ -431,4 +431,3 @@ def _warm_up() -> None:
     cam = (700.0, 700.0, 600.0, 180.0, 0.5)
     for offset in (True, False):
         _bundle_adjust(za, za.copy(), cam, offset, iterations=1)
-    _predict(np.eye(4), 0.0, np.ones((2, 3)) * 10.0, cam, jacobians=True)

@@ -58,6 +58,7 @@ OUTPUT_SPACE = 32 * 2**20
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ...backend.data.tum import read_tum, write_tum
+    from ...frontend.euroc import is_euroc
     from ..report import format_summary, print_health, write_run_outputs
 
     images = Path(args.data).is_dir()
@@ -76,7 +77,7 @@ def main(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
             drive = euroc_truth = None
-            if images and _is_euroc(args.data):
+            if images and is_euroc(args.data):
                 (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
             elif images and args.imu_input == "inertial":
                 (result, notes), gt, drive = _run_raw_inertial(args, config, tracker, gt, say, recorder)
@@ -142,26 +143,15 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     return _filter(args, seq, config, load_seconds, say, recorder), list(seq.notes)
 
 
-def _is_euroc(path) -> bool:
-    from ...frontend.euroc import is_euroc
-
-    return is_euroc(path)
-
-
 def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
     """An EuRoC ASL folder: every pair rectified and tracked (``frontend.track.track_euroc``), then the
     filter with the inertial state over the sequence. Returns ((result, notes), ground truth, the
     folder's ground truth or None): without ``--gt`` its state_groundtruth_estimate0 is the ground truth."""
-    from ...frontend.euroc import read_euroc
+    from ...frontend.euroc import open_euroc_input
     from ...frontend.track import track_euroc
 
-    if args.imu or args.imu_T_cam:
-        raise InputError(f"{args.data}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
-                         "carries its IMU and calibration")
-    if args.imu_input == "velocity":
-        raise InputError(f"{args.data}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
     t0 = time.perf_counter()
-    data = read_euroc(args.data)
+    data = open_euroc_input(args.data, args.imu, args.imu_T_cam, args.imu_input)
     truth = data.ground_truth if gt is None else None
     if truth is not None:
         gt = (truth.source, truth.times, truth.world_T_imu)
@@ -170,12 +160,12 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
         f"{data.rectification.size[1]}, rectified: fx {data.K[0, 0]:.1f} px, baseline {data.baseline:.4f} m), "
         f"{data.imu.samples.num_samples} IMU samples at {data.imu.samples.rate_hz:.0f} Hz"
         + (f"; ground truth {truth.source}" if truth is not None else ""))
+    _check_ground_truth(gt, data.frames.times)  # before the tracking, as every input
     for note in notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config))
     with console.progress_bar(len(data.frames), "track", "frame", console.progress_off(args)) as progress:
         seq = track_euroc(data, tracker, progress, args.draw)
-    _check_ground_truth(gt, seq.time_stamps)
     return (_filter(args, seq, config, time.perf_counter() - t0, say, recorder), notes), gt, truth
 
 

@@ -71,16 +71,10 @@ def _track_raw_inertial(args: argparse.Namespace, config, out) -> int:
 
 def _track_euroc(args: argparse.Namespace, config, out) -> int:
     """An EuRoC ASL folder -> the inertial layout (rectified pairs' tracks, the IMU's samples)."""
-    from ...backend.errors import InputError
-    from ...frontend.euroc import read_euroc
+    from ...frontend.euroc import open_euroc_input
     from ...frontend.track import track_euroc
 
-    if args.imu or args.imu_T_cam:
-        raise InputError(f"{args.images}: --imu and --imu-T-cam are for an odometry-layout directory; an EuRoC folder "
-                         "carries its IMU and calibration")
-    if args.imu_input == "velocity":
-        raise InputError(f"{args.images}: --imu-input velocity: an EuRoC folder has a real IMU's samples, no velocities")
-    data = read_euroc(args.images)
+    data = open_euroc_input(args.images, args.imu, args.imu_T_cam, args.imu_input)
     return _write_inertial(args, config, out, data.notes, len(data.frames),
                            lambda progress: track_euroc(data, config, progress, args.draw))
 
