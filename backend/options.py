@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Iterable, Mapping, TypeVar
 
 from .errors import ConfigError
+from .reading import read_regular_file
 
 try:  # Python >= 3.11
     import tomllib
@@ -32,22 +33,23 @@ T = TypeVar("T", bound="OptionTable")
 S = TypeVar("S", bound="OptionSet")
 
 
+#: The largest configuration file read (vislam's own config.toml is ~3 KiB)
+MAX_CONFIG_BYTES = 2**20
+
+
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """The tables of a TOML file; ConfigError naming the file otherwise."""
+    """The tables of a TOML file; ConfigError naming the file otherwise (missing, not a regular
+    file, over :data:`MAX_CONFIG_BYTES`, not UTF-8, not TOML, nested deeper than Python recurses)."""
     path = Path(path)
+    data = read_regular_file(path, MAX_CONFIG_BYTES, "config file", ConfigError)
     try:
-        with open(path, "rb") as handle:
-            return tomllib.loads(handle.read().decode("utf-8-sig"))  # a leading byte-order mark is skipped
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, not a config file") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from None
+        return tomllib.loads(data.decode("utf-8-sig"))  # a leading byte-order mark is skipped
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); a config file is TOML") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: arrays or tables nested too deeply to be a configuration") from None
 
 
 def printable_name(name: str) -> str:
@@ -58,6 +60,9 @@ def printable_name(name: str) -> str:
 
 #: The range of an integer option (larger ones cannot be a count or a size)
 _INT_LIMIT = 2**63 - 1
+#: The range of a number option: every sigma, length and time fits, and squares and products of
+#: them stay finite in float64 (1e308 as a pixel sigma would overflow where it is squared)
+_FLOAT_LIMIT = 1e100
 
 
 def parse_assignment(item: str) -> tuple[str, str]:
@@ -109,7 +114,7 @@ def _coerce(kind: type, optional: bool, value: Any, key: str) -> Any:
                 raise ConfigError(f"config key '{key}': expected an integer, got {_short(value)}") from None
         elif kind is float:
             try:
-                return float(text)
+                value = float(text)
             except ValueError:
                 raise ConfigError(f"config key '{key}': expected a number, got {_short(value)}") from None
     if value is None and optional:
@@ -136,9 +141,13 @@ def _coerce(kind: type, optional: bool, value: Any, key: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"config key '{key}': expected a number, got {_short(value)}")
         try:
-            return float(value)
+            number = float(value)
         except OverflowError:
             raise ConfigError(f"config key '{key}': number out of range, got {_short(value)}") from None
+        if math.isfinite(number) and abs(number) > _FLOAT_LIMIT:
+            raise ConfigError(f"config key '{key}': number out of range (|value| > {_FLOAT_LIMIT:g}), got "
+                              f"{_short(value)}")
+        return number
     if not isinstance(value, str):
         raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
     return value

@@ -10,14 +10,14 @@ reader never sees half a picture.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections import deque
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ..backend.errors import InputError
+from ..backend.data.files import atomic_write, check_not_an_input
+from ..backend.errors import InputError, OutputError
 
 __all__ = ["TrackDrawer", "check_draw_dir"]
 
@@ -34,27 +34,25 @@ def _point(p) -> tuple[int, int]:
 
 
 def write_png_atomic(path: Path, image: np.ndarray) -> None:
-    """Encode ``image`` as PNG into a temporary file next to ``path``, then ``os.replace`` it."""
+    """Encode ``image`` as PNG and write it to ``path`` through ``atomic_write`` (a temporary name,
+    then a rename; never onto an input of the run)."""
     ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+        raise OutputError(f"{path}: PNG encoding failed")
+    with atomic_write(path) as tmp:
+        tmp.write_bytes(data.tobytes())
 
 
-def check_draw_dir(out_dir) -> Path:
+def check_draw_dir(out_dir, replace_files: bool = True) -> Path:
     """``out_dir`` as a Path if it is a writable directory or can be made one (its nearest existing
-    ancestor is a writable directory); InputError naming it otherwise. Creates nothing."""
+    ancestor is a writable directory), and not an input of the run or inside one (OutputError);
+    InputError naming it otherwise. Without ``replace_files`` an existing directory must hold no
+    file (``--force`` allows it). Creates nothing."""
     out_dir = Path(out_dir)
+    check_not_an_input(out_dir)
+    if not replace_files and out_dir.is_dir() and any(p.is_file() for p in out_dir.iterdir()):
+        raise OutputError(f"{out_dir}: --draw directory exists and holds files; use --force to write the frame "
+                          "pictures into it")
     for path in (out_dir, *out_dir.parents):
         if path.exists():
             if not path.is_dir():

@@ -40,7 +40,8 @@ import yaml
 
 from ..backend.data.inertial import ImuSamples, check_imu_samples, check_noise_densities, KALIBR_KEYS
 from ..backend.data.sequence import check_camera_matrix, input_error, nearest_rigid
-from ..backend.data.textio import read_lines
+from ..backend.data.files import note_input
+from ..backend.data.textio import read_lines, text_float
 from ..backend.errors import InputError
 from ..backend.geometry import se3
 from .images import read_grey
@@ -398,6 +399,7 @@ def find_mav0(path) -> Path:
     if missing:
         where = "" if root != p or p.name == "mav0" else " and no mav0/ in it"
         raise InputError(f"{root}: not {_LAYOUT}: missing {', '.join(missing)}{where}")
+    note_input(root, contents=True)  # every file under mav0/ is the sequence's: no output goes there
     return root
 
 
@@ -437,7 +439,7 @@ def _number(src: str, key: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         raise input_error(src, key, f"expected a number, got {_show(value)}")
     try:
-        x = float(value)
+        x = text_float(value) if isinstance(value, str) else float(value)
     except (ValueError, OverflowError):
         raise input_error(src, key, f"not a number: {_show(value)}") from None
     if not math.isfinite(x):
@@ -557,7 +559,7 @@ def _is_header(fields: list[str]) -> bool:
     """A line none of whose fields is a number."""
     for f in fields:
         try:
-            float(f)
+            text_float(f)
             return False
         except ValueError:
             pass
@@ -610,7 +612,7 @@ def _read_csv(path: Path, columns: tuple[str, ...], what: str, numeric: bool = T
             values = []
             for key, f in zip(columns[1:], fields[1:]):
                 try:
-                    x = float(f)
+                    x = text_float(f)
                 except ValueError:
                     raise input_error(src, key, f"line {number}: not a number: {_show(f)}") from None
                 if not math.isfinite(x):

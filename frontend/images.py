@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from ..backend.errors import InputError
+from ..backend.data.files import note_input
 from ..backend.data.textio import content_lines, finite_numbers, read_lines
 
 __all__ = ["StereoDirectory", "open_stereo_directory", "read_calibration", "read_times", "read_grey",
@@ -199,7 +200,10 @@ def paired_frame_names(root: Path, left: str, right: str, layout: str) -> list[s
 def stereo_directory(root: Path, left: str, right: str, names: list[str], times: np.ndarray, K: np.ndarray,
                      baseline: float) -> StereoDirectory:
     """The :class:`StereoDirectory` of frames ``names`` in ``root/left`` and ``root/right``, after
-    reading the first pair (its size is every frame's; InputError if left and right differ)."""
+    reading the first pair (its size is every frame's; InputError if left and right differ). Both
+    folders become inputs of the run, read whole (``files.note_input``)."""
+    note_input(root / left, contents=True)
+    note_input(root / right, contents=True)
     left0 = read_grey(root / left / names[0])
     right0 = read_grey(root / right / names[0])
     if left0.shape != right0.shape:

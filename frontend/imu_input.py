@@ -26,7 +26,7 @@ import numpy as np
 from ..backend.errors import InputError
 from ..backend.data.npz import load_sequence
 from ..backend.data.sequence import nearest_rigid
-from ..backend.data.textio import content_lines, read_lines
+from ..backend.data.textio import content_lines, read_lines, text_float
 
 __all__ = ["ImuVelocities", "read_imu", "read_imu_csv", "read_imu_npz", "read_imu_T_cam", "with_imu_T_cam"]
 
@@ -50,7 +50,7 @@ class ImuVelocities:
 
 def _numbers(text: str) -> list[float] | None:
     try:
-        return [float(x) for x in text.replace(",", " ").split()]
+        return [text_float(x) for x in text.replace(",", " ").split()]
     except ValueError:
         return None
 

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..backend.data.files import note_input
 from ..backend.data.sequence import nearest_rigid
 from ..backend.data.textio import content_lines, finite_numbers, read_lines
 from ..backend.errors import InputError
@@ -145,6 +146,8 @@ def read_drive_calibration(date_dir) -> RawCalibration:
     ``velo_T_imu`` from ``calib_imu_to_velo.txt`` and ``cam_T_velo`` from ``calib_velo_to_cam.txt``.
     """
     date_dir = Path(date_dir)
+    for name in (CAM_TO_CAM, IMU_TO_VELO, VELO_TO_CAM):
+        note_input(date_dir / name)  # outside the drive's folder: no output may replace them
     K, baseline, rect_T_cam, note = read_cam_to_cam(date_dir / CAM_TO_CAM)
     velo_T_imu, note_imu = read_rigid_calibration(date_dir / IMU_TO_VELO)
     cam_T_velo, note_velo = read_rigid_calibration(date_dir / VELO_TO_CAM)
@@ -234,6 +237,7 @@ def read_oxts(folder, stems: list[str]) -> np.ndarray:
     if not folder.is_dir():
         raise InputError(f"{folder}: {'not a directory' if folder.exists() else 'missing directory'} "
                          "(KITTI raw: oxts/data/NNNNNNNNNN.txt, one record a frame)")
+    note_input(folder, contents=True)
     count = sum(1 for p in folder.iterdir() if p.suffix == ".txt")
     if count < len(stems):
         raise InputError(f"{folder}: {count} OXTS records for {len(stems)} image frames (need one a frame)")

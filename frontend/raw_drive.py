@@ -18,6 +18,7 @@ raw drive, anything else an odometry-layout directory (:func:`~vislam.frontend.i
 from __future__ import annotations
 
 import dataclasses
+import os
 import functools
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,7 @@ from ..backend.errors import InputError
 from .images import LEFT_DIR, StereoDirectory, open_stereo_directory, paired_frame_names, stereo_directory
 from .imu_input import ImuVelocities, with_imu_T_cam
 from .kitti_raw import (
+    CAM_TO_CAM,
     frame_numbers, oxts_inertial, oxts_velocities, oxts_world_T_imu, read_drive_calibration, read_oxts,
     read_timestamps,
 )
@@ -88,7 +90,10 @@ def open_raw_drive(path) -> RawDrive:
         raise InputError(f"{root}: {'not a directory' if root.exists() else 'missing directory'}")
     names = paired_frame_names(root, RAW_LEFT, RAW_RIGHT, _LAYOUT)
     frames = frame_numbers(root / RAW_LEFT, names)
-    calibration = read_drive_calibration(root.resolve().parent)
+    date_dir, where = _calibration_folder(root)
+    calibration = read_drive_calibration(date_dir)
+    if where:
+        calibration = dataclasses.replace(calibration, notes=(*calibration.notes, where))
     times = read_timestamps(root / "image_00" / "timestamps.txt", frames)
     oxts = read_oxts(root / "oxts" / "data", [Path(n).stem for n in names])
     stereo = stereo_directory(root, RAW_LEFT, RAW_RIGHT, names, times, calibration.K, calibration.baseline)
@@ -96,6 +101,18 @@ def open_raw_drive(path) -> RawDrive:
     imu = ImuVelocities(times, linear, angular, calibration.imu_T_cam, source=str(root / "oxts"),
                         notes=calibration.notes)
     return RawDrive(stereo, imu, oxts_world_T_imu(oxts), oxts)
+
+
+def _calibration_folder(root: Path) -> tuple[Path, str | None]:
+    """The ``DATE/`` folder holding the drive's calibration: the parent of the path as given (a
+    drive linked into a ``DATE/`` folder takes that folder's); else, when the drive's folder is a
+    symbolic link, the parent of its target, with a note saying so."""
+    given = Path(os.path.abspath(root)).parent
+    target = root.resolve().parent
+    if (given / CAM_TO_CAM).exists() or target == given or not (target / CAM_TO_CAM).exists():
+        return given, None
+    return target, (f"calibration read from {target} (the folder {root} links to {root.resolve()}; "
+                    f"{given} holds no {CAM_TO_CAM})")
 
 
 def open_images(path) -> tuple[StereoDirectory, RawDrive | None]:

@@ -32,6 +32,11 @@ from .trajectories import TRAJECTORIES
 __all__ = ["SceneConfig", "SceneFactory", "Scene", "check_scene_size", "make_scene", "write_scene", "scene_facts"]
 
 
+#: The most steps a synthetic scene has: its trajectory alone is 128 bytes a step, and a day at 10 Hz
+#: is more than any test of a filter needs
+MAX_STEPS = 864_000
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """Everything a synthetic scene depends on (same config -> identical arrays).
@@ -70,8 +75,8 @@ class SceneConfig:
 
         if self.scenario not in TRAJECTORIES:
             raise bad("scenario", f"must be one of {sorted(TRAJECTORIES)}, got {self.scenario!r}")
-        if int(self.steps) != self.steps or self.steps < 2:
-            raise bad("steps", f"must be an integer >= 2, got {self.steps!r}")
+        if int(self.steps) != self.steps or not 2 <= self.steps <= MAX_STEPS:
+            raise bad("steps", f"must be an integer from 2 to {MAX_STEPS} (a day at 10 Hz), got {self.steps!r}")
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise bad("dt", f"must be > 0 seconds, got {self.dt!r}")
         if int(self.seed) != self.seed or self.seed < 0:

@@ -89,3 +89,48 @@ def test_mc_on_a_local_ray_instance_gives_the_pool_numbers(tmp_path):
     ray = json.loads((tmp_path / "ray" / "consistency.json").read_text())
     for key in ("landmark_nees", "nis"):
         assert ray[key] == pool[key]
+
+
+def test_inputs_of_the_same_name_keep_apart_and_a_key_varied_twice_is_refused(inputs, tmp_path, capsys):
+    """Two inputs named s0.npz in two folders: two rows, two bars, told apart by their folder; a
+    --vary key given twice would label rows with values they never ran with, so it is refused."""
+    import matplotlib.image
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    shutil.copy(inputs / "s0.npz", tmp_path / "a" / "s0.npz")
+    shutil.copy(inputs / "s1.npz", tmp_path / "b" / "s0.npz")
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "a" / "s0.npz"), str(tmp_path / "b" / "s0.npz"), "--vary",
+                 "noise.pixel_sigma=0.5,1.0", "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    captured = capsys.readouterr()
+    assert "2 configuration(s) (noise.pixel_sigma=0.5,1.0); every run: configuration: the defaults" in captured.err
+    table = captured.out
+    assert "| a/s0.npz | noise.pixel_sigma=0.5 |" in table and "| b/s0.npz | noise.pixel_sigma=1.0 |" in table
+    rows = json.loads((out / "batch.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["a/s0.npz", "a/s0.npz", "b/s0.npz", "b/s0.npz"]
+    assert rows[0]["mean_nis"] != rows[2]["mean_nis"]  # two different drives, not one counted twice
+    assert matplotlib.image.imread(out / "batch.png").shape[0] > 100
+    assert main(["batch", str(inputs / "s0.npz"), "--vary", "noise.pixel_sigma=1,2", "--vary", "noise.pixel_sigma=3",
+                 "--out", str(tmp_path / "twice")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "noise.pixel_sigma" in err and "more than once" in err
+    assert not (tmp_path / "twice").exists()
+
+
+def test_input_labels_are_the_shortest_distinct_suffixes():
+    from vislam.tools.commands.batch import input_labels
+
+    assert input_labels(["x/a.npz", "y/b.npz"]) == {"x/a.npz": "a.npz", "y/b.npz": "b.npz"}
+    assert input_labels(["r/x/a.npz", "r/y/a.npz", "r/y/b.npz"]) == {
+        "r/x/a.npz": "x/a.npz", "r/y/a.npz": "y/a.npz", "r/y/b.npz": "y/b.npz"}
+    assert input_labels(["d/a.npz", "d/a.npz"]) == {"d/a.npz": "a.npz"}
+
+
+def test_inputs_without_ground_truth_are_named_on_screen(inputs, tmp_path, capsys):
+    out = tmp_path / "b"
+    assert main(["batch", str(inputs / "s0.npz"), str(inputs / "s1.npz"), "--gt", str(inputs / "{stem}_truth.txt"),
+                 "--out", str(out), "--workers", "1", "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "no ground truth for 2 of 2 input(s)" in err and str(inputs / "s0_truth.txt") in err, err
+    assert all(r["ate_m"] == "" for r in _rows(out))

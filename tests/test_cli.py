@@ -268,3 +268,32 @@ def test_run_starts_with_one_screen_and_verbose_and_quiet_do_what_they_say(tmp_p
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err == ""
     assert (tmp_path / "c" / "summary.json").is_file()
+
+
+def test_eval_reads_the_kitti_pose_files_run_writes(tmp_path, capsys):
+    """`vislam run --format kitti` writes trajectory_kitti.txt; `vislam eval` reads it against KITTI
+    ground truth poses (line by line), with the numbers of the camera poses themselves; a KITTI file
+    against TUM text is refused in one line naming both."""
+    from vislam.backend.data.tum import read_kitti_poses, read_tum, write_kitti_poses
+    from vislam.backend.evaluation.metrics import trajectory_errors
+
+    scene = tmp_path / "scene"
+    assert main(["synth", "--steps", "80", "--out", str(scene), "--quiet"]) == 0
+    out = tmp_path / "run"
+    assert main(["run", str(scene / "data.npz"), "--out", str(out), "--format", "kitti", "--quiet"]) == 0
+    seq = load_sequence(scene / "data.npz")
+    _, truth = read_tum(scene / "gt_tum.txt")
+    write_kitti_poses(tmp_path / "gt_kitti.txt", truth, seq.imu_T_cam)
+    capsys.readouterr()
+    assert main(["eval", str(out / "trajectory_kitti.txt"), str(tmp_path / "gt_kitti.txt"), "--json",
+                 str(tmp_path / "e.json")]) == 0
+    assert "matched line by line" in capsys.readouterr().out
+    numbers = json.loads((tmp_path / "e.json").read_text())
+    est, gt = read_kitti_poses(out / "trajectory_kitti.txt"), read_kitti_poses(tmp_path / "gt_kitti.txt")
+    index = np.arange(len(est), dtype=float)
+    expected = trajectory_errors(index, est, np.arange(len(gt), dtype=float), gt)
+    assert numbers["ate_rmse"] == pytest.approx(expected.ate_rmse, rel=1e-12)
+    assert numbers["num_matched"] == 80 and "nees" not in numbers  # the covariance beside is trajectory.txt's
+    assert main(["eval", str(out / "trajectory_kitti.txt"), str(scene / "gt_tum.txt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "trajectory_kitti.txt" in err and "gt_tum.txt" in err and "one format" in err

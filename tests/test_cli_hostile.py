@@ -488,3 +488,60 @@ def test_a_one_frame_image_directory_is_refused(tmp_path, capsys):
         (tmp_path / side / "000000.png").write_bytes(b"")
     assert main(["track", str(tmp_path), "--imu", "x.csv", "--out", str(tmp_path / "t.npz"), "--quiet"]) == EXIT_USAGE
     one_line_error(capsys, "image_0", "at least 2")
+
+
+# ------------------------------------------------------------------------------------------------
+# sizes checked before any work; files that are not regular files refused, not read
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["synth", "--steps", "100000000"], "steps must be an integer from 2 to"),
+    (["synth", "--steps", str(2**70)], "steps must be an integer from 2 to"),
+    (["mc", "--steps", "1000000000"], "steps must be an integer from 2 to"),
+    (["mc", "--runs", "1000000000"], "--runs must be from 1 to"),
+])
+def test_sizes_that_would_exhaust_memory_are_refused_before_any_work(argv, needle, tmp_path, capsys):
+    assert main([*argv, "--out", str(tmp_path / "o")]) == EXIT_USAGE
+    one_line_error(capsys, needle)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_fifo_or_a_device_as_config_or_ground_truth_is_refused_without_reading(arrays, tmp_path, capsys):
+    """A FIFO would block the read until Ctrl-C and /dev/zero never ends: both are refused by type."""
+    path = write(tmp_path, arrays)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for flag, target, what in (("--config", fifo, "FIFO"), ("--gt", fifo, "FIFO"),
+                               ("--config", Path("/dev/zero"), "character device")):
+        assert main(["run", str(path), "--out", str(tmp_path / "o"), flag, str(target), "--quiet"]) == EXIT_USAGE
+        one_line_error(capsys, str(target), what, "not a regular file")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("[noise]\npixel_sigma = 1e308\n", "out of range"),
+    ("a = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply"),
+    ("[noise]\npixel_sigma = '" + "9" * (2**20) + "'\n", "MiB"),
+])
+def test_configs_that_overflow_recurse_or_are_huge_are_one_line(arrays, tmp_path, capsys, text, needle):
+    path = write(tmp_path, arrays)
+    config = tmp_path / "c.toml"
+    config.write_text(text)
+    assert main(["run", str(path), "--out", str(tmp_path / "o"), "--config", str(config), "--quiet"]) == EXIT_USAGE
+    err = one_line_error(capsys, str(config), needle)
+    assert len(err) < 300  # the value is not echoed whole
+
+
+def test_out_as_a_link_to_an_empty_folder_is_written_through_and_a_file_is_named_so(arrays, tmp_path, capsys):
+    path = write(tmp_path, arrays)
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real)
+    assert main(["run", str(path), "--out", str(tmp_path / "link"), "--quiet"]) == 0
+    assert (real / "trajectory.txt").is_file() and (tmp_path / "link").is_symlink()
+    assert not leftovers(tmp_path) and not leftovers(real)
+    plain = tmp_path / "plain"
+    plain.write_text("keep")
+    assert main(["run", str(path), "--out", str(plain), "--quiet"]) == EXIT_USAGE
+    one_line_error(capsys, str(plain), "is a regular file, not a directory")
+    assert plain.read_text() == "keep"

@@ -203,19 +203,30 @@ def test_check_output_directory_refuses_empty_path():
 
 
 @pytest.mark.parametrize("force", [False, True])
-def test_check_output_directory_refuses_regular_file_and_symlink(tmp_path, force):
-    """A regular file or a symlink to a directory is refused as output directory, even with force."""
+def test_check_output_directory_refuses_a_regular_file_and_takes_a_link_to_a_directory(tmp_path, force):
+    """A regular file is refused as output directory, even with force; a symbolic link to a directory
+    is that directory (empty: taken; holding files: only with force), a link to a file is refused."""
     plain = tmp_path / "plain"
     plain.write_text("x")
     real = tmp_path / "real"
     real.mkdir()
     link = tmp_path / "link"
     link.symlink_to(real)
+    to_file = tmp_path / "to_file"
+    to_file.symlink_to(plain)
     before = snapshot(tmp_path)
-    for path in (plain, link):
+    for path in (plain, to_file):
         with pytest.raises(OutputError) as exc:
             check_output_directory(path, force)
         assert_one_line_naming(exc, path)
+    assert check_output_directory(link, force) == link
+    (real / "old.txt").write_text("kept")
+    if force:
+        assert check_output_directory(link, force) == link
+    else:
+        with pytest.raises(OutputError, match="--force"):
+            check_output_directory(link, force)
+    (real / "old.txt").unlink()
     assert snapshot(tmp_path) == before
 
 
@@ -430,24 +441,27 @@ def test_output_directory_refuses_a_regular_file_target(tmp_path, force):
     assert os.listdir(tmp_path) == ["run"]
 
 
-def test_output_directory_refuses_a_symlink_target(tmp_path):
-    """A target that is a symlink to a directory is refused with force and stays a symlink to the same place."""
+def test_output_directory_writes_through_a_link_to_a_directory(tmp_path):
+    """A target that is a symbolic link to a directory: the outputs land in that directory (with
+    force, beside what it held), and the link stays a link to the same place."""
     real = tmp_path / "real"
     real.mkdir()
     (real / "f").write_bytes(b"f")
     target = tmp_path / "run"
     target.symlink_to(real)
-    before = snapshot(tmp_path)
-    with pytest.raises(OutputError), output_directory(target, force=True) as staging:
+    with output_directory(target, force=True) as staging:
         write_outputs(staging, OUTPUTS)
-    assert snapshot(tmp_path) == before
     assert target.is_symlink() and os.readlink(target) == str(real)
+    assert {str(p.relative_to(real)): p.read_bytes() for p in real.rglob("*") if p.is_file()} == {"f": b"f", **OUTPUTS}
+
+
+STOP = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
 
 
 @pytest.mark.parametrize("state", ["missing", "non-empty"])
-def test_output_directory_renames_with_sigint_blocked(tmp_path, monkeypatch, state):
-    """The final rename(s) happen with SIGINT blocked (pthread_sigmask SIG_BLOCK {SIGINT} before,
-    the old mask restored after), for the one-rename and the merge cases."""
+def test_output_directory_renames_with_the_stop_signals_blocked(tmp_path, monkeypatch, state):
+    """The final rename(s) happen with SIGINT, SIGTERM and SIGHUP blocked (pthread_sigmask SIG_BLOCK
+    before, the old mask restored after), for the one-rename and the merge cases."""
     target = tmp_path / "run"
     if state == "non-empty":
         write_outputs(target, {"keep.txt": b"keep"})
@@ -460,7 +474,7 @@ def test_output_directory_renames_with_sigint_blocked(tmp_path, monkeypatch, sta
         return old
 
     def replace(src, dst):
-        events.append(("replace", Path(dst), signal.SIGINT in real_mask(signal.SIG_BLOCK, [])))
+        events.append(("replace", Path(dst), STOP <= real_mask(signal.SIG_BLOCK, [])))
         return real_replace(src, dst)
 
     assert signal.SIGINT not in real_mask(signal.SIG_BLOCK, [])
@@ -474,11 +488,11 @@ def test_output_directory_renames_with_sigint_blocked(tmp_path, monkeypatch, sta
     kinds = [e[0] for e in events]
     assert kinds[0] == "mask" and kinds[-1] == "mask" and set(kinds[1:-1]) == {"replace"}
     _, how, sigs, old = events[0]
-    assert how == signal.SIG_BLOCK and signal.SIGINT in sigs and signal.SIGINT not in old
+    assert how == signal.SIG_BLOCK and STOP <= sigs and signal.SIGINT not in old
     _, how, sigs, _ = events[-1]
     assert how == signal.SIG_SETMASK and signal.SIGINT not in sigs
     replaced = [e for e in events if e[0] == "replace"]
-    assert all(blocked for _, _, blocked in replaced)  # SIGINT really was blocked during each rename
+    assert all(blocked for _, _, blocked in replaced)  # the signals really were blocked during each rename
     expected = [target] if state == "missing" else [target / "a.txt", target / "b.txt"]
     assert sorted(dst for _, dst, _ in replaced) == expected
     assert signal.SIGINT not in real_mask(signal.SIG_BLOCK, [])  # restored

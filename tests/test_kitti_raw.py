@@ -339,6 +339,47 @@ def test_small_drive_opens_and_odometry_folders_are_not_raw(tmp_path):
     assert not is_raw_drive(odometry) and not is_raw_drive(tmp_path / "missing")
 
 
+def test_a_linked_drive_takes_the_calibration_of_the_folder_typed(tmp_path):
+    """A drive linked into another DATE/ folder: that folder's calibration (the path the user typed),
+    not the link target's; a link in a folder without calibration falls back to the target's and
+    says so in a note."""
+    drive = small_drive(tmp_path / "a")
+    other = tmp_path / "b" / DATE
+    other.mkdir(parents=True)
+    for name in ("calib_cam_to_cam.txt", "calib_imu_to_velo.txt", "calib_velo_to_cam.txt"):
+        text = (drive.parent / name).read_text()
+        (other / name).write_text(_with_baseline(text, 0.25) if name == "calib_cam_to_cam.txt" else text)
+    (other / DRIVE).symlink_to(drive)
+    assert open_raw_drive(drive).stereo.baseline == pytest.approx(0.5)
+    linked = open_raw_drive(other / DRIVE)
+    assert linked.stereo.baseline == pytest.approx(0.25) and not linked.imu.notes
+    bare = tmp_path / "c"
+    bare.mkdir()
+    (bare / DRIVE).symlink_to(drive)
+    fallback = open_raw_drive(bare / DRIVE)
+    assert fallback.stereo.baseline == pytest.approx(0.5)
+    assert any("calibration read from" in n and str(drive.parent) in n for n in fallback.imu.notes), fallback.imu.notes
+
+
+def _with_baseline(text: str, baseline: float) -> str:
+    """calib_cam_to_cam.txt ``text`` with the right camera's P_rect_01 set for ``baseline`` (K_SMALL)."""
+    P1 = np.column_stack([K_SMALL, [-K_SMALL[0, 0] * baseline, 0, 0]])
+    return "\n".join(f"P_rect_01: {numbers(P1)}" if line.startswith("P_rect_01:") else line
+                     for line in text.splitlines()) + "\n"
+
+
+def test_a_two_frame_drive_runs_as_it_tracks_and_says_it_is_not_evaluated(tmp_path, capsys):
+    """track accepts a 2-frame drive; run does too: its own ground truth (2 poses) is too short to
+    evaluate against, which nobody asked for, so a note says so instead of a refusal."""
+    drive = small_drive(tmp_path, n=2)
+    assert main(["track", str(drive), "--out", str(tmp_path / "t.npz"), "--quiet"]) == 0
+    assert main(["run", str(drive), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "ground truth: not evaluated" in err and "2 poses" in err, err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["steps"] == 2 and "errors" not in summary  # no evaluation (a run with ground truth has it)
+
+
 def test_a_drive_cut_to_some_frames_keeps_its_stamps_and_records(tmp_path):
     """Frame NNNNNNNNNN takes stamp NNNNNNNNNN and oxts/data/NNNNNNNNNN.txt, not the first ones."""
     root = small_drive(tmp_path, 5)

@@ -244,7 +244,7 @@ def _with_specials(draw, x: np.ndarray, arrays) -> np.ndarray:
         values = st.sampled_from(_int_specials(arrays))
     else:
         with np.errstate(all="ignore"):
-            y = np.array(x, dtype=np.float64)
+            y = np.array(x.real if np.iscomplexobj(x) else x, dtype=np.float64)
         values = st.sampled_from(FLOAT_SPECIALS)
     if y.size:
         for pos in draw(st.lists(st.integers(0, y.size - 1), min_size=1, max_size=4)):
@@ -1591,3 +1591,161 @@ def test_set_bare_tracker_table_regression(item):
     with pytest.raises(ConfigError) as e:
         filter_config(args)
     assert_clean_config_error(e.value, "tracker")
+
+
+# ------------------------------------------------------------------------------------------------
+# Python's digit separators are no number in a data file: '1_3.17' is never read as 13.17
+
+
+def _with_separator(draw, value: float) -> str:
+    """``value`` as text with an underscore between two of its digits."""
+    text = repr(value)
+    spots = [i for i in range(1, len(text)) if text[i - 1].isdigit() and text[i].isdigit()]
+    assume(spots)
+    i = draw(st.sampled_from(spots))
+    return text[:i] + "_" + text[i:]
+
+
+@st.composite
+def tum_line_with_separator(draw):
+    values = [draw(st.floats(1.0, 1e6)), *draw(st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3)),
+              0.0, 0.0, 0.0, 1.0]
+    column = draw(st.integers(0, 3))
+    tokens = [repr(v) for v in values]
+    tokens[column] = _with_separator(draw, values[column])
+    return " ".join(tokens), column
+
+
+@given(tum_line_with_separator())
+@settings(max_examples=60, deadline=None)
+def test_tum_digit_separators_are_refused_property(case):
+    line, _ = case
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "t.txt"
+        path.write_text(f"0 0 0 0 0 0 0 1\n{line}\n")
+        with pytest.raises(InputError) as e:
+            read_tum(str(path))
+        msg = assert_clean_input_error(e.value, str(path))
+        assert ":2" in msg and "not a number" in msg, msg
+
+
+@given(st.lists(st.floats(-50, 50), min_size=7, max_size=7), st.integers(0, 6), st.data())
+@settings(max_examples=60, deadline=None)
+def test_imu_csv_digit_separators_are_refused_property(values, column, data):
+    from vislam.frontend.imu_input import read_imu_csv
+
+    values[0] = abs(values[0]) + 1.0  # the second row's stamp after the first's 0
+    tokens = [repr(v) for v in values]
+    tokens[column] = _with_separator(data.draw, values[column])
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "imu.csv"
+        path.write_text("t,vx,vy,vz,wx,wy,wz\n0,0,0,0,0,0,0\n" + ",".join(tokens) + "\n")
+        with pytest.raises(InputError) as e:
+            read_imu_csv(path, 2)
+        assert "line 3" in assert_clean_input_error(e.value, str(path))
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False))
+@settings(max_examples=200, deadline=None)
+def test_text_float_reads_every_float_repr_property(value):
+    from vislam.backend.data.textio import text_float
+
+    assert text_float(repr(value)) == value and text_float(f"{value:.17e}") == value
+
+
+# ------------------------------------------------------------------------------------------------
+# KITTI pose files (backend.data.tum.read_kitti_poses, read_trajectory)
+
+
+def _rotation(rotvec) -> np.ndarray:
+    from vislam.backend.geometry import se3
+
+    return se3.exp_so3_and_left_jacobian(np.asarray(rotvec, dtype=float))[0]
+
+
+@st.composite
+def kitti_pose_lines(draw):
+    """(text lines, poses (N,4,4)) of a valid KITTI pose file printed with 9 or 6 significant digits."""
+    n = draw(st.integers(1, 8))
+    digits = draw(st.sampled_from([9, 6]))
+    rotvecs = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-3, 3)))
+    trans = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-1e4, 1e4)))
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(n):
+        poses[k, :3, :3] = _rotation(rotvecs[k])
+        poses[k, :3, 3] = trans[k]
+    lines = [" ".join(f"{v:.{digits - 1}e}" for v in P[:3].ravel()) for P in poses]
+    return lines, poses, digits
+
+
+@settings(max_examples=80, **SETTINGS)
+@given(case=kitti_pose_lines(), blank=st.booleans(), crlf=st.booleans())
+def test_kitti_valid_files_are_read_property(case, blank, crlf):
+    """A KITTI pose file printed to 6 or 9 digits reads back as its poses (rotations made exactly
+    orthonormal, within the printing's rounding), and read_trajectory calls it KITTI, by index."""
+    from vislam.backend.data.tum import read_kitti_poses, read_trajectory
+
+    lines, poses, digits = case
+    text = ("\r\n" if crlf else "\n").join(lines + ([""] if blank else [])) + "\n"
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "poses.txt"
+        path.write_text(text)
+        read = read_kitti_poses(path)
+        traj = read_trajectory(path)
+    tol = 10.0 ** (1 - digits)
+    R = read[:, :3, :3]
+    assert np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max() <= 1e-12
+    assert np.abs(R - poses[:, :3, :3]).max() <= 4 * tol
+    assert np.allclose(read[:, :3, 3], poses[:, :3, 3], rtol=tol, atol=tol)
+    assert traj.format == "kitti" and traj.by_index and np.array_equal(traj.time_stamps, np.arange(len(poses)))
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(case=kitti_pose_lines(), data=st.data())
+def test_kitti_damaged_lines_are_one_line_errors_property(case, data):
+    """A pose line with a token dropped or added, junk, nan, a digit separator, a rotation scaled
+    beyond rounding or a reflection: one-line InputError naming the file and that line."""
+    from vislam.backend.data.tum import read_kitti_poses
+
+    lines, poses, _ = case
+    k = data.draw(st.integers(0, len(lines) - 1))
+    tokens = lines[k].split()
+    damage = data.draw(st.sampled_from(["drop", "add", "junk", "nan", "separator", "scale", "reflect"]))
+    if damage == "drop":
+        tokens.pop(data.draw(st.integers(0, 11)))
+    elif damage == "add":
+        tokens.append("1.0")
+    elif damage == "junk":
+        tokens[data.draw(st.integers(0, 11))] = "x1"
+    elif damage == "nan":
+        tokens[data.draw(st.integers(0, 11))] = "nan"
+    elif damage == "separator":
+        i = data.draw(st.integers(0, 11))
+        tokens[i] = "1_" + tokens[i].lstrip("-")
+    else:
+        P = poses[k][:3].copy()
+        if damage == "scale":
+            P[:, :3] *= 1.01
+        else:
+            P[:, 0] *= -1
+        tokens = [f"{v:.9e}" for v in P.ravel()]
+    lines = list(lines)
+    lines[k] = " ".join(tokens)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "poses.txt"
+        path.write_text("\n".join(lines) + "\n")
+        with pytest.raises(InputError) as e:
+            read_kitti_poses(path)
+        msg = assert_clean_input_error(e.value, str(path))
+        assert msg.startswith(f"{path}:{k + 1}:"), msg
+
+
+def test_trajectory_files_of_neither_format_are_refused(tmp_path):
+    from vislam.backend.data.tum import read_trajectory
+
+    path = tmp_path / "t.txt"
+    path.write_text("# comment\n1 2 3 4 5\n")
+    with pytest.raises(InputError) as e:
+        read_trajectory(path)
+    msg = assert_clean_input_error(e.value, str(path))
+    assert ":2:" in msg and "8 columns" in msg and "12" in msg

@@ -1031,3 +1031,16 @@ def test_damaged_member_besides_features_is_refused_naming_it(tmp_path, syn_seq,
     with pytest.raises(InputError) as e:
         load_sequence(path)
     assert_one_line_error(e, str(path), member)
+
+
+def test_what_the_reader_dropped_is_said_in_words():
+    import dataclasses
+
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    seq = make_scene(SceneConfig(steps=5)).sequence
+    assert dataclasses.replace(seq, dropped={"nonpositive_disparity": 0, "outside_image": 0}).dropped_text() == ""
+    text = dataclasses.replace(seq, dropped={"nonpositive_disparity": 120, "outside_image": 1}).dropped_text()
+    assert text == ("dropped 120 observations with a non-positive disparity (uL <= uR: a point at or behind "
+                    "infinity); 1 observation outside the image")
+    assert "{" not in text and "_" not in text

@@ -244,3 +244,40 @@ def test_run_with_rerun_records_every_step_and_frame(tmp_path):
     _, poses = read_tum(tmp_path / "out" / "trajectory.txt")
     translation = np.array(column(rec["/world/imu"], "Transform3D:translation")).reshape(12, 3)
     np.testing.assert_allclose(translation, poses[:, :3, 3], atol=1e-5)
+
+
+@needs_rerun
+def test_a_recording_that_cannot_be_written_whole_leaves_no_output(tmp_path, monkeypatch, capsys):
+    """rerun's file writer stops on a full disk and its flush fails: the run is one line, exit 2, and
+    neither the recording (no truncated file under its name) nor any other output is left; outputs
+    that cannot be written leave no recording either."""
+    import rerun as rr
+
+    from vislam.tools import outputs
+    from vislam.tools.cli import main
+
+    scene = tmp_path / "s"
+    assert main(["synth", "--steps", "12", "--out", str(scene), "--quiet"]) == 0
+    rrd, out = tmp_path / "run.rrd", tmp_path / "out"
+    argv = ["run", str(scene / "data.npz"), "--out", str(out), "--rerun", str(rrd), "--quiet"]
+
+    def full_disk(self, *args, **kwargs):
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    with monkeypatch.context() as m:
+        m.setattr(rr.RecordingStream, "flush", full_disk)
+        assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines()[-1] == f"vislam: error: {rrd}: cannot write the recording: File-writer thread shut down " \
+                                   "prematurely", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
+
+    def no_space(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(outputs, "write_json", no_space)
+        assert main(argv) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
+    assert main(argv) == 0 and rrd.is_file() and (out / "trajectory.txt").is_file()

@@ -1,6 +1,7 @@
 """The ``vislam`` command line: one parser, one module per command (``tools.commands``).
 
-Every user error is one line on stderr and exit code 2; Ctrl-C exits 130 and leaves no half file.
+Every user error is one line on stderr and exit code 2; Ctrl-C exits 130, SIGTERM 143 and SIGHUP
+129 (``tools.console``), and none of them leaves a half file, a staging directory or a worker.
 """
 
 from __future__ import annotations
@@ -16,7 +17,11 @@ from . import clock, console
 from .commands import COMMANDS
 
 EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
+#: The arguments of any command that name what it reads: no output may land on them
+#: (``backend.data.files.inputs_of_the_run``); readers add what they find themselves (calibration files).
+INPUT_ARGUMENTS = ("data", "inputs", "images", "estimate", "ground_truth", "imu", "imu_T_cam", "gt", "covariance",
+                   "config")
+EXIT_INTERRUPTED = 130  # after Ctrl-C; 128 + the signal's number after SIGTERM or SIGHUP
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,32 +34,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one command; the exit code (0, 2 for a refusal, 130 after Ctrl-C)."""
+    """Run one command; the exit code (0, 2 for a refusal, 128 + the signal after an interruption)."""
     return _main(argv)
 
 
 def _main(argv: list[str] | None, sigint_after=None) -> int:
-    """:func:`main`; ``sigint_after``: the SIGINT handler to leave in place (default: the one before)."""
+    """:func:`main`; ``sigint_after``: the handler to leave in place for the stop signals (default: the
+    ones before)."""
     args = build_parser().parse_args(argv)
     clock.mark_command_start()
     with console.interrupt_handler(sigint_after) as interrupted:
         rc = _dispatch(args)
-    if interrupted() and rc != EXIT_INTERRUPTED:  # pressed, but swallowed where Python ignores exceptions
-        print("vislam: interrupted (after the work was done: its outputs are complete)", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    if interrupted() and rc != console.interrupted_exit_code():  # swallowed where Python ignores exceptions
+        print(f"vislam: {console.interrupted_text()} (after the work was done: its outputs are complete)",
+              file=sys.stderr)
+        return console.interrupted_exit_code()
     return rc
 
 
 def _dispatch(args: argparse.Namespace) -> int:
     """The command, with every error as one line and its exit code."""
+    from ..backend.data.files import inputs_of_the_run
+
     try:
-        return args.func(args)
+        with inputs_of_the_run(_inputs(args)):
+            return args.func(args)
     except VislamError as exc:
         print(f"vislam: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("vislam: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        print(f"vislam: {console.interrupted_text()}", file=sys.stderr)
+        return console.interrupted_exit_code()
     except OSError as exc:  # the system refused a read or write the checks could not foresee (a full disk)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"vislam: error: {where}{exc.strerror or exc}", file=sys.stderr)
@@ -62,8 +72,17 @@ def _dispatch(args: argparse.Namespace) -> int:
     except Exception as exc:
         if not _interrupted(exc):
             raise
-        print("vislam: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        print(f"vislam: {console.interrupted_text()}", file=sys.stderr)
+        return console.interrupted_exit_code()
+
+
+def _inputs(args: argparse.Namespace) -> list[str]:
+    """The paths among the command's :data:`INPUT_ARGUMENTS`."""
+    paths = []
+    for name in INPUT_ARGUMENTS:
+        value = getattr(args, name, None)
+        paths += [str(v) for v in value] if isinstance(value, list) else [str(value)] if value else []
+    return paths
 
 
 def _interrupted(exc: BaseException) -> bool:
@@ -79,13 +98,13 @@ def _interrupted(exc: BaseException) -> bool:
 
 
 def entry() -> None:  # pragma: no cover - the console script; tests call main()
-    """``vislam``: :func:`main`; after Ctrl-C leave at once (the outputs are already cleaned up, and
+    """``vislam``: :func:`main`; after an interruption leave at once (the outputs are already cleaned up, and
     the teardown of native libraries would change the exit code: open3d reports "memory leaks" and
     exits 1 when an import or a write of it was interrupted); once the work is done, a Ctrl-C during
     the interpreter's teardown is ignored."""
     clock.count_from_process_start()  # the user waits from the process's start: the figures say so
-    rc = _main(None, sigint_after=signal.SIG_IGN)  # done: a Ctrl-C during the teardown changes nothing
-    if rc == EXIT_INTERRUPTED:
+    rc = _main(None, sigint_after=signal.SIG_IGN)  # done: a signal during the teardown changes nothing
+    if rc >= 128:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(rc)

@@ -1,11 +1,14 @@
 """What the command line says on the terminal: one-line messages and progress bars, on stderr;
-and Ctrl-C, which must not be lost.
+and interruptions (Ctrl-C, ``kill``, a closed terminal), which must not be lost.
 
-Python raises KeyboardInterrupt wherever the main thread is when SIGINT arrives; inside a
-finalizer (``__del__``, as llvmlite's objects run while numba compiles) it is printed as "ignored"
-and the work goes on. :func:`interrupt_handler` therefore also records the signal (and keeps that
-"ignored" traceback off the terminal), and every progress callback (:func:`progress_bar`, once per
-step or frame) raises KeyboardInterrupt again once it was recorded.
+SIGINT, SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) are handled alike: the handler records the
+signal and raises KeyboardInterrupt wherever the main thread is, so every cleanup written for
+Ctrl-C (staging directories, temporary files, pool workers) runs for each of them, and the command
+exits with 128 + the signal's number (130, 143, 129: :func:`interrupted_exit_code`). Inside a
+finalizer (``__del__``, as llvmlite's objects run while numba compiles) the KeyboardInterrupt is
+printed as "ignored" and the work goes on; :func:`interrupt_handler` therefore keeps that
+"ignored" traceback off the terminal, and every progress callback (:func:`progress_bar`, once per
+step or frame) raises KeyboardInterrupt again once a signal was recorded.
 """
 
 from __future__ import annotations
@@ -16,74 +19,116 @@ import threading
 from contextlib import contextmanager
 from typing import Callable, Iterator, Optional
 
+#: The signals that stop a command cleanly, like Ctrl-C (those present on this platform)
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
 _interrupted = threading.Event()
+_received: list[int] = []  # the stop signals received while the handler was in place, in order
 
 
-def _on_sigint(signum, frame) -> None:
+def _on_signal(signum, frame) -> None:
+    _received.append(signum)
     _interrupted.set()
     raise KeyboardInterrupt
 
 
+def interrupted_exit_code() -> int:
+    """128 + the number of the first stop signal received (130 for Ctrl-C, also when none was)."""
+    return 128 + (_received[0] if _received else int(signal.SIGINT))
+
+
+def interrupted_text() -> str:
+    """'interrupted', naming the signal when it was not Ctrl-C: 'interrupted (SIGTERM)'."""
+    if not _received or _received[0] == signal.SIGINT:
+        return "interrupted"
+    return f"interrupted ({signal.Signals(_received[0]).name})"
+
+
 @contextmanager
 def interrupt_handler(after=None) -> Iterator[Callable[[], bool]]:
-    """Record Ctrl-C while the block runs (in the main thread; elsewhere nothing changes); yields a
-    function telling whether it was pressed. ``after``: the SIGINT handler to install at the end
-    (default: the one before)."""
+    """Record the stop signals (:data:`STOP_SIGNALS`) while the block runs (in the main thread;
+    elsewhere nothing changes); yields a function telling whether one arrived. ``after``: the
+    handler to install for each at the end (default: the one before)."""
     _interrupted.clear()
+    _received.clear()
     if threading.current_thread() is not threading.main_thread():
         yield _interrupted.is_set
         return
-    previous = signal.signal(signal.SIGINT, _on_sigint)
+    previous = {signum: signal.signal(signum, _on_signal) for signum in STOP_SIGNALS}
     previous_hook = sys.unraisablehook
     sys.unraisablehook = _quiet_interrupt(previous_hook)
     try:
         yield _interrupted.is_set
     finally:
-        signal.signal(signal.SIGINT, previous if after is None else after)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler if after is None else after)
         sys.unraisablehook = previous_hook
 
 
 def _quiet_interrupt(hook):
     """An unraisable-exception hook that keeps a swallowed KeyboardInterrupt quiet (it is recorded and
-    raised again at the next progress callback) and passes everything else to ``hook``."""
+    raised again at the next progress callback), and after a stop signal also what finalizers of the
+    interrupted work report (a ``ZipFile`` closed half-way while ``map.npz`` was written: its file is
+    removed anyway); everything else goes to ``hook``."""
     def quiet(unraisable) -> None:
-        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        if not (isinstance(unraisable.exc_value, KeyboardInterrupt) or _interrupted.is_set()):
             hook(unraisable)
     return quiet
 
 
 def check_interrupted() -> None:
-    """KeyboardInterrupt if Ctrl-C was pressed, even when the first one was swallowed."""
+    """KeyboardInterrupt if a stop signal arrived, even when the first one was swallowed."""
     if _interrupted.is_set():
         raise KeyboardInterrupt
 
 
+_bars: list = []  # the progress bar on screen, if any
+
+
+def say(message: str) -> None:
+    """One message on stderr, above the progress bar when one is on screen (never on its line)."""
+    if _bars:
+        _bars[-1].write(message, file=sys.stderr)
+    else:
+        print(message, file=sys.stderr, flush=True)
+
+
 def sayer(quiet: bool) -> Callable[[str], None]:
-    """A function printing one message to stderr, or doing nothing when ``quiet``."""
+    """A function printing one message to stderr (:func:`say`), or doing nothing when ``quiet``."""
     if quiet:
         return lambda message: None
-    return lambda message: print(message, file=sys.stderr, flush=True)
+    return say
 
 
 @contextmanager
 def progress_bar(total: Optional[int], desc: str, unit: str, quiet: bool) -> Iterator[Optional[Callable[[int], None]]]:
     """A callback advancing a tqdm bar by one per call (no bar when ``quiet``), closed at the end;
-    each call raises KeyboardInterrupt if Ctrl-C was pressed (:func:`check_interrupted`)."""
+    each call raises KeyboardInterrupt if a stop signal arrived (:func:`check_interrupted`).
+
+    The bar appears at the first call, once the work it counts has begun: the lines printed
+    before (the input, the decisions taken from the data) stay on lines of their own, and its rate
+    and time left are those of the work, not of the start-up."""
     if quiet:
         yield lambda *_: check_interrupted()
         return
     from tqdm import tqdm
 
-    bar = tqdm(total=total, unit=unit, file=sys.stderr, desc=desc)
+    bar = None
 
     def advance(*_) -> None:
+        nonlocal bar
         check_interrupted()
+        if bar is None:
+            bar = tqdm(total=total, unit=unit, file=sys.stderr, desc=desc)
+            _bars.append(bar)
         bar.update(1)
 
     try:
         yield advance
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
+            _bars.remove(bar)
 
 
 def add_verbosity_options(p) -> None:

@@ -12,10 +12,11 @@ from ..frontend.config import TrackerConfig
 TRACKER = TrackerConfig.TABLE
 
 
-def add_config_options(p: argparse.ArgumentParser, tables: str = "any table") -> None:
+def add_config_options(p: argparse.ArgumentParser, tables: str = "any table",
+                       example: str = "noise.pixel_sigma=1.0") -> None:
     p.add_argument("--config", metavar="TOML", help=f"configuration file ({tables}; see config.toml of a run)")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
-                   help="override one option, e.g. noise.pixel_sigma=1.0 (repeatable)")
+                   help=f"override one option, e.g. {example} (repeatable)")
 
 
 def add_filter_flags(p: argparse.ArgumentParser) -> None:

@@ -512,7 +512,10 @@ def plot_nees_over_time(path: str | os.PathLike, nees, title: str = ""):
 def plot_batch(path: str | os.PathLike, rows: list[dict]) -> None:
     """``vislam batch``: ATE RMSE (m, SE(3)-aligned) per input, one bar per configuration; an input
     without ground truth, or a run that failed, has no bar."""
-    names = list(dict.fromkeys(os.path.basename(r["input"]) for r in rows))
+    def name_of(r):
+        return r.get("label") or os.path.basename(r["input"])
+
+    names = list(dict.fromkeys(name_of(r) for r in rows))
     labels = list(dict.fromkeys(r["configuration"] for r in rows))
     fig = _new_figure((max(6.0, 0.8 * len(names) * max(len(labels), 1)), 4.0))
     ax = fig.add_subplot(1, 1, 1)
@@ -521,7 +524,7 @@ def plot_batch(path: str | os.PathLike, rows: list[dict]) -> None:
         heights = []
         for name in names:
             value = next((r.get("ate_m") for r in rows
-                          if os.path.basename(r["input"]) == name and r["configuration"] == label), None)
+                          if name_of(r) == name and r["configuration"] == label), None)
             heights.append(value if isinstance(value, float) and np.isfinite(value) else 0.0)
         ax.bar(np.arange(len(names)) + (j - (len(labels) - 1) / 2) * width, heights, width, label=label,
                color=_OTHER_COLORS[j % len(_OTHER_COLORS)] if j else COLORS["estimate"])

@@ -4,18 +4,26 @@ Both are ``concurrent.futures.Executor``-like (``submit(fn, *args)`` returning a
 ``concurrent.futures.Future``, ``shutdown``), so ``vislam batch`` and ``vislam mc`` submit the same
 picklable, module-level functions to either. Ray is an optional extra (``pip install
 'vislam[cluster]'``) imported only when asked for.
+
+No worker outlives the command: when the work stops early (Ctrl-C, SIGTERM, SIGHUP, an error)
+the local workers are terminated at once rather than left to finish their runs, and each worker
+asks the kernel (Linux) to stop it when its parent dies, so even a killed ``vislam`` leaves none.
+Workers ignore Ctrl-C themselves: the terminal sends it to the whole process group, and the parent
+decides.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import os
+import signal
+import sys
 from contextlib import contextmanager
 from typing import Iterator, Optional
 
 from ..backend.errors import ConfigError
 
-__all__ = ["executor", "RayExecutor"]
+__all__ = ["executor", "ProcessPool", "RayExecutor"]
 
 
 class RayExecutor:
@@ -33,6 +41,7 @@ class RayExecutor:
             raise ConfigError("--ray needs the optional cluster extra: pip install 'vislam[cluster]'") from None
         self._ray = ray
         self._remote = {}
+        self._refs = []
         self._own = not ray.is_initialized()
         if self._own:
             import logging
@@ -51,23 +60,94 @@ class RayExecutor:
         remote = self._remote.get(fn)
         if remote is None:
             remote = self._remote[fn] = self._ray.remote(fn)
-        return remote.remote(*args).future()
+        ref = remote.remote(*args)
+        self._refs.append(ref)
+        return ref.future()
+
+    def stop(self) -> None:
+        """Cancel every task still pending or running (their workers are stopped)."""
+        for ref in self._refs:
+            try:
+                self._ray.cancel(ref, force=True)
+            except Exception:  # finished already, or the cluster is gone
+                pass
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        if cancel_futures:
+            self.stop()
         if self._own and self._ray.is_initialized():
             self._ray.shutdown()
+
+
+def _start_worker(parent: int) -> None:
+    """In each local worker: Ctrl-C is the parent's to handle; SIGTERM and SIGHUP stop the worker
+    (not the parent's handlers, inherited by a fork); the kernel sends SIGTERM when the parent dies."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_DFL)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):  # pragma: no cover - a libc without prctl
+            pass
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+class ProcessPool:
+    """``submit(fn, *args)`` on local worker processes (``multiprocessing.Pool``), futures as
+    ``concurrent.futures.Future``; :meth:`stop` terminates the workers at once, running work and
+    all (``ProcessPoolExecutor`` can only wait for running work to finish)."""
+
+    def __init__(self, workers: int) -> None:
+        import multiprocessing
+
+        self._pool = multiprocessing.Pool(workers, initializer=_start_worker, initargs=(os.getpid(),))
+
+    def submit(self, fn, *args) -> concurrent.futures.Future:
+        future = concurrent.futures.Future()
+        future.set_running_or_notify_cancel()
+        self._pool.apply_async(fn, args, callback=lambda value: _settle(future, future.set_result, value),
+                               error_callback=lambda exc: _settle(future, future.set_exception, exc))
+        return future
+
+    def stop(self) -> None:
+        """Terminate the workers now and reap them."""
+        self._pool.terminate()
+        self._pool.join()
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        if cancel_futures:
+            self.stop()
+            return
+        self._pool.close()
+        if wait:
+            self._pool.join()
+
+
+def _settle(future: concurrent.futures.Future, setter, value) -> None:
+    """Give ``future`` its outcome unless it has one already (a caller may have cancelled it)."""
+    try:
+        if not future.done():
+            setter(value)
+    except concurrent.futures.InvalidStateError:  # settled meanwhile
+        pass
 
 
 @contextmanager
 def executor(workers: Optional[int] = None, ray_address: Optional[str] = None, jobs: int = 1) -> Iterator:
     """A process pool of ``workers`` (default: every core, at most ``jobs``), or Ray at
-    ``ray_address``; shut down on exit, pending work cancelled on an exception (Ctrl-C)."""
+    ``ray_address``; shut down on exit; on an exception (an interruption included) pending work is
+    cancelled and the workers are stopped at once (module docstring)."""
     if workers is not None and workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {workers}")
     if ray_address:
         pool = RayExecutor(ray_address, workers)
     else:
-        pool = concurrent.futures.ProcessPoolExecutor(max_workers=min(workers or os.cpu_count() or 1, max(jobs, 1)))
+        pool = ProcessPool(min(workers or os.cpu_count() or 1, max(jobs, 1)))
     completed = False
     try:
         yield pool

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..backend.data.files import atomic_write
-from ..backend.errors import VislamError
+from ..backend.data.files import atomic_write, check_not_an_input
+from ..backend.errors import OutputError, VislamError
 from ..backend.geometry.se3 import quaternion_from_rotation
 
 __all__ = ["MISSING_EXTRA", "PIECE", "RerunRecorder"]
@@ -98,6 +98,7 @@ class RerunRecorder:
         self._jpeg_quality = int(jpeg_quality)
         self._p_in_world: list[np.ndarray] = []  # the estimate's position at each step so far
         self._last_step: int | None = None
+        self._path = path
         self._writing = atomic_write(path) if path is not None else None
         tmp = self._writing.__enter__() if self._writing is not None else None  # checks path first
         self.stream = None
@@ -208,14 +209,39 @@ class RerunRecorder:
         """Stop recording and remove the partial file (the run failed)."""
         self._finish(RuntimeError("recording aborted"))
 
+    def finish_writing(self) -> None:
+        """Flush and close the recording, still under its temporary name (:meth:`close` moves it onto
+        ``path``); OutputError when the file could not be written whole (a full disk), the partial
+        file then removed. Called before the run's other outputs are moved into place, so that a
+        failed recording leaves none of them, and a failed output set no recording."""
+        stream, self.stream = self.stream, None
+        if stream is None:
+            return
+        failure = None
+        try:
+            if self._path is not None:
+                check_not_an_input(self._path)  # an input the readers found meanwhile: refused before the outputs move
+            stream.flush()
+        except OutputError as err:
+            failure = err
+        except RuntimeError as err:  # rerun's file writer stopped: the file is incomplete
+            failure = OutputError(f"{self._path}: cannot write the recording: {' '.join(str(err).split())}")
+        try:
+            stream.disconnect()  # closes the file
+        finally:
+            if failure is not None:
+                self._finish(failure)
+        if failure is not None:
+            raise failure from None
+
     def _finish(self, exc: BaseException | None) -> None:
         """Close the stream; then keep the file (``exc`` None) or remove it."""
+        if exc is None:
+            self.finish_writing()
         stream, self.stream = self.stream, None
         writing, self._writing = self._writing, None
         try:
             if stream is not None:
-                if exc is None:
-                    stream.flush()
                 stream.disconnect()  # closes the file
         finally:
             if writing is not None:

@@ -1,6 +1,12 @@
-"""Writing so that nothing is lost: a file is either complete or not there, and nothing but a
-regular file is ever replaced.
+"""Writing so that nothing is lost: a file is either complete or not there, nothing but a
+regular file is ever replaced, and no output ever lands on an input of the same run.
 
+- :func:`inputs_of_the_run` holds what a command reads: the paths it was given, and what its
+  readers note (:func:`note_input`: the files they read, the folders they list). While it is in
+  place, every check below also refuses (:func:`check_not_an_input`) an output path that resolves
+  to an input file or folder or lies in a folder read whole: ``--draw`` into ``image_0`` or
+  ``--out`` onto ``calib.txt`` is refused, ``--out`` to a new name beside the images is not. The
+  rule holds with or without ``--force``;
 - :func:`check_output_file` refuses, before any work, a target that is not a regular file (a
   directory, a symbolic link, a FIFO, a device), whose directory is missing or not writable;
 - :func:`atomic_write` writes to a temporary name beside the target and renames it at the end;
@@ -17,12 +23,85 @@ import signal
 import stat
 import threading
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from ..errors import OutputError
+from ..reading import describe_mode
 
-__all__ = ["atomic_write", "check_output_file", "output_directory"]
+__all__ = ["atomic_write", "check_not_an_input", "check_output_file", "inputs_of_the_run", "note_input",
+           "output_directory"]
+
+
+@dataclass(frozen=True)
+class _Input:
+    """One input of the run: a file, a folder, or a folder read whole (everything under it)."""
+
+    path: Path  # absolute, symbolic links resolved
+    shown: str  # as the user or the reader named it
+    folder: bool = False
+    read_whole: bool = False  # a folder whose contents are the input (image folders, mav0)
+
+
+_inputs: dict[Path, _Input] = {}  # by resolved path
+_open_runs = [0]  # inputs_of_the_run blocks in progress: outside them nothing is recorded
+_staging: set[Path] = set()  # output_directory's temporary folders: what goes there is checked on the way out
+
+
+def _resolved(path: str | os.PathLike) -> Path:
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def note_input(path: str | os.PathLike, contents: bool = False) -> None:
+    """Add ``path`` (a file or a folder; nothing if it does not exist) to the inputs of the run
+    (:func:`inputs_of_the_run`); ``contents``: everything under the folder is input too (readers
+    call it for the folders they list, ``image_0/`` or ``mav0/``, and the files they read). Outside
+    an :func:`inputs_of_the_run` block (the library used directly) nothing is recorded."""
+    if not _open_runs[0]:
+        return
+    resolved = _resolved(path)
+    if not resolved.exists():
+        return
+    item = _Input(resolved, str(path), resolved.is_dir(), contents and resolved.is_dir())
+    known = _inputs.get(resolved)
+    if known is None or (item.read_whole and not known.read_whole):
+        _inputs[resolved] = item
+
+
+@contextmanager
+def inputs_of_the_run(paths: Iterable[str | os.PathLike | None]) -> Iterator[None]:
+    """For the block, ``paths`` (None skipped) and whatever the readers add (:func:`note_input`)
+    are the inputs no output may resolve to (module docstring); forgotten at the end."""
+    saved = dict(_inputs)
+    _open_runs[0] += 1
+    try:
+        for path in paths:
+            if path is not None and str(path):
+                note_input(path)
+        yield
+    finally:
+        _open_runs[0] -= 1
+        _inputs.clear()
+        _inputs.update(saved)
+
+
+def check_not_an_input(path: str | os.PathLike) -> None:
+    """OutputError if the output ``path`` resolves to an input of the run or lies inside a folder
+    read whole (:func:`inputs_of_the_run`)."""
+    if not _inputs:
+        return
+    target = _resolved(path)
+    if any(parent in _staging for parent in target.parents):
+        return
+    item = _inputs.get(target)
+    if item is not None:
+        kind = "folder" if item.folder else "file"
+        raise OutputError(f"{path}: is the input {kind} {item.shown} of this run; refusing to write over it")
+    for parent in target.parents:
+        item = _inputs.get(parent)
+        if item is not None and item.read_whole:
+            raise OutputError(f"{path}: lies in {item.shown}, a folder this run reads; refusing to write into an input")
 
 
 def _temp_path(path: Path) -> Path:
@@ -31,21 +110,13 @@ def _temp_path(path: Path) -> Path:
     return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
 
 
-def _describe(mode: int) -> str:
-    for test, what in ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO"),
-                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISSOCK, "a socket")):
-        if test(mode):
-            return what
-    return "not a regular file"
-
-
 def check_output_file(path: str | os.PathLike, overwrite: bool = True) -> Path:
     """``path`` as a Path if a regular file can be written there: an existing regular file (only
     with ``overwrite``) or a new name in an existing, writable directory; OutputError otherwise."""
     target = Path(path)
     if not str(path):
         raise OutputError("output path is empty")
+    check_not_an_input(target)
     try:
         mode = os.lstat(target).st_mode
     except FileNotFoundError:
@@ -54,7 +125,7 @@ def check_output_file(path: str | os.PathLike, overwrite: bool = True) -> Path:
         raise OutputError(f"{target}: cannot inspect the output path: {exc.strerror}") from None
     if mode is not None:
         if not stat.S_ISREG(mode):
-            raise OutputError(f"{target}: is {_describe(mode)}, not a regular file; refusing to replace it")
+            raise OutputError(f"{target}: is {describe_mode(mode)}, not a regular file; refusing to replace it")
         if not overwrite:
             raise OutputError(f"{target}: exists; refusing to overwrite it (use --force)")
     parent = target.parent
@@ -79,6 +150,7 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
     tmp = _temp_path(target)
     try:
         yield tmp
+        check_not_an_input(target)  # again: the readers may have noted more inputs meanwhile
         os.replace(tmp, target)
     except BaseException as exc:
         try:
@@ -90,12 +162,16 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+#: The signals held back while a set of outputs is renamed into place (Ctrl-C, kill, a closed terminal)
+_HELD_SIGNALS = {getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)}
+
+
 @contextmanager
-def _sigint_blocked() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) back for the block: a few renames that must all happen or none."""
+def _signals_held() -> Iterator[None]:
+    """Hold Ctrl-C, SIGTERM and SIGHUP back for the block: a few renames that must all happen or none."""
     main = threading.current_thread() is threading.main_thread()
     if main and hasattr(signal, "pthread_sigmask"):
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD_SIGNALS)
         try:
             yield
         finally:
@@ -110,8 +186,11 @@ def check_output_directory(path: str | os.PathLike, force: bool) -> Path:
     if not str(path):
         raise OutputError("output directory path is empty")
     target = Path(path)
+    check_not_an_input(target)
     try:
         mode = os.lstat(target).st_mode
+        if stat.S_ISLNK(mode) and target.is_dir():  # a link to a directory: the outputs go into that directory
+            mode = os.stat(target).st_mode
     except FileNotFoundError:
         mode = None
     except NotADirectoryError:
@@ -121,7 +200,7 @@ def check_output_directory(path: str | os.PathLike, force: bool) -> Path:
         raise OutputError(f"{target}: cannot inspect the output directory: {exc.strerror}") from None
     if mode is not None:
         if not stat.S_ISDIR(mode):
-            raise OutputError(f"{target}: is {_describe(mode)}, not a directory")
+            raise OutputError(f"{target}: is {describe_mode(mode)}, not a directory")
         if not os.access(target, os.W_OK | os.X_OK):
             raise OutputError(f"{target}: output directory is not writable")
         if not force and any(target.iterdir()):
@@ -140,6 +219,7 @@ def _merge_plan(src: Path, dst: Path) -> list[tuple[Path, Path]]:
     moves = []
     for item in sorted(src.iterdir()):
         there = dst / item.name
+        check_not_an_input(there)
         try:
             mode = os.lstat(there).st_mode
         except FileNotFoundError:
@@ -150,7 +230,7 @@ def _merge_plan(src: Path, dst: Path) -> list[tuple[Path, Path]]:
         elif item.is_file() and stat.S_ISREG(mode):
             moves.append((item, there))
         else:
-            raise OutputError(f"{there}: is {_describe(mode)}; refusing to replace it with the output of that name")
+            raise OutputError(f"{there}: is {describe_mode(mode)}; refusing to replace it with the output of that name")
     return moves
 
 
@@ -209,16 +289,19 @@ def output_directory(path: str | os.PathLike, force: bool, min_free_bytes: int =
     except OSError as exc:
         _remove_empty(created)
         raise OutputError(f"{shown}: cannot create a temporary directory {tmp.name} there: {exc.strerror}") from None
+    staged = _resolved(tmp)
+    _staging.add(staged)
     try:
         yield tmp
+        check_not_an_input(shown)  # again: the readers may have noted more inputs meanwhile
         if existing:
             moves = _merge_plan(tmp, target)  # every clash checked before anything moves
-            with _sigint_blocked():
+            with _signals_held():
                 for src, dst in moves:
                     os.replace(src, dst)
             shutil.rmtree(tmp, ignore_errors=True)
         else:
-            with _sigint_blocked():
+            with _signals_held():
                 os.replace(tmp, target)  # one rename: the outputs appear all at once
     except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -226,3 +309,5 @@ def output_directory(path: str | os.PathLike, force: bool, min_free_bytes: int =
         if isinstance(exc, OSError):
             raise OutputError(f"{shown}: cannot write the outputs: {exc.strerror or exc}") from None
         raise
+    finally:
+        _staging.discard(staged)

@@ -326,6 +326,13 @@ class Sequence:
             dropped=dict(self.dropped),
         )
 
+    def dropped_text(self) -> str:
+        """What the reader left out, in words: 'dropped 120 observations with a non-positive disparity
+        (uL <= uR)'; '' when nothing was."""
+        parts = [f"{n} observation{'s' * (n != 1)} {_DROPPED_WHY.get(key, key.replace('_', ' '))}"
+                 for key, n in self.dropped.items() if n]
+        return "dropped " + "; ".join(parts) if parts else ""
+
     def __repr__(self) -> str:
         imu = f", imu={self.imu.num_samples} samples" if self.imu is not None else ""
         return (
@@ -333,6 +340,11 @@ class Sequence:
             f"features={self.num_features}, observations={self.num_observations}, "
             f"dropped={self.dropped})"
         )
+
+
+#: Why the reader drops an observation, by the key of ``Sequence.dropped``
+_DROPPED_WHY = {"nonpositive_disparity": "with a non-positive disparity (uL <= uR: a point at or behind infinity)",
+                "outside_image": "outside the image"}
 
 
 def check_inertial(src: str, seq: Sequence, t: np.ndarray) -> None:

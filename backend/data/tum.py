@@ -1,8 +1,11 @@
-"""TUM trajectory text: ``t tx ty tz qx qy qz qw`` a line (what evo and the TUM benchmark read)."""
+"""Trajectory text files: TUM (``t tx ty tz qx qy qz qw`` a line, what evo and the TUM benchmark
+read) and KITTI odometry poses (the 12 numbers of a pose's top 3x4 a line, line k = frame k), and
+:func:`read_trajectory`, which tells them apart by their columns."""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -10,9 +13,10 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import se3
 from .files import atomic_write
+from .sequence import ORTHO_ACCEPT
 from .textio import content_lines, finite_numbers, read_lines
 
-__all__ = ["read_tum", "write_tum"]
+__all__ = ["read_tum", "write_tum", "read_kitti_poses", "write_kitti_poses", "read_trajectory", "Trajectory"]
 
 
 
@@ -117,3 +121,66 @@ def write_kitti_poses(path: str | os.PathLike, world_T_imu: Any, imu_T_cam: Any,
     text = "".join(" ".join(f"{v:.9e}" for v in P[:3, :].ravel()) + "\n" for P in cam0_T_cam)
     with atomic_write(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
+    """Read a KITTI odometry pose file (``poses/XX.txt``, what ``write_kitti_poses`` and evo's
+    ``kitti`` format hold); return the poses (N, 4, 4), line k = frame k (no time stamps).
+
+    Each non-blank line holds the 12 numbers of a pose's top 3x4, row-major. Rotations printed to a
+    few decimals are replaced by the nearest rotation (SVD); InputError with a one-line
+    ``<file>:<line>: <problem>`` for a line without 12 columns, a non-numeric or non-finite value,
+    a rotation off orthonormal by more than ``ORTHO_ACCEPT`` or a reflection, and for a file
+    without any pose.
+    """
+    rows: list[list[float]] = []
+    for lineno, line in content_lines(read_lines(path)):
+        tokens = line.split()
+        if len(tokens) != 12:
+            raise InputError(f"{path}:{lineno}: expected 12 columns (a KITTI pose: the top 3x4 of the 4x4, "
+                             f"row-major), found {len(tokens)}")
+        values = finite_numbers(tokens, f"{path}:{lineno}")
+        R = np.asarray(values, dtype=float).reshape(3, 4)[:, :3]
+        deviation = float(np.abs(R.T @ R - np.eye(3)).max())
+        if not deviation <= ORTHO_ACCEPT or np.linalg.det(R) <= 0:
+            what = f"off orthonormal by {deviation:.3g}" if deviation > ORTHO_ACCEPT else "a reflection (det < 0)"
+            raise InputError(f"{path}:{lineno}: the rotation is not one: {what} (at most {ORTHO_ACCEPT:g})")
+        rows.append(values)
+    if not rows:
+        raise InputError(f"{path}: no poses found (empty pose file)")
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = np.asarray(rows, dtype=float).reshape(-1, 3, 4)
+    U, _, Vt = np.linalg.svd(poses[:, :3, :3])
+    poses[:, :3, :3] = U @ Vt
+    return poses
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Poses read from a trajectory file, with their time stamps (TUM) or their frame index (KITTI)."""
+
+    time_stamps: np.ndarray  # (N,) seconds (TUM), or the frame index 0..N-1 (KITTI)
+    poses: np.ndarray  # (N,4,4)
+    format: str  # "tum" | "kitti"
+
+    @property
+    def by_index(self) -> bool:
+        """Whether the poses carry no time (KITTI): they are matched to others line by line."""
+        return self.format == "kitti"
+
+
+def read_trajectory(path: str | os.PathLike) -> Trajectory:
+    """A TUM or a KITTI pose file, told apart by the columns of its first pose line (8: TUM, 12:
+    KITTI); InputError naming the file and line for anything else (:func:`read_tum`,
+    :func:`read_kitti_poses`)."""
+    for lineno, line in content_lines(read_lines(path)):
+        columns = len(line.split())
+        if columns == 12:
+            poses = read_kitti_poses(path)
+            return Trajectory(np.arange(len(poses), dtype=float), poses, "kitti")
+        if columns != 8:
+            raise InputError(f"{path}:{lineno}: expected 8 columns (TUM: t tx ty tz qx qy qz qw) or 12 (a KITTI pose: "
+                             f"the top 3x4, row-major), found {columns}")
+        break
+    stamps, poses = read_tum(path)
+    return Trajectory(stamps, poses, "tum")

@@ -9,5 +9,5 @@
   and ``landmarks`` (xyz / inverse depth, L1-L3),
 - ``propagation`` (IMU kinematics, P1; dead reckoning), ``update`` (the joint update, U1-U5),
   ``covariance`` (the compiled augmentation and marginalization, A1-A2), ``tracks`` (which landmarks are in
-  the state, re-anchoring, R1-R2), ``health`` (H1-H2), ``linalg`` (BLAS/LAPACK from compiled code).
+  the state, re-anchoring, R1-R2), ``health`` (H1-H3), ``linalg`` (BLAS/LAPACK from compiled code).
 """

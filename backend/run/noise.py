@@ -118,6 +118,8 @@ class PixelNoise:
         if self.source == "stereo rows":
             return (f"pixel noise: {self.sigma:.3g} px, the stereo rows' spread (too few tracks seen twice for "
                     "two-view fits)")
+        if self.source == NO_OBSERVATIONS:
+            return f"pixel noise: {self.sigma:.3g} px (nothing to measure it from: no track seen twice, no stereo row)"
         rms = ", ".join(f"{r:.2f}" for g, n, s, r in self.gaps if g <= self.used_gaps)
         return (f"pixel noise: {self.sigma:.3g} px, the RMS of two-view fit residuals over step gaps 1-{self.used_gaps} "
                 f"({rms} px; stereo rows {self.rows_px:.2f} px)")
@@ -135,6 +137,10 @@ def gap_statistics(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple:
     return tuple(out)
 
 
+#: The source of a pixel noise that nothing in the data could measure
+NO_OBSERVATIONS = "no observations to measure it: 1 px"
+
+
 def pixel_noise(seq: Sequence, gaps: tuple, used_gaps: int, configured: float | None) -> PixelNoise:
     """(N2) the pooled RMS over the ``gaps`` statistics (:func:`gap_statistics`) up to ``used_gaps``;
     the stereo rows without fits; ``configured`` (not None) wins."""
@@ -148,7 +154,7 @@ def pixel_noise(seq: Sequence, gaps: tuple, used_gaps: int, configured: float | 
         return PixelNoise(sigma, "two-view fits", gaps, rows, used_gaps)
     if np.isfinite(rows) and rows > 0:
         return PixelNoise(rows, "stereo rows", gaps, rows, used_gaps)
-    return PixelNoise(1.0, "no observations to measure it: 1 px", gaps, rows, used_gaps)
+    return PixelNoise(1.0, NO_OBSERVATIONS, gaps, rows, used_gaps)
 
 
 # ------------------------------------------------------------------------------------------ IMU

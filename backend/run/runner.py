@@ -70,8 +70,13 @@ def decisive(errors_px: dict, margin: float = 1.1) -> bool:
     return len(errors_px) <= 1 or (len(finite) >= 2 and finite[1] >= margin * finite[0])
 
 
+#: The name of a stream of steps whose source was not given, in messages
+STREAM = "<stream>"
+
+
 def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.ndarray, config: Config,
-                  imu_velocities: tuple[np.ndarray, np.ndarray], num_steps: int | None = None, tracker: str = ""):
+                  imu_velocities: tuple[np.ndarray, np.ndarray], num_steps: int | None = None, tracker: str = "",
+                  source: str = STREAM):
     """:func:`~vislam.backend.run.decisions.decide` from the first steps of a stream, read from ``steps``.
 
     ``conventions.online_steps`` steps (or the ``num_steps`` of the stream, or all it has) are read,
@@ -92,21 +97,22 @@ def decide_online(steps: Iterator[Step], camera: StereoCamera, imu_T_cam: np.nda
         if k >= limit:
             break
         if not read_all and k >= 20 and k % 10 == 0:
-            test = decide_conventions(_as_sequence(read, camera, imu_T_cam, tracker), c.imu_flip, c.velocity_index,
-                                      c.horizon)
+            test = decide_conventions(_as_sequence(read, camera, imu_T_cam, tracker, source), c.imu_flip,
+                                      c.velocity_index, c.horizon)
             if decisive(test.errors_px):
                 break
     if not read:
         raise InputError("no steps: nothing to estimate")
     t0 = time.perf_counter()
-    decisions = decide(_as_sequence(read, camera, imu_T_cam, tracker), config, imu_velocities)
+    decisions = decide(_as_sequence(read, camera, imu_T_cam, tracker, source), config, imu_velocities)
     return decisions, read, time.perf_counter() - t0
 
 
-def _as_sequence(steps: Seq[Step], camera: StereoCamera, imu_T_cam: np.ndarray, tracker: str) -> Sequence:
+def _as_sequence(steps: Seq[Step], camera: StereoCamera, imu_T_cam: np.ndarray, tracker: str,
+                 source: str = STREAM) -> Sequence:
     t, v, w, ids, pixels = zip(*steps)
     return Sequence.from_steps(t, v, w, list(ids), list(pixels), camera.K, camera.baseline, imu_T_cam,
-                               source="<stream>", tracker=tracker)
+                               source=source, tracker=tracker)
 
 
 def run_stream(
@@ -119,6 +125,7 @@ def run_stream(
     imu_velocities: tuple[np.ndarray, np.ndarray] | None = None,
     num_steps: int | None = None,
     tracker: str = "",
+    source: str = STREAM,
     expected_landmarks: int | None = None,
     setup_seconds: float = 0.0,
     load_seconds: float = 0.0,
@@ -130,6 +137,7 @@ def run_stream(
     decided from the stream's first steps (:func:`decide_online`, which needs ``imu_velocities``).
 
     ``num_steps``: the stream's length, when known; ``tracker``: what made the tracks (reported);
+    ``source``: what the steps come from (the image folder), named in messages;
     the seconds spent producing the steps (an image stream's tracking) are counted as
     ``RunStats.input_seconds``, in the real-time factor;
     ``expected_landmarks``: for the full-state size check; ``setup_seconds`` / ``load_seconds``:
@@ -145,7 +153,7 @@ def run_stream(
             if imu_velocities is None:
                 raise ValueError("run_stream: decisions or imu_velocities are needed")
             decisions, read, seconds = decide_online(steps, camera, imu_T_cam, config, imu_velocities, num_steps,
-                                                     tracker)
+                                                     tracker, source)
             setup_seconds += seconds
             steps = itertools.chain(read, steps)
             say(f"decided from the first {len(read)} steps:")

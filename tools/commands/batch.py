@@ -36,7 +36,7 @@ def add_parser(sub) -> None:
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: every core)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
-    p.add_argument("--force", action="store_true")
+    p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     options.add_config_options(p)
     console.add_verbosity_options(p)
     p.set_defaults(func=main)
@@ -53,6 +53,11 @@ def configurations(args: argparse.Namespace) -> list[tuple[str, object]]:
         if not sep or not key.strip() or not choices:
             raise ConfigError(f"--vary {item!r}: expected TABLE.KEY=V1,V2,...")
         axes.append([f"{key.strip()}={v}" for v in choices])
+    keys = [item.partition("=")[0].strip() for item in args.vary]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise ConfigError(f"--vary {repeated[0]}: given more than once; list all its values in one --vary "
+                          f"{repeated[0]}=V1,V2,...")
     combos = list(itertools.product(*axes)) or [()]
     return [(", ".join(c) or "defaults", base.with_assignments(list(c))) for c in combos]
 
@@ -93,14 +98,23 @@ def main(args: argparse.Namespace) -> int:
     from ..pool import executor
 
     configs = configurations(args)
-    console.sayer(args.quiet)(f"vislam batch: {len(args.inputs)} input(s) x {len(configs)} configuration(s); "
-                              + console.configuration_text(args.verbose, configs[0][1]))
+    varied = "; ".join(item.strip() for item in args.vary)
+    console.sayer(args.quiet)(f"vislam batch: {len(args.inputs)} input(s) x {len(configs)} configuration(s)"
+                              + (f" ({varied})" if varied else "") + "; every run: "
+                              + console.configuration_text(args.verbose, options.filter_config(args)))
     inputs = [str(Path(p)) for p in args.inputs]
     for p in inputs:
         if not Path(p).is_file():
             raise ConfigError(f"{p}: {'not a file' if Path(p).exists() else 'file does not exist'}")
     gts = {p: _gt_path(args.gt, p) for p in inputs}
+    if args.gt:
+        missing = [p for p in inputs if gts[p] is None]
+        if missing:
+            shown = ", ".join(_gt_candidate(args.gt, p) for p in missing[:3]) + (", ..." if len(missing) > 3 else "")
+            console.sayer(args.quiet)(f"note: no ground truth for {len(missing)} of {len(inputs)} input(s) (--gt "
+                                      f"{args.gt}: no file {shown}); their ATE and RPE stay empty")
     jobs = [(p, label, config) for p in inputs for label, config in configs]
+    labels = input_labels(inputs)
     with output_directory(args.out, args.force) as staging:  # checked before any work
         rows = [None] * len(jobs)
         with executor(args.workers, args.ray, len(jobs)) as pool, \
@@ -108,7 +122,7 @@ def main(args: argparse.Namespace) -> int:
             futures = {pool.submit(run_one, p, config, gts[p]): i for i, (p, _, config) in enumerate(jobs)}
             for future in concurrent.futures.as_completed(futures):
                 i = futures[future]
-                rows[i] = dict(future.result(), configuration=jobs[i][1])
+                rows[i] = dict(future.result(), label=labels[jobs[i][0]], configuration=jobs[i][1])
                 progress(i)
         _write_table(staging / "batch.csv", rows)
         outputs.write_json(staging / "batch.json", {"columns": COLUMNS, "rows": rows})
@@ -119,12 +133,29 @@ def main(args: argparse.Namespace) -> int:
     return 1 if any(r.get("error") for r in rows) else 0
 
 
+def input_labels(paths: list[str]) -> dict[str, str]:
+    """A short label per input: its file name, with as many parent folders as it takes to tell
+    inputs of the same name apart (``a/0027.npz``, ``b/0027.npz``)."""
+    unique = list(dict.fromkeys(paths))
+    parts = {p: Path(p).parts or (p,) for p in unique}
+    depth = max(len(v) for v in parts.values()) if parts else 1
+    for k in range(1, depth + 1):
+        labels = {p: "/".join(parts[p][-k:]) for p in unique}
+        if len(set(labels.values())) == len(unique):
+            return labels
+    return {p: p for p in unique}
+
+
+def _gt_candidate(pattern: str, input_path: str) -> str:
+    """The ground truth file ``--gt PATTERN`` names for ``input_path`` ({stem}: its name without .npz)."""
+    return pattern.replace("{stem}", Path(input_path).name.removesuffix(".npz"))
+
+
 def _gt_path(pattern: str | None, input_path: str) -> str | None:
     if not pattern:
         return None
-    stem = Path(input_path).name.removesuffix(".npz")
-    path = Path(pattern.replace("{stem}", stem))
-    return str(path) if path.is_file() else None
+    path = _gt_candidate(pattern, input_path)
+    return path if Path(path).is_file() else None
 
 
 def _value(v) -> str:
@@ -150,8 +181,8 @@ def format_table(rows: list[dict]) -> str:
     shown = ["input", "configuration", "ate_m", "rpe_m", "mean_nis", "seconds", "real_time_factor", "error"]
     lines = ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
     for row in rows:
-        lines.append("| " + " | ".join(_value(row.get(c)) if c != "input" else Path(row["input"]).name
-                                       for c in shown) + " |")
+        lines.append("| " + " | ".join(_value(row.get(c)) if c != "input"
+                                       else row.get("label") or Path(row["input"]).name for c in shown) + " |")
     return "\n".join(lines)
 
 

@@ -38,7 +38,8 @@ def main(args: argparse.Namespace) -> int:
         print(decide_inertial(seq, defaults).describe())
         return 0
     decisions = decide(seq, defaults)
-    print(f"dropped by the loader: {seq.dropped}; steps repeating the previous frame: {decisions.repeated_frames}")
+    print(f"read: {seq.dropped_text() or 'every observation kept'}; steps repeating the previous frame: "
+          f"{decisions.repeated_frames}")
     print("reprojection test (median px, triangulated at k, dead reckoning to k+"
           f"{defaults.conventions.horizon}):")
     for key, value in decisions.conventions.errors_px.items():

@@ -1,5 +1,9 @@
-"""``vislam eval``: ATE and RPE of a TUM trajectory against ground truth (evo), with plots; with the
-run's pose covariance (``pose_covariance.npz``) also the NEES of position and pose."""
+"""``vislam eval``: ATE and RPE of a trajectory against ground truth (evo), with plots; with the
+run's pose covariance (``pose_covariance.npz``) also the NEES of position and pose.
+
+Both files are TUM text (poses matched by time stamp) or both KITTI pose files (``poses/XX.txt``,
+what ``vislam run --format kitti`` writes: the left camera's poses, matched line by line); the
+format is told from the columns (``backend.data.tum.read_trajectory``)."""
 
 from __future__ import annotations
 
@@ -20,10 +24,12 @@ COVARIANCE_STAMP_TOLERANCE = 1e-5
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("eval", help="ATE and RPE of a TUM trajectory against ground truth (evo); NEES with "
-                                    "the run's pose covariance")
-    p.add_argument("estimate")
-    p.add_argument("ground_truth")
+    p = sub.add_parser("eval", help="ATE and RPE of a trajectory (TUM, or KITTI poses) against ground truth "
+                                    "(evo); NEES with the run's pose covariance")
+    p.add_argument("estimate", help="the estimated trajectory: TUM text (timestamp tx ty tz qx qy qz qw; a run's "
+                                    "trajectory.txt) or a KITTI pose file (12 numbers a line; trajectory_kitti.txt)")
+    p.add_argument("ground_truth", help="the ground truth in the same format: TUM poses are matched by time stamp "
+                                        "(within 0.01 s), KITTI poses line by line")
     p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
     p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
     p.add_argument("--covariance", metavar="FILE",
@@ -34,29 +40,48 @@ def add_parser(sub) -> None:
                                   "also nees)")
     p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
                    "estimate's time span), ate_over_time.png and, with a covariance, nees_over_time.png")
-    p.add_argument("--force", action="store_true", help="write into a non-empty --out directory")
+    p.add_argument("--force", action="store_true",
+                   help="write into a non-empty --out directory and replace an existing --json file")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    from ...backend.data.tum import read_tum
-    from ...backend.data.files import check_output_file, output_directory
+    from ...backend.data.files import check_output_file, note_input, output_directory
     from ...backend.evaluation.metrics import require_matches
 
     if not (math.isfinite(args.delta) and args.delta > 0):
         raise ConfigError(f"--delta must be a positive number of metres, got {args.delta!r}")
+    est_t, est, gt_t, gt, by_index = _read_pair(args)
+    beside = None if by_index else covariance_file(args.estimate, args.covariance)
+    if beside is not None:
+        note_input(beside)  # read by default: an input like the two trajectories
     if args.json is not None:
-        check_output_file(args.json)  # before any work
-    est_t, est = read_tum(args.estimate)
-    gt_t, gt = read_tum(args.ground_truth)
+        check_output_file(args.json, overwrite=args.force)  # before any work
     require_matches(est_t, gt_t, args.ground_truth)
-    covariance = _read_covariance(args, est_t)
+    covariance = None if by_index else _read_covariance(args, est_t)
     with output_directory(args.out, args.force) if args.out is not None else contextlib.nullcontext() as staging:
-        _evaluate(args, est_t, est, gt_t, gt, covariance, staging)
+        _evaluate(args, est_t, est, gt_t, gt, covariance, staging, by_index)
     if args.out is not None:
         names = "eval.json, trajectories.png, ate_over_time.png" + (", nees_over_time.png" if covariance else "")
         print(f"outputs in {args.out}/ ({names})")
     return 0
+
+
+def _read_pair(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """(estimate stamps, poses, ground truth stamps, poses, by index) of two files of one format;
+    KITTI pose files are stamped with their line index (matched line by line), without covariance."""
+    from ...backend.data.tum import read_trajectory
+
+    est, gt = read_trajectory(args.estimate), read_trajectory(args.ground_truth)
+    if est.format != gt.format:
+        kitti, tum = (args.estimate, args.ground_truth) if est.by_index else (args.ground_truth, args.estimate)
+        raise InputError(f"{kitti}: a KITTI pose file (camera poses, line k = frame k) and {tum} TUM text (IMU "
+                         "poses in time) cannot be matched: give both in one format (vislam run writes "
+                         "trajectory.txt, and trajectory_kitti.txt with --format kitti)")
+    if est.by_index and args.covariance not in (None, "none"):
+        raise InputError(f"{args.covariance}: the pose covariance of a run is of trajectory.txt (TUM, the IMU's "
+                         f"poses in time), not of the KITTI pose file {args.estimate}")
+    return est.time_stamps, est.poses, gt.time_stamps, gt.poses, est.by_index
 
 
 def covariance_file(estimate: str, option: Optional[str]) -> Optional[Path]:
@@ -90,7 +115,8 @@ def _read_covariance(args: argparse.Namespace, est_t: np.ndarray) -> Optional[tu
     return path, cov
 
 
-def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: Path | None) -> None:
+def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: Path | None,
+              by_index: bool = False) -> None:
     from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
     from ..plots import plot_nees_over_time, plot_trajectories_topdown
     from ..report import nees_text, write_error_plot
@@ -98,6 +124,9 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
     errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
     d = errors.as_dict()
     d["alignment_scale"] = alignment_scale(est_t, est, gt_t, gt) if args.sim3 else 1.0
+    d["matched_by"] = "line (KITTI pose files: line k = frame k)" if by_index else "time stamp (within 0.01 s)"
+    if by_index:
+        print("KITTI pose files: poses matched line by line (line k = frame k; the times in the plots are frames)")
     print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
           f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import time
 import warnings
 from pathlib import Path
 
 from ...backend.config import Config
-from ...backend.errors import InputError
+from ...backend.errors import ConfigError, InputError
 from .. import console, options
 
 
@@ -33,7 +34,9 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--gt", help="ground truth TUM file (world_T_imu, the data's stamps) for ATE/RPE "
                                 "(a KITTI raw drive's default: its OXTS poses)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
+    p.add_argument("--force", action="store_true",
+                   help="write into a non-empty output directory, replace an existing --rerun file and write into "
+                        "a --draw directory holding files")
     p.add_argument("--format", choices=["tum", "kitti"], default="tum",
                    help="kitti: also write trajectory_kitti.txt and dead_reckoning_kitti.txt (the left camera's "
                         "pose in its first frame, 12 numbers a line, KITTI odometry poses format)")
@@ -71,9 +74,11 @@ def main(args: argparse.Namespace) -> int:
     tracker = options.tracker_config(args)  # checked with a feature file too: a typo is refused either way
     tracker = tracker if images else None
     gt = (args.gt, *read_tum(args.gt)) if args.gt else None
+    _check_extra_outputs(args)
     say = console.sayer(args.quiet)
     out = Path(args.out)
-    with output_directory(args.out, args.force, OUTPUT_SPACE) as staging, _recorder(args) as recorder:
+    # the recording is moved into place after the outputs, and written whole before them (finish_writing)
+    with _recorder(args) as recorder, output_directory(args.out, args.force, OUTPUT_SPACE) as staging:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
             drive = euroc_truth = None
@@ -104,10 +109,25 @@ def main(args: argparse.Namespace) -> int:
 
             for name, poses in (("trajectory", result.world_T_imu), ("dead_reckoning", result.dead_reckoning)):
                 write_kitti_poses(staging / f"{name}_kitti.txt", poses, result.decisions.imu_T_cam)
+        if recorder is not None:
+            recorder.finish_writing()
     if not args.quiet:
         print(format_summary(summary, out))
     print_health(summary)  # with --quiet too: nothing but errors and the warnings that say the result is not what was asked for
     return 0
+
+
+def _drive_truth(truth, notes: list[str], what: str):
+    """A drive's own ground truth (source, stamps, poses), or None with a note when it has too few
+    poses to evaluate a trajectory against (the run goes on: nobody asked for the evaluation)."""
+    from ...backend.evaluation.metrics import MIN_MATCHES
+
+    if len(truth[1]) < MIN_MATCHES:
+        notes.append(f"ground truth: not evaluated ({truth[0]} holds {len(truth[1])} poses; an evaluation needs "
+                     f"{MIN_MATCHES})")
+        return None
+    notes.append(f"ground truth: {what}")
+    return truth
 
 
 def _check_ground_truth(gt, time_stamps) -> None:
@@ -117,6 +137,22 @@ def _check_ground_truth(gt, time_stamps) -> None:
     from ...backend.evaluation.metrics import require_matches
 
     require_matches(time_stamps, gt[1], gt[0])
+
+
+def _check_extra_outputs(args: argparse.Namespace) -> None:
+    """Before any work: ``--rerun`` and ``--draw`` are not ``--out``, not an input, and replace an
+    existing file (or write into a folder holding files) only with ``--force``."""
+    from ...backend.data.files import check_output_file
+    from ...frontend.draw import check_draw_dir
+
+    out = os.path.realpath(args.out)
+    for flag, value in (("--rerun", args.rerun), ("--draw", args.draw)):
+        if value and os.path.realpath(value) == out:
+            raise ConfigError(f"{value}: {flag} names the output directory --out; give it a path of its own")
+    if args.rerun:
+        check_output_file(args.rerun, overwrite=args.force)
+    if args.draw:
+        check_draw_dir(args.draw, replace_files=args.force)
 
 
 def _recorder(args: argparse.Namespace):
@@ -136,7 +172,7 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     load_seconds = time.perf_counter() - t0
     _check_ground_truth(gt, seq.time_stamps)
     say(f"vislam run {args.data}: {seq.num_steps} steps, {seq.num_observations} observations of "
-        f"{seq.num_features} features" + (f"; dropped {seq.dropped}" if any(seq.dropped.values()) else ""))
+        f"{seq.num_features} features" + (f"; {seq.dropped_text()}" if seq.dropped_text() else ""))
     for note in seq.notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config))
@@ -193,9 +229,8 @@ def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say
     drive = open_inertial_drive(args.data, args.imu, args.imu_T_cam)
     notes = list(drive.imu.notes)
     if gt is None:
-        gt = drive.level_ground_truth
-        notes.append(f"ground truth: the OXTS poses of {drive.ground_truth_source} in a gravity-aligned world "
-                     f"({GROUND_TRUTH})")
+        gt = _drive_truth(drive.level_ground_truth, notes, f"the OXTS poses of {drive.ground_truth_source} in a "
+                                                           f"gravity-aligned world ({GROUND_TRUTH})")
     _check_ground_truth(gt, drive.imu.time_stamps)
     say(f"vislam run {args.data}: KITTI raw drive, {len(drive.stereo)} stereo pairs, the OXTS accelerations "
         "af al au and rates wf wl wu as the IMU's samples (one a frame)")
@@ -220,8 +255,7 @@ def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, reco
     stereo, imu, drive = open_tracking_input(args.data, args.imu, args.imu_T_cam, tracker, args.draw)
     notes = list(imu.notes)
     if gt is None and drive is not None:
-        gt = drive.ground_truth
-        notes.append(f"ground truth: the OXTS poses of {drive.ground_truth_source} ({GROUND_TRUTH})")
+        gt = _drive_truth(drive.ground_truth, notes, f"the OXTS poses of {drive.ground_truth_source} ({GROUND_TRUTH})")
     _check_ground_truth(gt, imu.time_stamps)
     for note in notes:
         say(f"note: {note}")
@@ -232,6 +266,6 @@ def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, reco
     with console.progress_bar(len(stereo), "track+filter", "frame", console.progress_off(args)) as progress:
         result = run_stream(steps, StereoCamera(stereo.K, stereo.baseline), imu.imu_T_cam, config,
                             imu_velocities=(imu.linear_velocity, imu.angular_velocity), num_steps=len(stereo),
-                            tracker=VISLAM_TRACKER, progress=progress, say=say,
+                            tracker=VISLAM_TRACKER, source=str(args.data), progress=progress, say=say,
                             observer=None if recorder is None else recorder.observer)
     return (result, notes), gt, drive

@@ -23,10 +23,11 @@ def add_parser(sub) -> None:
                         "its accelerations af al au with the rates wf wl wu as a real IMU's samples (inertial: the "
                         "inertial layout). Default: auto")
     p.add_argument("--out", required=True, help="output .npz (refused if it exists, unless --force)")
-    p.add_argument("--force", action="store_true")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing --out file and write into a --draw directory holding files")
     p.add_argument("--draw", metavar="DIR", help="write each frame's tracks as PNG (left image on top with track "
                                                  "tails, right image below with the stereo matches)")
-    options.add_config_options(p, "its [tracker] table")
+    options.add_config_options(p, "its [tracker] table", example="tracker.target_tracks=500")
     console.add_verbosity_options(p)
     p.set_defaults(func=main)
 
@@ -37,6 +38,10 @@ def main(args: argparse.Namespace) -> int:
     from ...frontend.track import open_tracking_input, track_directory
 
     out = check_output_file(args.out, overwrite=args.force)  # refused before any work
+    if args.draw:
+        from ...frontend.draw import check_draw_dir
+
+        check_draw_dir(args.draw, replace_files=args.force)
     config = options.tracker_config(args, only=True)
     from ...frontend.euroc import is_euroc
 
