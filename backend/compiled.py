@@ -15,6 +15,8 @@ from typing import Callable
 
 from numba import njit
 
+from . import signals
+
 __all__ = ["jit", "warms_up", "warm_up", "warm_up_seconds", "NOTICE_AFTER"]
 
 #: The options of every kernel: cached, GIL released, numpy's error model (1/0 -> inf, no exception).
@@ -51,7 +53,8 @@ def warm_up(notice: Callable[[], None] | None = None) -> float:
         t0 = time.perf_counter()
         try:
             for function in todo:
-                function()
+                with signals.held():  # numba cut in the middle crashes later; a stop waits for this module
+                    function()
                 _done.add(function)
         finally:
             if timer is not None:

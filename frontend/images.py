@@ -175,12 +175,22 @@ def _png_names(folder: Path, layout: str) -> list[str]:
     if not folder.is_dir():
         what = "not a directory" if folder.exists() else "missing directory"
         raise InputError(f"{folder}: {what} ({layout})")
-    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() == ".png" and not p.name.startswith("."))
+    return sorted((p.name for p in folder.iterdir() if p.suffix.lower() == ".png" and not p.name.startswith(".")),
+                  key=frame_order)
+
+
+def frame_order(name: str) -> tuple:
+    """The sort key of a frame's file name: by the number of a name made of digits (``2.png`` before
+    ``10.png``, as a recorder numbers frames without padding; ``000002.png`` as KITTI pads them),
+    after them other names in text order."""
+    stem = name.rsplit(".", 1)[0]
+    return (0, int(stem), name) if stem.isascii() and stem.isdigit() else (1, 0, name)
 
 
 def paired_frame_names(root: Path, left: str, right: str, layout: str) -> list[str]:
-    """The sorted .png names of ``root/left`` (at least 2), each with a right image of the same name
-    in ``root/right``; InputError naming the folder otherwise (``layout`` describes the expected one)."""
+    """The .png names of ``root/left`` in frame order (:func:`frame_order`; at least 2), each with a
+    right image of the same name in ``root/right``; InputError naming the folder otherwise
+    (``layout`` describes the expected one)."""
     left_names = _png_names(root / left, layout)
     right_names = _png_names(root / right, layout)
     if not left_names:

@@ -297,3 +297,22 @@ def test_eval_reads_the_kitti_pose_files_run_writes(tmp_path, capsys):
     assert main(["eval", str(out / "trajectory_kitti.txt"), str(scene / "gt_tum.txt")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "trajectory_kitti.txt" in err and "gt_tum.txt" in err and "one format" in err
+
+
+def test_rpe_says_when_it_counts_frames_and_a_reader_that_leaves_is_no_error(tmp_path, capsys):
+    """RPE segments longer than the ground truth's path fall back to 10 frames, and the line says
+    why; `vislam eval ... | true` (a reader gone before the first line) ends quietly with 141
+    (SIGPIPE's code as a shell reports it), no error line."""
+    scene = tmp_path / "scene"
+    assert main(["synth", "--steps", "60", "--out", str(scene), "--quiet"]) == 0
+    gt = str(scene / "gt_tum.txt")
+    capsys.readouterr()
+    assert main(["eval", gt, gt, "--delta", "100000"]) == 0
+    out = capsys.readouterr().out
+    assert "RPE per 10 frames (the ground truth's path" in out and "shorter than the 100000 m segments" in out
+    assert main(["eval", gt, gt, "--delta", "5"]) == 0
+    assert "RPE per 5 m:" in capsys.readouterr().out
+    shell = subprocess.run(f"{sys.executable} -m vislam.tools.cli eval {gt} {gt} --delta 5 | true; "
+                           "echo ${PIPESTATUS[0]}", shell=True, capture_output=True, text=True, timeout=120,
+                           executable="/bin/bash")
+    assert shell.stderr == "" and shell.stdout.strip() == "141", shell

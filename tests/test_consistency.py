@@ -224,3 +224,19 @@ def test_filter_with_identified_noise_is_consistent_over_20_runs():
     result = monte_carlo(SceneFactory(scene), Config(), runs=20, seed0=0)
     assert result.pose_nees_in_band >= 0.90
     assert 5.5 <= result.pose_nees_time_average <= 7.5
+
+
+def test_the_runs_mean_interval_and_its_verdict():
+    """The interval of the mean comes from the spread of the runs' own means (Student t), and the
+    verdict says which way and by how much a NEES or NIS misses its expectation."""
+    from vislam.backend.evaluation.consistency import consistency_verdict, run_mean_interval
+
+    values = np.array([2.7, 2.8, 2.75, 2.72, 2.78, np.nan])  # a run without landmarks: left out
+    lo, hi = run_mean_interval(values)
+    half = 2.7764451 * np.std(values[:5], ddof=1) / np.sqrt(5)  # t(0.975, 4)
+    assert lo == pytest.approx(2.75 - half, rel=1e-6) and hi == pytest.approx(2.75 + half, rel=1e-6)
+    text = consistency_verdict(3.0, values, "the map's covariances")
+    assert "interval of the 5 runs' mean" in text and "8 % below 3" in text and "pessimistic" in text
+    assert "overconfident" in consistency_verdict(4.0, [4.4, 4.5, 4.6], "the innovations' covariances")
+    assert consistency_verdict(4.0, [3.9, 4.1, 4.0], "x").endswith("consistent with 4")
+    assert consistency_verdict(3.0, [2.0], "x") == "one run: no interval of the mean"

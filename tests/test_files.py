@@ -478,7 +478,7 @@ def test_output_directory_renames_with_the_stop_signals_blocked(tmp_path, monkey
         return real_replace(src, dst)
 
     assert signal.SIGINT not in real_mask(signal.SIG_BLOCK, [])
-    monkeypatch.setattr(files.signal, "pthread_sigmask", mask)
+    monkeypatch.setattr(signal, "pthread_sigmask", mask)
     monkeypatch.setattr(files.os, "replace", replace)
     with output_directory(target, force=True) as staging:
         write_outputs(staging, {"a.txt": b"a", "b.txt": b"b"})

@@ -453,3 +453,30 @@ def test_damaged_directory_is_refused_or_read(n, size, faults, st_data):
             if pair is not None:
                 for image in pair:
                     assert image.dtype == np.uint8 and image.shape == (height, width)
+
+
+# ------------------------------------------------------------------------------------------------
+# frame order: names without padding (1.png ... 50.png) sort by their number, not as text
+
+
+@settings(max_examples=40, deadline=None)
+@given(numbers=st.lists(st.integers(0, 10**7), min_size=2, max_size=12, unique=True), pad=st.booleans(),
+       order=st.randoms())
+def test_frames_are_read_in_the_order_of_their_numbers_property(numbers, pad, order):
+    """Whether a recorder pads its frame numbers (000002.png) or not (2.png), the pairs come in the
+    order of the numbers: 2.png before 10.png, never the text order that puts 10 before 2."""
+    from vislam.frontend.images import paired_frame_names
+
+    width = len(str(max(numbers))) if pad else 0
+    names = [f"{n:0{width}d}.png" for n in numbers]
+    shuffled = list(names)
+    order.shuffle(shuffled)
+    image = np.zeros((4, 4), np.uint8)
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        for side in ("image_0", "image_1"):
+            (root / side).mkdir()
+            for name in shuffled:
+                cv2.imwrite(str(root / side / name), image)
+        got = paired_frame_names(root, "image_0", "image_1", "test layout")
+    assert got == [f"{n:0{width}d}.png" for n in sorted(numbers)]

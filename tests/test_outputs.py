@@ -349,11 +349,20 @@ def test_plot_consistency(tmp_path):
     nees[0] = 0.0  # not positive: left out of the log-scale panel
     result = SimpleNamespace(steps=steps, runs=5, skip=10, pose_nees_mean=nees, pose_nees_band=(3.5, 9.4),
                              pose_nees_in_band=0.9, nis_per_step=rng.chisquare(4, steps), nis_band=(3.8, 4.2),
-                             nis_mean=4.01)
+                             nis_mean=4.01, per_run_nis=np.array([3.9, 4.05, 4.0, 4.1, 3.95]))
     path = tmp_path / "consistency.png"
-    plot_consistency(path, result)
+    fig = plot_consistency(path, result)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert listing(tmp_path) == ["consistency.png"]
+    nees_ax, nis_ax = fig.axes
+    labels = [ln.get_label() for ln in nees_ax.get_lines()]
+    assert any(label.startswith("step 10: counted from here") for label in labels), labels  # the dotted line
+    fig.canvas.draw()
+    ticks = [t.get_text() for t in nees_ax.get_yticklabels() if t.get_text()]
+    assert ticks and all("times" not in t and "^" not in t for t in ticks), ticks  # 2, 5, 10, not 6x10^0
+    (mean_line,) = [ln for ln in nis_ax.get_lines() if ln.get_label().startswith("mean 4.010")]
+    lo = 4.0 - 2.776 * np.std([3.9, 4.05, 4.0, 4.1, 3.95], ddof=1) / np.sqrt(5)  # t(0.975, 4) = 2.776
+    assert f"95 % interval of the runs' mean [{lo:.3f}," in mean_line.get_label(), mean_line.get_label()
 
 
 _IMPORT_OPEN3D = r"""

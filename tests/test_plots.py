@@ -167,6 +167,15 @@ def test_run_and_eval_draw_each_curve_kind_in_one_colour(tmp_path, monkeypatch, 
     for fig in (run_errors, eval_errors):
         (est,) = [ln for ln in fig.axes[0].get_lines() if ln.get_label().startswith("estimate")]
         assert to_rgba(est.get_color()) == to_rgba(COLORS["estimate"])
+        assert re.search(r"\(RMSE [0-9.e+-]+ m\)$", est.get_label()), est.get_label()  # with its unit
+    # each curve's start (o) and end (x) are drawn in the curve's colour, at its first and last point
+    for name in ("estimate", "dead reckoning"):
+        curve = line(run_plot, name)
+        xs, ys = curve.get_xdata(), curve.get_ydata()
+        for marker, index in (("o", 0), ("x", -1)):
+            marks = [ln for ln in run_plot.axes[0].get_lines() if ln.get_marker() == marker and len(ln.get_xdata())
+                     and ln.get_xdata()[0] == xs[index] and ln.get_ydata()[0] == ys[index]]
+            assert marks and to_rgba(marks[0].get_color()) == to_rgba(curve.get_color()), (name, marker)
     # the run's plot says it is aligned and gives the summary's ATE
     title = run_plot.axes[0].get_title()
     assert "each curve aligned (SE(3)) to the ground truth" in title

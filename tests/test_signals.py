@@ -7,7 +7,6 @@ output and no temporary name left, and no worker process alive afterwards."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys

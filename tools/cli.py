@@ -22,6 +22,7 @@ EXIT_USAGE = 2
 INPUT_ARGUMENTS = ("data", "inputs", "images", "estimate", "ground_truth", "imu", "imu_T_cam", "gt", "covariance",
                    "config")
 EXIT_INTERRUPTED = 130  # after Ctrl-C; 128 + the signal's number after SIGTERM or SIGHUP
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, as a shell reports a command whose reader left
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,6 +66,9 @@ def _dispatch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"vislam: {console.interrupted_text()}", file=sys.stderr)
         return console.interrupted_exit_code()
+    except BrokenPipeError:  # the reader of stdout left (`vislam eval ... | head -1`): nothing more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return EXIT_BROKEN_PIPE
     except OSError as exc:  # the system refused a read or write the checks could not foresee (a full disk)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"vislam: error: {where}{exc.strerror or exc}", file=sys.stderr)

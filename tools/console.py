@@ -19,8 +19,10 @@ import threading
 from contextlib import contextmanager
 from typing import Callable, Iterator, Optional
 
+from ..backend import signals
+
 #: The signals that stop a command cleanly, like Ctrl-C (those present on this platform)
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+STOP_SIGNALS = tuple(sorted(signals.STOP_SIGNALS))
 
 _interrupted = threading.Event()
 _received: list[int] = []  # the stop signals received while the handler was in place, in order

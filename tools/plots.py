@@ -2,7 +2,8 @@
 
 ``vislam run``, ``vislam eval`` and ``vislam mc`` draw through this module only, so a curve kind
 has one look everywhere (:data:`COLORS`): estimate blue, dead reckoning orange, ground truth black
-dashed, landmarks light grey dots, start (o) and end (x) markers grey, each with its own legend entry;
+dashed, landmarks light grey dots, start (o) and end (x) markers in their curve's colour (grey keys
+in the legend);
 NEES of the pose blue (as the estimate's), of the position brown (:data:`NEES_COLORS`).
 
 Only matplotlib's object-oriented API is used (``matplotlib.figure.Figure`` rendered by the
@@ -311,15 +312,20 @@ def trajectory_figure(
         ax.scatter(lm[:, 0], lm[:, 1], s=1.5, c=COLORS["landmarks"], linewidths=0, label="landmarks",
                    zorder=1, rasterized=True)
     others: dict = {}
+    colors = {}
     for name, points in xy.items():
         style = dict(_LINES.get(name, dict(linestyle="-", linewidth=1.2, zorder=3)))
-        ax.plot(points[:, 0], points[:, 1], color=_color(name, others), label=name, **style)
-    marker = COLORS["start/end"]
-    for i, points in enumerate(xy.values()):
-        ax.plot(points[0, 0], points[0, 1], marker="o", markersize=7, markeredgewidth=1.5, color=marker,
-                markerfacecolor="none", linestyle="none", zorder=6, label="start" if i == 0 else None)
-        ax.plot(points[-1, 0], points[-1, 1], marker="x", markersize=7, markeredgewidth=1.5, color=marker,
-                linestyle="none", zorder=6, label="end" if i == 0 else None)
+        colors[name] = _color(name, others)
+        ax.plot(points[:, 0], points[:, 1], color=colors[name], label=name, **style)
+    for name, points in xy.items():  # each curve's start and end in its colour; the legend keys in grey
+        ax.plot(points[0, 0], points[0, 1], marker="o", markersize=7, markeredgewidth=1.5, color=colors[name],
+                markerfacecolor="none", linestyle="none", zorder=6)
+        ax.plot(points[-1, 0], points[-1, 1], marker="x", markersize=7, markeredgewidth=1.5, color=colors[name],
+                linestyle="none", zorder=6)
+    key = COLORS["start/end"]
+    ax.plot([], [], marker="o", markersize=7, markeredgewidth=1.5, color=key, markerfacecolor="none",
+            linestyle="none", label="start")
+    ax.plot([], [], marker="x", markersize=7, markeredgewidth=1.5, color=key, linestyle="none", label="end")
     ax.set_xlim(*xlim)
     ax.set_ylim(*ylim)
     ax.set_aspect("equal", adjustable="box")
@@ -392,7 +398,7 @@ def plot_errors_over_time(
         color = _color(name, others)
         finite = e[np.isfinite(e)]
         rmse = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("nan")
-        ax.plot(t - t0, e, color=color, linewidth=1.0, label=f"{name} (RMSE {rmse:.3g})")
+        ax.plot(t - t0, e, color=color, linewidth=1.0, label=f"{name} (RMSE {rmse:.3g} m)")
         if len(finite):
             ax.axhline(rmse, color=color, linestyle="--", linewidth=0.8)
     if ax.get_legend_handles_labels()[0]:
@@ -405,6 +411,16 @@ def plot_errors_over_time(
     fig.tight_layout()
     _save(fig, path)
     return fig
+
+
+def _plain_log_ticks(ax) -> None:
+    """A log y axis labelled with plain numbers (2, 5, 10, 20) rather than 6x10^0."""
+    from matplotlib.ticker import FuncFormatter, LogLocator
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(plain)
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: ""))
 
 
 def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = ()):
@@ -430,8 +446,10 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
             label=f"pose NEES, average of {result.runs} runs")
     ax.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % band [{lo:.2f}, {hi:.2f}]")
     ax.axhline(6.0, color="tab:green", linewidth=0.8, linestyle="--", label="expectation 6")
-    ax.axvline(result.skip, color="0.5", linewidth=0.6, linestyle=":")
+    ax.axvline(result.skip, color="0.5", linewidth=0.6, linestyle=":",
+               label=f"step {result.skip}: counted from here (before, the prior dominates)")
     ax.set_yscale("log")
+    _plain_log_ticks(ax)
     ax.set_ylabel("pose NEES (6 dof)")
     ax.set_title("\n".join([f"{100 * result.pose_nees_in_band:.0f} % of steps {result.skip}..{result.steps - 1} "
                             "in the band", *notes]), fontsize="medium")
@@ -442,9 +460,11 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
     nis = np.asarray(result.nis_per_step, dtype=float)
     ax.plot(steps, nis, color="tab:purple", linewidth=0.8, label="NIS per observation (all runs)")
     ax.axhline(4.0, color="tab:green", linewidth=0.8, linestyle="--", label="expectation 4")
-    nlo, nhi = result.nis_band
-    ax.axhline(result.nis_mean, color="tab:red", linewidth=0.8,
-               label=f"mean {result.nis_mean:.3f} (band [{nlo:.3f}, {nhi:.3f}])")
+    from ..backend.evaluation.consistency import run_mean_interval
+
+    nlo, nhi = run_mean_interval(result.per_run_nis)
+    interval = f"95 % interval of the runs' mean [{nlo:.3f}, {nhi:.3f}]" if np.isfinite(nlo) else "one run"
+    ax.axhline(result.nis_mean, color="tab:red", linewidth=0.8, label=f"mean {result.nis_mean:.3f} ({interval})")
     ax.set_xlabel("step")
     ax.set_ylabel("NIS / observation (4 dof)")
     ax.grid(True, linewidth=0.3)
@@ -485,6 +505,7 @@ def plot_nees_over_time(path: str | os.PathLike, nees, title: str = ""):
         ax.axhline(summary.expected, color=color, linestyle=":", linewidth=0.9,
                    label=f"expected value, {summary.dof} dof ({summary.expected:g})")
     ax.set_yscale("log")
+    _plain_log_ticks(ax)
     ax.set_xlabel("time since the first matched pose [s]")
     ax.set_ylabel("NEES [dimensionless]")
     ax.grid(True, which="both", linewidth=0.3)

@@ -229,7 +229,7 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
         e, d = summary["errors"]["estimate"], summary["errors"]["dead_reckoning"]
         lines.append(
             f"ATE RMSE (SE(3)-aligned): estimate {e['ate_rmse']:.2f} m, dead reckoning {d['ate_rmse']:.2f} m "
-            f"over {e['path_length']:.0f} m; RPE per {e['rpe_delta']:g} {e['rpe_unit']}: "
+            f"over {e['path_length']:.0f} m; {rpe_label(e)}: "
             f"{e['rpe_trans_rmse']:.2f} m / {e['rpe_rot_rmse_deg']:.2f} deg"
         )
         if "nees" in summary["errors"]:
@@ -239,6 +239,17 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     if out_dir is not None:
         lines.append(f"outputs in {out_dir}/")
     return "\n".join(lines)
+
+
+def rpe_label(errors: dict, requested_m: float = 100.0) -> str:
+    """'RPE per 100 m', or where the ground truth's path was shorter than the ``requested_m`` metres
+    of a segment (``backend.evaluation.metrics`` then counts frames) 'RPE per 10 frames (the ground
+    truth's path, 45 m, is shorter than 100 m)'."""
+    label = f"RPE per {errors['rpe_delta']:g} {errors['rpe_unit']}"
+    if errors["rpe_unit"] == "frames":
+        label += (f" (the ground truth's path, {errors['path_length']:.0f} m, is shorter than the {requested_m:g} m "
+                  "segments asked for, or has no pair that far apart)")
+    return label
 
 
 def print_health(summary: dict) -> None:

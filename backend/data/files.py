@@ -19,14 +19,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import stat
-import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from .. import signals
 from ..errors import OutputError
 from ..reading import describe_mode
 
@@ -162,24 +161,6 @@ def atomic_write(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-#: The signals held back while a set of outputs is renamed into place (Ctrl-C, kill, a closed terminal)
-_HELD_SIGNALS = {getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)}
-
-
-@contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold Ctrl-C, SIGTERM and SIGHUP back for the block: a few renames that must all happen or none."""
-    main = threading.current_thread() is threading.main_thread()
-    if main and hasattr(signal, "pthread_sigmask"):
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD_SIGNALS)
-        try:
-            yield
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
-    else:  # pragma: no cover - other threads or platforms
-        yield
-
-
 def check_output_directory(path: str | os.PathLike, force: bool) -> Path:
     """``path`` as a Path if outputs can go there: a new name in a writable directory, an empty
     writable directory, or (with ``force``) a non-empty writable one; OutputError otherwise."""
@@ -296,12 +277,12 @@ def output_directory(path: str | os.PathLike, force: bool, min_free_bytes: int =
         check_not_an_input(shown)  # again: the readers may have noted more inputs meanwhile
         if existing:
             moves = _merge_plan(tmp, target)  # every clash checked before anything moves
-            with _signals_held():
+            with signals.held():
                 for src, dst in moves:
                     os.replace(src, dst)
             shutil.rmtree(tmp, ignore_errors=True)
         else:
-            with _signals_held():
+            with signals.held():
                 os.replace(tmp, target)  # one rename: the outputs appear all at once
     except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)

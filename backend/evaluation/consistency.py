@@ -420,7 +420,7 @@ class ConsistencyResult:
     pose_nees_time_average: float  # mean over steps >= skip of pose_nees_mean (expectation 6)
     landmark_nees_mean: float  # over every mapped landmark of every run (expectation 3)
     landmark_count: int
-    landmark_nees_band: tuple
+    landmark_nees_band: tuple  # of the mean of every landmark's NEES as if independent (they are not: a run's share errors)
     nis_mean: float  # per used observation over every run (expectation 4, a little less after gating)
     nis_count: int
     nis_band: tuple
@@ -430,6 +430,7 @@ class ConsistencyResult:
     noise_seeds: list
     per_run_pose_nees: np.ndarray  # (R,) time average of each run's pose NEES (steps >= skip)
     per_run_nis: np.ndarray  # (R,) each run's NIS per observation
+    per_run_landmark_nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (R,) nan: no landmark
     observations_gated: int = 0
     conventions: dict = field(default_factory=dict)  # decision -> number of runs
     health_messages: dict = field(default_factory=dict)  # noise seed -> messages (runs with any)
@@ -456,6 +457,8 @@ class ConsistencyResult:
                 "mean": self.landmark_nees_mean,
                 "count": self.landmark_count,
                 "band": list(self.landmark_nees_band),
+                "per_run": self.per_run_landmark_nees,
+                "interval_of_run_mean": list(run_mean_interval(self.per_run_landmark_nees)),
             },
             "nis": {
                 "dof": 4,
@@ -465,6 +468,7 @@ class ConsistencyResult:
                 "observations_gated": self.observations_gated,
                 "mean_per_step": self.nis_per_step,
                 "per_run": self.per_run_nis,
+                "interval_of_run_mean": list(run_mean_interval(self.per_run_nis)),
             },
             "ate_unaligned_m": {
                 "estimate_mean": float(np.mean(self.ate_estimate)) if self.runs else None,
@@ -481,12 +485,11 @@ class ConsistencyResult:
         }
 
     def summary_lines(self) -> list[str]:
-        """Pose NEES, landmark NEES, NIS, each against its 95 % band; then a warning line for each
-        distinct health message of the runs (how many runs had it)."""
+        """Pose NEES against its 95 % band, landmark NEES and NIS against the interval of the runs'
+        mean (:func:`consistency_verdict`); then a warning line for each distinct health message of
+        the runs (how many runs had it)."""
         lo, hi = self.pose_nees_band
-        llo, lhi = self.landmark_nees_band
-        nlo, nhi = self.nis_band
-        return self._metric_lines(lo, hi, llo, lhi, nlo, nhi) + self._health_lines()
+        return self._metric_lines(lo, hi) + self._health_lines()
 
     def _health_lines(self) -> list[str]:
         counts: dict[str, int] = {}
@@ -495,14 +498,49 @@ class ConsistencyResult:
                 counts[message] = counts.get(message, 0) + 1
         return [f"warning ({n} of {self.runs} runs): {message}" for message, n in counts.items()]
 
-    def _metric_lines(self, lo, hi, llo, lhi, nlo, nhi) -> list[str]:
+    def _metric_lines(self, lo, hi) -> list[str]:
         return [
             f"pose NEES (6 dof): {100 * self.pose_nees_in_band:.0f} % of steps {self.skip}..{self.steps - 1} in the "
             f"95 % band [{lo:.2f}, {hi:.2f}] of the {self.runs}-run average; time average {self.pose_nees_time_average:.2f}",
-            f"landmark NEES (3 dof): mean {self.landmark_nees_mean:.2f} over {self.landmark_count} landmarks, "
-            f"band [{llo:.3f}, {lhi:.3f}] (if independent)",
-            f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}, band [{nlo:.3f}, {nhi:.3f}]",
+            f"landmark NEES (3 dof): mean {self.landmark_nees_mean:.2f} over {self.landmark_count} landmarks; "
+            + consistency_verdict(3.0, self.per_run_landmark_nees, "the map's covariances"),
+            f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}; "
+            + consistency_verdict(4.0, self.per_run_nis, "the innovations' covariances"),
         ]
+
+
+def run_mean_interval(values: Any, probability: float = BAND_PROBABILITY) -> tuple[float, float]:
+    """The ``probability`` interval (Student t) of the mean of per-run values (R,), nan ignored.
+
+    Runs are independent; the landmarks or observations of one run are not (they share its pose
+    errors), so a band built as if every landmark were an independent chi-square sample is far too
+    narrow: the spread of the runs' own means says how well the mean is known. (nan, nan) with
+    fewer than two runs."""
+    from scipy.stats import t as student
+
+    x = np.asarray(values, dtype=float)
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        return float("nan"), float("nan")
+    half = float(student.ppf(0.5 + probability / 2, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size))
+    return float(x.mean() - half), float(x.mean() + half)
+
+
+def consistency_verdict(expected: float, per_run: Any, what: str) -> str:
+    """The runs' mean of a NEES or NIS against its ``expected`` value, in words: the interval of
+    :func:`run_mean_interval` and whether it holds ``expected``, else by how much and which way."""
+    lo, hi = run_mean_interval(per_run)
+    if not np.isfinite(lo):
+        return "one run: no interval of the mean"
+    mean = 0.5 * (lo + hi)
+    runs = int(np.isfinite(np.asarray(per_run, dtype=float)).sum())
+    where = f"95 % interval of the {runs} runs' mean [{lo:.3f}, {hi:.3f}]"
+    if lo <= expected <= hi:
+        return f"{where}: consistent with {expected:g}"
+    off = 100.0 * abs(mean / expected - 1.0)
+    if hi < expected:
+        return f"{where}: {off:.0f} % below {expected:g}, {what} are larger than the errors (pessimistic)"
+    return f"{where}: {off:.0f} % above {expected:g}, {what} are smaller than the errors (overconfident)"
 
 
 def summarize(traces: list[RunTrace], skip: int = SKIP_STEPS) -> ConsistencyResult:
@@ -547,6 +585,7 @@ def summarize(traces: list[RunTrace], skip: int = SKIP_STEPS) -> ConsistencyResu
         noise_seeds=[t.noise_seed for t in traces],
         per_run_pose_nees=np.array([(t.pose_nees[skip:] if steps > skip else t.pose_nees).mean() for t in traces]),
         per_run_nis=np.array([t.mean_nis for t in traces]),
+        per_run_landmark_nees=np.array([t.landmark_nees.mean() if t.landmark_nees.size else np.nan for t in traces]),
         observations_gated=int(sum(t.observations_gated for t in traces)),
         conventions=conventions,
         health_messages={str(t.noise_seed): t.health_messages for t in traces if t.health_messages},

@@ -111,11 +111,13 @@ class StereoOffset:
             return (f"stereo disparity offset: not identifiable ({e.get('steps', 0)} step pairs with enough points seen "
                     f"at k and k+1, {MIN_STEPS} needed); none applied")
         fx = e.get("fx", 1.0)
-        found = f"mean {e['beta_mean_px']:+.2f} +- {e['beta_mean_se']:.2f} px"
+        found = f"{e['beta_mean_px']:+.2f} +- {e['beta_mean_se']:.2f} px on average"
         if np.isfinite(e["kappa_se"]):
-            found += (f"; beta_0 {e['beta0_px']:+.2f} +- {e['beta0_se']:.2f} px, kappa {e['kappa_px_s']:+.2f} +- "
-                      f"{e['kappa_se']:.2f} px s/rad (a right exposure {1e3 * e['kappa_px_s'] / fx:+.2f} ms after the left)")
-        found += f"; {e['steps']} steps"
+            late = 1e3 * e["kappa_px_s"] / fx
+            found += (f", split into a constant {e['beta0_px']:+.2f} +- {e['beta0_se']:.2f} px (beta_0) and "
+                      f"{e['kappa_px_s']:+.2f} +- {e['kappa_se']:.2f} px per rad/s of turn (kappa: the right image "
+                      f"taken {abs(late):.2f} ms {'after' if late >= 0 else 'before'} the left)")
+        found += f"; from {e['steps']} step pairs"
         if not self.active:
             return f"stereo disparity offset: none applied ({self.source}; estimated {found})"
         if self.kappa_px_s == 0.0:

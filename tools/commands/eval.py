@@ -31,7 +31,11 @@ def add_parser(sub) -> None:
     p.add_argument("ground_truth", help="the ground truth in the same format: TUM poses are matched by time stamp "
                                         "(within 0.01 s), KITTI poses line by line")
     p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
-    p.add_argument("--delta", type=float, default=100.0, help="RPE distance in metres (default 100)")
+    p.add_argument("--delta", type=float, default=100.0,
+                   help="RPE segment length in metres along the ground truth (default 100); every pose starts a "
+                        "segment: evo_rpe --all_pairs --pairs_from_reference, the segments KITTI's devkit measures "
+                        "on the ground truth (evo_rpe's own default pairs consecutive segments along the estimate). "
+                        "A ground truth path shorter than that: 10 frames, said on screen")
     p.add_argument("--covariance", metavar="FILE",
                    help="the estimate's pose covariance (pose_covariance.npz of vislam run, the estimate's stamps) "
                         "for the position and pose NEES; default: pose_covariance.npz beside the estimate when it "
@@ -119,7 +123,7 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
               by_index: bool = False) -> None:
     from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
     from ..plots import plot_nees_over_time, plot_trajectories_topdown
-    from ..report import nees_text, write_error_plot
+    from ..report import nees_text, rpe_label, write_error_plot
 
     errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
     d = errors.as_dict()
@@ -129,7 +133,7 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
         print("KITTI pose files: poses matched line by line (line k = frame k; the times in the plots are frames)")
     print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
-          f"RPE per {d['rpe_delta']:g} {d['rpe_unit']}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
+          f"{rpe_label(d, args.delta)}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
     if args.sim3:
         print(f"Sim(3) scale {d['alignment_scale']:.12g} (applied to the estimate; < 1: its path is longer "
               "than the ground truth's)")

@@ -120,13 +120,13 @@ def landmark_nees_check(result) -> dict:
 
 
 def landmark_nees_line(result, check: dict) -> str:
-    """One line: the landmark NEES mean, the band of the run average and whether it lies in it."""
-    lo, hi = check["band_of_run_average"]
+    """One line (the plot's note): the landmark NEES mean and its verdict, as on the screen."""
     if check["in_band_of_run_average"] is None:
         return "landmark NEES: no landmark mapped"
-    where = "in" if check["in_band_of_run_average"] else "OUTSIDE"
-    return (f"landmark NEES mean {result.landmark_nees_mean:.2f} {where} the 95 % band "
-            f"[{lo:.2f}, {hi:.2f}] of the {result.runs}-run average")
+    from ...backend.evaluation.consistency import consistency_verdict
+
+    return (f"landmark NEES mean {result.landmark_nees_mean:.2f}; "
+            + consistency_verdict(3.0, result.per_run_landmark_nees, "the map's covariances"))
 
 
 def summary_lines(result, check: dict) -> list[str]:

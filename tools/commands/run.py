@@ -257,6 +257,12 @@ def _run_images(args: argparse.Namespace, config: Config, tracker, gt, say, reco
     if gt is None and drive is not None:
         gt = _drive_truth(drive.ground_truth, notes, f"the OXTS poses of {drive.ground_truth_source} ({GROUND_TRUTH})")
     _check_ground_truth(gt, imu.time_stamps)
+    w, h = stereo.image_size
+    kind = "KITTI raw drive" if drive is not None else "image directory"
+    velocities = (f"the OXTS velocities of {drive.ground_truth_source}" if drive is not None
+                  else f"IMU velocities of {imu.source}")
+    say(f"vislam run {args.data}: {kind}, {len(stereo)} stereo pairs of {w}x{h} px over "
+        f"{imu.time_stamps[-1] - imu.time_stamps[0]:.1f} s, {velocities}; tracked and filtered in one pass")
     for note in notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config, tracker))
