@@ -114,8 +114,31 @@ def read_times(path: Path, n_frames: int) -> np.ndarray:
     return t
 
 
+#: The most pixels a frame may have (an 8K camera has 33 million): a PNG of a few kB can declare
+#: 50000 x 50000 pixels, gigabytes once decoded
+MAX_PIXELS = 100_000_000
+
+
+def png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header (its IHDR chunk) without decoding it; None when the file
+    is not a PNG (the decoder then says what it is)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
 def read_grey(path: Path) -> np.ndarray:
-    """An 8-bit grey image (colour is converted); InputError if it cannot be decoded."""
+    """An 8-bit grey image (colour is converted); InputError if it cannot be decoded or declares
+    more than :data:`MAX_PIXELS` pixels (checked from its header before decoding)."""
+    size = png_size(path)
+    if size is not None and size[0] * size[1] > MAX_PIXELS:
+        raise InputError(f"{path}: declares {size[0]}x{size[1]} pixels, more than the {MAX_PIXELS:,} a frame may have "
+                         f"({size[0] * size[1] / 2**30:.1f} GiB decoded)")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         why = "missing" if not Path(path).exists() else "unreadable (not a decodable image)"

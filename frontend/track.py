@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..backend.errors import InputError
-from ..backend.data.sequence import VISLAM_TRACKER, Sequence
+from ..backend.data.sequence import VISLAM_TRACKER, Sequence, check_baseline, check_camera_matrix, check_time_stamps
 from .config import TrackerConfig
 from .draw import TrackDrawer, check_draw_dir
 from .images import StereoDirectory, open_stereo_directory  # noqa: F401 (imported from here by benchmarks/)
@@ -173,7 +173,19 @@ def open_tracking_input(images, imu=None, imu_T_cam_path=None, config: TrackerCo
     if draw_dir is not None:
         check_draw_dir(draw_dir)
     velocities = drive_imu(drive, imu, imu_T_cam_path) if drive is not None else check_imu(imu, stereo, imu_T_cam_path)
+    _check_stream(stereo, velocities, drive is not None)
     return stereo, velocities, drive
+
+
+def _check_stream(stereo: StereoDirectory, imu: ImuVelocities, raw: bool) -> None:
+    """What the sequence of the tracks would refuse (``backend.data.sequence``), checked before the
+    first frame is tracked, naming the file it comes from: the frames' time stamps (seconds,
+    strictly increasing, no gap dead reckoning cannot bridge) and the rectified camera."""
+    stamps = (str(Path(stereo.root) / "image_00" / "timestamps.txt"), "stamps") if raw else (imu.source or "IMU", "t")
+    check_time_stamps(*stamps, np.asarray(imu.time_stamps, dtype=float))
+    calibration = str(Path(stereo.root).parent / "calib_cam_to_cam.txt") if raw else str(Path(stereo.root) / "calib.txt")
+    check_camera_matrix(calibration, "K", np.asarray(stereo.K, dtype=float))
+    check_baseline(calibration, "baseline", float(stereo.baseline))
 
 
 

@@ -480,3 +480,31 @@ def test_frames_are_read_in_the_order_of_their_numbers_property(numbers, pad, or
                 cv2.imwrite(str(root / side / name), image)
         got = paired_frame_names(root, "image_0", "image_1", "test layout")
     assert got == [f"{n:0{width}d}.png" for n in sorted(numbers)]
+
+
+@settings(max_examples=25, deadline=None)
+@given(width=st.integers(1, 64), height=st.integers(1, 64), channels=st.sampled_from([1, 3]))
+def test_png_size_is_read_from_the_header_property(width, height, channels):
+    """The header gives the size cv2 decodes; a PNG declaring 50000 x 50000 pixels is refused before
+    its gigabytes are decoded, naming the file and the size."""
+    import struct
+    import zlib
+
+    from vislam.frontend.images import png_size, read_grey
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "f.png"
+        cv2.imwrite(str(path), np.zeros((height, width, channels) if channels == 3 else (height, width), np.uint8))
+        assert png_size(path) == (width, height) and read_grey(path).shape == (height, width)
+
+        def chunk(kind: bytes, data: bytes) -> bytes:
+            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+        huge = Path(d) / "huge.png"
+        huge.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 50000, 50000, 8, 0, 0, 0, 0))
+                         + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b""))
+        with pytest.raises(InputError) as e:
+            read_grey(huge)
+        assert str(e.value).startswith(f"{huge}: declares 50000x50000 pixels") and "\n" not in str(e.value)
+        (Path(d) / "text.png").write_text("not an image")
+        assert png_size(Path(d) / "text.png") is None

@@ -1749,3 +1749,43 @@ def test_trajectory_files_of_neither_format_are_refused(tmp_path):
         read_trajectory(path)
     msg = assert_clean_input_error(e.value, str(path))
     assert ":2:" in msg and "8 columns" in msg and "12" in msg
+
+
+# ------------------------------------------------------------------------------------------------
+# symbolic links: a chain reads as its target, a loop or a dangling link is one line saying which
+
+
+@settings(max_examples=20, **SETTINGS)
+@given(links=st.integers(1, 6), kind=st.sampled_from(["npz", "tum"]))
+def test_readers_follow_a_chain_of_links_and_name_a_loop_property(links, kind):
+    with tempfile.TemporaryDirectory() as d:
+        root = Path(d)
+        if kind == "npz":
+            target = _write(root / "data.npz", course_arrays())
+            read = load_sequence
+        else:
+            target = root / "t.txt"
+            target.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n")
+            read = read_tum
+        chain = target
+        for i in range(links):
+            link = root / f"link{i}.{kind}"
+            link.symlink_to(chain)
+            chain = link
+        direct, through = read(target), read(chain)
+        if kind == "npz":
+            assert np.array_equal(direct.obs_pixels, through.obs_pixels)
+            assert np.array_equal(direct.time_stamps, through.time_stamps)
+        else:
+            assert all(np.array_equal(a, b) for a, b in zip(direct, through))
+        loop_a, loop_b = root / f"a.{kind}", root / f"b.{kind}"
+        loop_a.symlink_to(loop_b)
+        loop_b.symlink_to(loop_a)
+        dangling = root / f"gone.{kind}"
+        dangling.symlink_to(root / "nothing")
+        gone = "not found" if kind == "tum" else "does not exist (a symbolic link to nothing)"
+        for path, needle in ((loop_a, "Too many levels of symbolic links"), (dangling, gone)):
+            with pytest.raises(InputError) as e:
+                read(path)
+            msg = assert_clean_input_error(e.value, str(path))
+            assert needle in msg, msg

@@ -219,3 +219,28 @@ def test_draw_into_a_regular_file_is_refused_before_any_work(rendered, tmp_path,
     assert drawing.read_bytes() == b"a file, not a directory"
     assert not data.exists()
     assert not (out / "trajectory.txt").exists()
+
+
+@pytest.mark.parametrize("stamps, needle", [
+    (lambda t: np.where(np.arange(t.size) >= 40, t + 3600.0, t), "a gap of 3600"),
+    (lambda t: t * 1e9, "not seconds"),
+    (lambda t: t[::-1].copy(), "not strictly increasing"),
+], ids=["hour-gap", "nanoseconds", "backwards"])
+def test_an_image_run_refuses_bad_imu_stamps_before_tracking(rendered, tmp_path, capsys, monkeypatch, stamps, needle):
+    """One-pass image runs and track check the frames' stamps (here the IMU CSV's t column) before
+    the first frame is tracked, naming the file (and its column or line), not a '<stream>'."""
+    from vislam.backend.data.npz import load_sequence
+
+    seq = load_sequence(rendered / "data.npz")
+    csv = tmp_path / "imu.csv"
+    rows = np.column_stack([stamps(seq.time_stamps.copy()), seq.linear_velocity, seq.angular_velocity])
+    np.savetxt(csv, rows, delimiter=",", header="t,vx,vy,vz,wx,wy,wz", comments="", fmt="%.9f")
+    extrinsic = tmp_path / "T.txt"
+    np.savetxt(extrinsic, seq.imu_T_cam)
+    _no_tracking(monkeypatch)
+    for argv in (["run", str(rendered), "--out", str(tmp_path / "o")], ["track", str(rendered), "--out",
+                                                                         str(tmp_path / "t.npz")]):
+        assert main([*argv, "--imu", str(csv), "--imu-T-cam", str(extrinsic), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and err.startswith(f"vislam: error: {csv}: ") and needle in err, err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "t.npz").exists()

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import os
 import queue
+import stat
 import threading
 import zipfile
 import zlib
@@ -54,6 +55,7 @@ _READ_ERRORS = (zipfile.BadZipFile, *_INFLATE_ERRORS, EOFError, OSError)  # a da
 
 from ..errors import InputError
 from ..geometry.se3 import inverse
+from ..reading import describe_mode
 from .files import atomic_write, check_output_file
 from .inertial import KALIBR_KEYS, check_imu_samples, check_noise_densities
 from .sequence import (LAYOUTS, ORTHO_ACCEPT, Sequence, check_baseline, check_camera_matrix, check_numeric, check_rigid,
@@ -342,10 +344,15 @@ def open_npz(path: Path) -> "np.lib.npyio.NpzFile":
     """``np.load(path, allow_pickle=False)`` of a user's file, or an InputError naming it: missing,
     not a regular file, unreadable, not a zip archive, or a zip numpy cannot read."""
     src = str(path)
-    if not path.exists():
-        raise InputError(f"{src}: file does not exist")
-    if not path.is_file():
-        raise InputError(f"{src}: not a regular file")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        dangling = " (a symbolic link to nothing)" if path.is_symlink() else ""
+        raise InputError(f"{src}: file does not exist{dangling}") from None
+    except OSError as exc:  # a loop of symbolic links, a permission on the way
+        raise InputError(f"{src}: cannot read: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise InputError(f"{src}: not a regular file (is {describe_mode(mode)})")
     try:
         with open(path, "rb"):
             pass
