@@ -316,3 +316,31 @@ def test_rpe_says_when_it_counts_frames_and_a_reader_that_leaves_is_no_error(tmp
                            "echo ${PIPESTATUS[0]}", shell=True, capture_output=True, text=True, timeout=120,
                            executable="/bin/bash")
     assert shell.stderr == "" and shell.stdout.strip() == "141", shell
+
+
+def test_eval_time_offset_and_tolerance_as_evo_names_them(tmp_path, capsys):
+    """--t-offset shifts the estimate's stamps before matching, --t-max-diff widens the match: an
+    estimate stamped 0.55 s late gives, shifted back, the ATE of the unshifted one (to 1e-6);
+    stamps jittered by up to 0.03 s match only with a wider tolerance."""
+    from vislam.backend.data.tum import read_tum, write_tum
+
+    scene = tmp_path / "scene"
+    assert main(["synth", "--steps", "60", "--out", str(scene), "--quiet"]) == 0
+    assert main(["run", str(scene / "data.npz"), "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    t, poses = read_tum(tmp_path / "run" / "trajectory.txt")
+    gt = str(scene / "gt_tum.txt")
+    write_tum(tmp_path / "late.txt", t + 0.55, poses)  # between the 0.1 s steps: nothing matches unshifted
+    jitter = np.random.default_rng(0).uniform(-0.03, 0.03, t.size)
+    write_tum(tmp_path / "jitter.txt", t + jitter, poses)
+    numbers = {}
+    for name, extra in (("plain", [str(tmp_path / "run" / "trajectory.txt")]),
+                        ("late", [str(tmp_path / "late.txt"), "--t-offset", "-0.55"]),
+                        ("jitter", [str(tmp_path / "jitter.txt"), "--t-max-diff", "0.04"])):
+        assert main(["eval", *extra[:1], gt, *extra[1:], "--json", str(tmp_path / f"{name}.json")]) == 0
+        numbers[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert numbers["late"]["ate_rmse"] == pytest.approx(numbers["plain"]["ate_rmse"], rel=1e-6)
+    assert numbers["jitter"]["num_matched"] == numbers["plain"]["num_matched"] == 60
+    assert "shifted by -0.55 s" in numbers["late"]["matched_by"]
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "late.txt"), gt]) == 2  # 0.05 s from the nearest: nothing matches
+    assert "within 0.01 s" in capsys.readouterr().err

@@ -161,9 +161,10 @@ def real_time_text(factor: float) -> str:
 
 
 def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t: np.ndarray, gt_poses: np.ndarray,
-                     sim3: bool = False) -> None:
-    """Position error over time of each named estimate (same stamps), each aligned to the ground truth."""
-    series = {name: ate_per_pose(time_stamps, poses, gt_t, gt_poses, sim3=sim3, return_stamps=True)
+                     sim3: bool = False, max_diff: float = 0.01) -> None:
+    """Position error over time of each named estimate (same stamps), each aligned to the ground truth
+    (poses matched within ``max_diff`` s)."""
+    series = {name: ate_per_pose(time_stamps, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, return_stamps=True)
               for name, poses in estimates.items()}
     title = f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment"
     plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""))

@@ -36,6 +36,11 @@ def add_parser(sub) -> None:
                         "segment: evo_rpe --all_pairs --pairs_from_reference, the segments KITTI's devkit measures "
                         "on the ground truth (evo_rpe's own default pairs consecutive segments along the estimate). "
                         "A ground truth path shorter than that: 10 frames, said on screen")
+    p.add_argument("--t-max-diff", dest="t_max_diff", type=float, default=0.01, metavar="S",
+                   help="largest difference of two time stamps matched as one pose, seconds (default 0.01, as evo's "
+                        "--t_max_diff)")
+    p.add_argument("--t-offset", dest="t_offset", type=float, default=0.0, metavar="S",
+                   help="seconds added to the estimate's time stamps before matching (default 0, as evo's --t_offset)")
     p.add_argument("--covariance", metavar="FILE",
                    help="the estimate's pose covariance (pose_covariance.npz of vislam run, the estimate's stamps) "
                         "for the position and pose NEES; default: pose_covariance.npz beside the estimate when it "
@@ -55,14 +60,19 @@ def main(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.delta) and args.delta > 0):
         raise ConfigError(f"--delta must be a positive number of metres, got {args.delta!r}")
+    if not (math.isfinite(args.t_max_diff) and args.t_max_diff > 0):
+        raise ConfigError(f"--t-max-diff must be a positive number of seconds, got {args.t_max_diff!r}")
+    if not math.isfinite(args.t_offset):
+        raise ConfigError(f"--t-offset must be a finite number of seconds, got {args.t_offset!r}")
     est_t, est, gt_t, gt, by_index = _read_pair(args)
     beside = None if by_index else covariance_file(args.estimate, args.covariance)
     if beside is not None:
         note_input(beside)  # read by default: an input like the two trajectories
     if args.json is not None:
         check_output_file(args.json, overwrite=args.force)  # before any work
-    require_matches(est_t, gt_t, args.ground_truth)
-    covariance = None if by_index else _read_covariance(args, est_t)
+    covariance = None if by_index else _read_covariance(args, est_t)  # against the file's own stamps
+    est_t = est_t + args.t_offset
+    require_matches(est_t, gt_t, args.ground_truth, max_diff=args.t_max_diff)
     with output_directory(args.out, args.force) if args.out is not None else contextlib.nullcontext() as staging:
         _evaluate(args, est_t, est, gt_t, gt, covariance, staging, by_index)
     if args.out is not None:
@@ -125,12 +135,18 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
     from ..plots import plot_nees_over_time, plot_trajectories_topdown
     from ..report import nees_text, rpe_label, write_error_plot
 
-    errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta)
+    max_diff = args.t_max_diff
+    errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta, max_diff=max_diff)
     d = errors.as_dict()
-    d["alignment_scale"] = alignment_scale(est_t, est, gt_t, gt) if args.sim3 else 1.0
-    d["matched_by"] = "line (KITTI pose files: line k = frame k)" if by_index else "time stamp (within 0.01 s)"
+    d["alignment_scale"] = alignment_scale(est_t, est, gt_t, gt, max_diff=max_diff) if args.sim3 else 1.0
+    d["t_offset"], d["t_max_diff"] = args.t_offset, max_diff
+    d["matched_by"] = ("line (KITTI pose files: line k = frame k)" if by_index
+                       else f"time stamp (within {max_diff:g} s" + (f", the estimate's shifted by {args.t_offset:+g} s)"
+                                                                     if args.t_offset else ")"))
     if by_index:
         print("KITTI pose files: poses matched line by line (line k = frame k; the times in the plots are frames)")
+    elif args.t_offset or max_diff != 0.01:
+        print(f"poses matched by {d['matched_by']}")
     print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
           f"{rpe_label(d, args.delta)}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
@@ -142,7 +158,7 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
         from ...backend.evaluation.consistency import trajectory_nees
 
         path, cov = covariance
-        nees = trajectory_nees(est_t, est, cov, gt_t, gt)
+        nees = trajectory_nees(est_t, est, cov, gt_t, gt, max_diff=max_diff)
         d["nees"] = {"covariance_file": str(path), **nees.as_dict()}
         print(nees_text(d["nees"]["position"], "position"))
         print(nees_text(d["nees"]["pose"], "pose"))
@@ -151,8 +167,9 @@ def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: P
     if out is not None:
         title = f"{Path(args.estimate).name} vs {Path(args.ground_truth).name}"
         plot_trajectories_topdown(out / "trajectories.png", {"estimate": (est_t, est)}, (gt_t, gt), sim3=args.sim3,
-                                  title=title)
-        write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3)
+                                  title=title, max_diff=max_diff)
+        write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3,
+                         max_diff=max_diff)
         if nees is not None:
             plot_nees_over_time(out / "nees_over_time.png", nees, title=title)
         outputs.write_json(out / "eval.json", d)
