@@ -1,10 +1,11 @@
 """Debug pictures of the tracker, one PNG a frame.
 
-The left image (top) shows every emitted track as a dot with its tail (its last ``tail`` left
-positions); the right image (below it) shows the matched right pixel and, along the row, a line
-from the left pixel's column to it (the disparity). Colours are per id. Each file is written to a
-temporary name in the output directory and moved onto ``NNNNNN.png`` with ``os.replace``, so a
-reader never sees half a picture.
+A caption band on top says the frame, its tracks and what the marks mean. The left image (below
+it) shows every emitted track as a dot with its tail (its last ``tail`` left positions); the right
+image (below that) shows the matched right pixel and, along the row, a line from the left pixel's
+column to it (the disparity). Colours are per id. Each file is written through ``atomic_write`` (a
+temporary name, then a rename, never onto an input of the run), so a reader never sees half a
+picture.
 """
 
 from __future__ import annotations
@@ -65,6 +66,10 @@ def check_draw_dir(out_dir, replace_files: bool = True) -> Path:
     return out_dir
 
 
+#: Pixel rows of the caption band above each picture (two lines of text)
+CAPTION_HEIGHT = 42
+
+
 class TrackDrawer:
     """Draws frames into ``out_dir`` (created if missing; InputError naming it when that fails);
     call :meth:`draw` once per frame, in order."""
@@ -80,7 +85,8 @@ class TrackDrawer:
         self._history: dict[int, deque] = {}
 
     def render(self, index: int, left: np.ndarray, right: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-        """The picture (2H, W, 3) BGR of frame ``index``; also updates the tails."""
+        """The picture (CAPTION_HEIGHT + 2H, W, 3) BGR of frame ``index``: the caption band, the left
+        image, the right image; also updates the tails."""
         alive = set(int(i) for i in ids)
         self._history = {i: h for i, h in self._history.items() if i in alive}
         top = cv2.cvtColor(left, cv2.COLOR_GRAY2BGR)
@@ -94,10 +100,19 @@ class TrackDrawer:
             cv2.circle(top, _point((uL, vL)), 2, colour, -1, cv2.LINE_AA)
             cv2.line(bottom, _point((uL, vR)), _point((uR, vR)), colour, 1, cv2.LINE_AA)
             cv2.circle(bottom, _point((uR, vR)), 2, colour, -1, cv2.LINE_AA)
-        picture = np.vstack([top, bottom])
-        cv2.putText(picture, f"frame {index}  tracks {len(ids)}", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                    (0, 255, 255), 1, cv2.LINE_AA)
-        return picture
+        return np.vstack([self.caption(index, len(ids), left.shape[1]), top, bottom])
+
+    def caption(self, index: int, tracks: int, width: int) -> np.ndarray:
+        """The band above the pair (:data:`CAPTION_HEIGHT`, width, 3): white text on dark grey, the
+        frame, its tracks and what the marks mean, readable over any image."""
+        band = np.full((CAPTION_HEIGHT, width, 3), 40, np.uint8)
+        lines = (f"frame {index}   tracks {tracks}",
+                 f"top: left image, a dot per track, its last {self.tail} positions as a tail;  "
+                 "bottom: right image, the match, a line from the left column (disparity)")
+        for row, text in enumerate(lines):
+            cv2.putText(band, text, (8, 16 + 18 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+        return band
 
     def draw(self, index: int, left: np.ndarray, right: np.ndarray, ids: np.ndarray, pixels: np.ndarray) -> Path:
         """Render frame ``index`` and write it as ``out_dir/NNNNNN.png``; returns the path."""

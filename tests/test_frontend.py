@@ -627,7 +627,9 @@ def test_track_directory_round_trips_through_the_course_layout(tmp_path):
     # one debug picture a frame: left above right
     names = sorted(p.name for p in (tmp_path / "draw").iterdir())
     assert names == [f"{k:06d}.png" for k in range(8)]
-    assert cv2.imread(str(tmp_path / "draw" / names[3])).shape == (2 * 376, 1241, 3)
+    from vislam.frontend.draw import CAPTION_HEIGHT
+
+    assert cv2.imread(str(tmp_path / "draw" / names[3])).shape == (CAPTION_HEIGHT + 2 * 376, 1241, 3)
 
 
 def test_track_directory_refuses_a_short_imu(tmp_path):

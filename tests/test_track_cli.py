@@ -124,8 +124,15 @@ def test_draw_writes_one_png_per_frame(rendered, tmp_path):
     assert names == [f"{i:06d}.png" for i in range(80)]
     import cv2
 
+    from vislam.frontend.draw import CAPTION_HEIGHT
+
     image = cv2.imread(str(draw / names[5]))
-    assert image.shape == (2 * 376, 1241, 3)  # left above right
+    assert image.shape == (CAPTION_HEIGHT + 2 * 376, 1241, 3)  # the caption, left above right
+    band = image[:CAPTION_HEIGHT]
+    text = band.max(axis=2) > 200  # white letters on a dark band, whatever the sky below
+    assert np.median(band) < 60 and 0.01 < text.mean() < 0.5
+    left = cv2.imread(str(rendered / "image_0" / names[5]), cv2.IMREAD_GRAYSCALE)
+    assert np.mean(image[CAPTION_HEIGHT:CAPTION_HEIGHT + 376, :, 0] == left) > 0.8  # the left image, marks aside
 
 
 def _copy_frames(src: Path, dst: Path, n: int, black=(), size=None, extra_stamps: int = 0) -> Path:
