@@ -146,8 +146,6 @@ def read_drive_calibration(date_dir) -> RawCalibration:
     ``velo_T_imu`` from ``calib_imu_to_velo.txt`` and ``cam_T_velo`` from ``calib_velo_to_cam.txt``.
     """
     date_dir = Path(date_dir)
-    for name in (CAM_TO_CAM, IMU_TO_VELO, VELO_TO_CAM):
-        note_input(date_dir / name)  # outside the drive's folder: no output may replace them
     K, baseline, rect_T_cam, note = read_cam_to_cam(date_dir / CAM_TO_CAM)
     velo_T_imu, note_imu = read_rigid_calibration(date_dir / IMU_TO_VELO)
     cam_T_velo, note_velo = read_rigid_calibration(date_dir / VELO_TO_CAM)

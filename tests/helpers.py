@@ -75,3 +75,16 @@ def assert_same_scene_arrays(a, b) -> None:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     for name in SEQUENCE_ARRAYS:
         np.testing.assert_array_equal(getattr(a.sequence, name), getattr(b.sequence, name), err_msg=name)
+
+
+def street_file(folder, steps: int):
+    """The default synthetic street of ``steps`` steps saved as ``folder/street_<steps>.npz``; its path.
+    (1500 steps: a run of a few seconds, long enough to be interrupted.)"""
+    from pathlib import Path
+
+    from vislam.backend.data.npz import save_sequence
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    path = Path(folder) / f"street_{steps}.npz"
+    save_sequence(make_scene(SceneConfig(steps=steps)).sequence, path)
+    return path

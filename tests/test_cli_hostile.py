@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import street_file
 from vislam.backend.data.npz import load_sequence, save_sequence
 from vislam.backend.data.tum import write_tum
 from vislam.backend.errors import VislamError
@@ -221,10 +222,7 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(arrays, tmp_path, capsys, mo
 
 @pytest.fixture(scope="module")
 def long_file(tmp_path_factory) -> Path:
-    """A run of a few seconds, long enough to be interrupted."""
-    path = tmp_path_factory.mktemp("long") / "long.npz"
-    save_sequence(make_scene(SceneConfig(steps=1500)).sequence, path)
-    return path
+    return street_file(tmp_path_factory.mktemp("long"), 1500)
 
 
 def test_a_real_sigint_during_the_filter(long_file, tmp_path):

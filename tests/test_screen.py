@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from vislam.backend.data.npz import save_sequence
-from vislam.synth.scene import SceneConfig, make_scene
+from helpers import street_file
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a pseudo-terminal (Linux)")
 
@@ -46,9 +45,7 @@ def screen(argv: list[str], cwd: Path) -> tuple[int, str]:
 
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("screen") / "scene.npz"
-    save_sequence(make_scene(SceneConfig(steps=200)).sequence, path)
-    return path
+    return street_file(tmp_path_factory.mktemp("screen"), 200)
 
 
 def test_the_start_up_lines_and_the_progress_bar_keep_to_their_own_lines(scene_file, tmp_path):

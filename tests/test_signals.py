@@ -15,8 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from vislam.backend.data.npz import save_sequence
-from vislam.synth.scene import SceneConfig, make_scene
+from helpers import street_file
 from vislam.tools.cli import main
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads process parents from /proc (Linux)")
@@ -24,10 +23,7 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="re
 
 @pytest.fixture(scope="module")
 def long_file(tmp_path_factory) -> Path:
-    """A run of a few seconds, long enough to be interrupted."""
-    path = tmp_path_factory.mktemp("long") / "long.npz"
-    save_sequence(make_scene(SceneConfig(steps=1500)).sequence, path)
-    return path
+    return street_file(tmp_path_factory.mktemp("long"), 1500)
 
 
 def leftovers(folder: Path) -> list[str]:
