@@ -36,6 +36,7 @@ _PUBLIC = {
     "InputError": "backend.errors",
     "ConfigError": "backend.errors",
     "FilterError": "backend.errors",
+    "HealthWarning": "backend.errors",
     # data
     "Sequence": "backend.data.sequence",
     "ImuSamples": "backend.data.inertial",

@@ -23,3 +23,9 @@ class OutputError(VislamError):
 
 class FilterError(VislamError):
     """The estimator cannot go on (e.g. the full state would not fit in memory)."""
+
+
+class HealthWarning(RuntimeWarning):
+    """A run's health message (``estimator.health``: NIS out of its band, P repaired, vision all
+    gated), issued through :mod:`warnings` for library callers and kept in ``RunStats.health_messages``;
+    the command line shows them itself (on stderr, after the run) and silences only this category."""

@@ -119,7 +119,7 @@ def test_inputs_of_the_same_name_keep_apart_and_a_key_varied_twice_is_refused(in
 
 
 def test_input_labels_are_the_shortest_distinct_suffixes():
-    from vislam.tools.commands.batch import input_labels
+    from vislam.tools.report import path_labels as input_labels
 
     assert input_labels(["x/a.npz", "y/b.npz"]) == {"x/a.npz": "a.npz", "y/b.npz": "b.npz"}
     assert input_labels(["r/x/a.npz", "r/y/a.npz", "r/y/b.npz"]) == {
@@ -134,3 +134,39 @@ def test_inputs_without_ground_truth_are_named_on_screen(inputs, tmp_path, capsy
     err = capsys.readouterr().err
     assert "no ground truth for 2 of 2 input(s)" in err and str(inputs / "s0_truth.txt") in err, err
     assert all(r["ate_m"] == "" for r in _rows(out))
+
+
+def test_every_run_keeps_its_trajectory_and_covariance_and_eval_compares_them(inputs, tmp_path, capsys):
+    """runs/INPUT/CONFIGURATION/ holds what a single run of it writes; `vislam eval` reads them all
+    (with each one's covariance) and gives the ATE the table gave."""
+    from vislam.backend.data.covariance import read_pose_covariance
+
+    out = tmp_path / "b"
+    assert main(["batch", str(inputs / "s0.npz"), "--vary", "noise.pixel_sigma=0.5,1.0", "--gt",
+                 str(inputs / "{stem}_gt.txt"), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    rows = json.loads((out / "batch.json").read_text())["rows"]
+    assert [r["run_folder"] for r in rows] == ["runs/s0/noise.pixel_sigma=0.5", "runs/s0/noise.pixel_sigma=1.0"]
+    result = run_sequence(load_sequence(inputs / "s0.npz"), Config().with_assignments(["noise.pixel_sigma=1.0"]))
+    t, poses = read_tum(out / rows[1]["run_folder"] / "trajectory.txt")
+    assert abs(t - result.time_stamps).max() < 1e-6 and abs(poses - result.world_T_imu).max() < 1e-8
+    cov_t, cov = read_pose_covariance(out / rows[1]["run_folder"] / "pose_covariance.npz")
+    assert abs(cov - result.pose_covariance).max() == 0.0 and (cov_t == result.time_stamps).all()
+    capsys.readouterr()
+    assert main(["eval", *(str(out / r["run_folder"] / "trajectory.txt") for r in rows), str(inputs / "s0_gt.txt"),
+                 "--json", str(tmp_path / "e.json")]) == 0
+    evaluated = json.loads((tmp_path / "e.json").read_text())["estimates"]
+    for row, e in zip(rows, evaluated):
+        assert e["ate_rmse"] == pytest.approx(row["ate_m"], rel=1e-6)  # TUM text rounds the poses
+        assert e["nees"]["position"]["steps"] > 0
+
+
+def test_health_warnings_are_listed_on_stderr_naming_the_run(inputs, tmp_path, capsys):
+    """A pixel sigma 20x too large makes the NIS far too small: each run's messages, a line each."""
+    out = tmp_path / "b"
+    assert main(["batch", str(inputs / "s1.npz"), "--set", "noise.pixel_sigma=20", "--set", "health.nis_window=10",
+                 "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    row = json.loads((out / "batch.json").read_text())["rows"][0]
+    err = capsys.readouterr().err.splitlines()
+    assert row["health_warnings"] >= 1
+    assert len(err) == row["health_warnings"]
+    assert all(line.startswith("warning: s1.npz, defaults: step ") for line in err)

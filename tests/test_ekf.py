@@ -17,7 +17,7 @@ from threadpoolctl import threadpool_limits
 
 from vislam.backend.config import Config
 from vislam.backend.data.sequence import Sequence
-from vislam.backend.errors import FilterError
+from vislam.backend.errors import FilterError, HealthWarning
 from vislam.backend.estimator import covariance, update
 from vislam.backend.estimator.body import BodyModel
 from vislam.backend.estimator.ekf import ImuNoise, StepStats, VisualInertialEKF, check_full_state_size, make_error_model
@@ -828,7 +828,7 @@ def test_health_reports_inconsistent_nis():
     drive = make_drive(60, seed=5, pix_sigma=10 * PIX_SIGMA)
     config = slam_config({"health.nis_window": 10, "update.gate_probability": 0.999999,
                           "update.ransac_threshold_px": 0.0})
-    with pytest.warns(RuntimeWarning, match="inconsistent"):
+    with pytest.warns(HealthWarning, match="inconsistent"):  # a RuntimeWarning of vislam's own category
         ekf, _, _ = run_filter(drive, config)
     assert len(ekf.health.messages) >= 1
     assert all("inconsistent" in message for message in ekf.health.messages)
@@ -1119,7 +1119,7 @@ def test_health_all_gated_window_reports_inconsistent():
         monitor.add_nis(0, 0.0, 0, 10)
         monitor.add_nis(1, 0.0, 0, 10)  # window not full yet
     assert monitor.messages == []
-    with pytest.warns(RuntimeWarning, match="filter inconsistent"):
+    with pytest.warns(HealthWarning, match="filter inconsistent"):
         monitor.add_nis(2, 0.0, 0, 10)
     assert len(monitor.messages) == 1
     assert monitor.messages[0].startswith("step 2: filter inconsistent with its noise model: no observation used and "

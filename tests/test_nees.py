@@ -292,7 +292,9 @@ def test_eval_finds_the_covariance_beside_the_estimate(run_dir, tmp_path, capsys
         assert d["nees"][what]["dof"] == {"position": 3, "pose": 6}[what]
     assert d["ate_rmse"] > 0  # the rest as before
     assert {p.name for p in (tmp_path / "ev").iterdir()} == {"eval.json", "trajectories.png", "ate_over_time.png",
-                                                            "nees_over_time.png"}
+                                                            "nees_over_time.png", "xyz_over_time.png",
+                                                            "rpy_over_time.png", "ape_trajectory.zip",
+                                                            "rpe_trajectory.zip"}
     assert json.loads((tmp_path / "ev" / "eval.json").read_text()) == d
     # the plot, read back: both curves, log y, the 95 % quantiles and the expected values, labelled
     ax = drawn["nees_over_time.png"].axes[0]

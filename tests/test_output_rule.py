@@ -133,7 +133,7 @@ def test_eval_json_onto_an_input_is_refused_and_an_existing_file_needs_force(ren
 
 
 def test_eval_json_onto_the_covariance_beside_the_estimate_is_refused(tmp_path, capsys):
-    """pose_covariance.npz beside the estimate is read by default: an input like the trajectories."""
+    """pose_covariance.npz beside a run's trajectory.txt is read by default: an input like the trajectories."""
     import numpy as np
 
     from vislam.backend.data.covariance import POSE_COVARIANCE_FILE, write_pose_covariance
@@ -141,12 +141,12 @@ def test_eval_json_onto_the_covariance_beside_the_estimate_is_refused(tmp_path, 
     t = np.arange(5.0)
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[:, 0, 3] = t
-    write_tum(tmp_path / "est.txt", t, poses)
+    write_tum(tmp_path / "trajectory.txt", t, poses)
     write_tum(tmp_path / "gt.txt", t, poses)
     covariance = tmp_path / POSE_COVARIANCE_FILE
     write_pose_covariance(covariance, t, np.tile(np.eye(6), (5, 1, 1)))
     before = covariance.read_bytes()
-    refused(capsys, ["eval", str(tmp_path / "est.txt"), str(tmp_path / "gt.txt"), "--json", str(covariance),
+    refused(capsys, ["eval", str(tmp_path / "trajectory.txt"), str(tmp_path / "gt.txt"), "--json", str(covariance),
                      "--force"], POSE_COVARIANCE_FILE, "input")
     assert covariance.read_bytes() == before
 

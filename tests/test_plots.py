@@ -12,10 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from vislam.backend.data.tum import read_tum, write_tum
 from vislam.backend.evaluation.consistency import RunTrace, average_band, summarize
-from vislam.backend.evaluation.metrics import alignment_scale, trajectory_errors
+from vislam.backend.evaluation.metrics import alignment, alignment_scale, trajectory_errors
 from vislam.tools import plots
 from vislam.tools.cli import main
-from vislam.tools.plots import COLORS, MARGIN, align_to_ground_truth, plot_trajectories_topdown, trajectory_figure
+from vislam.tools.plots import COLORS, MARGIN, plot_trajectories_topdown, trajectory_figure
 
 
 def drive(t: np.ndarray) -> np.ndarray:
@@ -125,12 +125,12 @@ def test_title_names_the_alignment_and_its_ate(sim3):
     np.testing.assert_allclose(plot.figure.axes[0].collections[0].get_offsets()[0], landmark[0, :2], atol=1.0)
 
 
-def test_align_to_ground_truth_refuses_a_straight_line():
+def test_alignment_refuses_a_straight_line():
     t = np.arange(10) * 0.1
     poses = np.tile(np.eye(4), (10, 1, 1))
     poses[:, 0, 3] = t
     with pytest.raises(Exception, match="straight line"):
-        align_to_ground_truth(t, poses, t, poses)
+        alignment(t, poses, t, poses)
 
 
 def _captured(monkeypatch) -> dict:

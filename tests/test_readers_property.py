@@ -33,6 +33,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from scipy.spatial.transform import Rotation
 
 from helpers import assert_clean_input_error, named_key
 from vislam.backend.config import Config
@@ -1749,6 +1750,92 @@ def test_trajectory_files_of_neither_format_are_refused(tmp_path):
         read_trajectory(path)
     msg = assert_clean_input_error(e.value, str(path))
     assert ":2:" in msg and "8 columns" in msg and "12" in msg
+
+
+# ------------------------------------------------------------------------------------------------
+# EuRoC pose csv (backend.data.tum.read_euroc_csv, read_trajectory)
+
+
+@st.composite
+def euroc_pose_rows(draw):
+    """(text lines with a header, stamps in ns, poses (N,4,4)) of a valid EuRoC pose csv, with 0 or 9
+    extra columns (velocity and biases, as state_groundtruth_estimate0/data.csv)."""
+    n = draw(st.integers(1, 8))
+    start = draw(st.integers(0, 2 * 10**18))
+    steps = draw(st.lists(st.integers(1, 10**10), min_size=n, max_size=n))
+    ns = [start + sum(steps[:k + 1]) for k in range(n)]
+    rotvecs = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-3, 3)))
+    trans = draw(hnp.arrays(np.float64, (n, 3), elements=st.floats(-1e4, 1e4)))
+    extra = draw(st.sampled_from([0, 9]))
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    lines = ["#timestamp [ns],p_x [m],p_y [m],p_z [m],q_w [],q_x [],q_y [],q_z []" + ",v" * extra]
+    for k in range(n):
+        poses[k, :3, :3] = _rotation(rotvecs[k])
+        poses[k, :3, 3] = trans[k]
+        q = Rotation.from_matrix(poses[k, :3, :3]).as_quat()  # x y z w
+        values = list(trans[k]) + [q[3], q[0], q[1], q[2]] + [0.5] * extra
+        lines.append(",".join([str(ns[k])] + [repr(float(v)) for v in values]))
+    return lines, np.array(ns, dtype=object), poses
+
+
+@settings(max_examples=80, **SETTINGS)
+@given(case=euroc_pose_rows(), bare_header=st.booleans(), crlf=st.booleans())
+def test_euroc_valid_files_are_read_property(case, bare_header, crlf):
+    """An EuRoC pose csv (header with or without '#', 8 or 17 columns) reads back as its poses, its
+    nanosecond stamps as seconds to float64's spacing, and read_trajectory calls it EuRoC (by time)."""
+    from vislam.backend.data.tum import read_euroc_csv, read_trajectory
+
+    lines, ns, poses = case
+    if bare_header:
+        lines = [lines[0].lstrip("#")] + lines[1:]
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "data.csv"
+        path.write_text(("\r\n" if crlf else "\n").join(lines) + "\n")
+        t, read = read_euroc_csv(path)
+        traj = read_trajectory(path)
+    expected = np.array([float(n) / 1e9 for n in ns])
+    assert np.all(np.abs(t - expected) <= 4 * np.spacing(expected))
+    assert np.all(np.diff(t) >= 0)
+    assert np.abs(read - poses).max() <= 1e-9 * max(1.0, np.abs(poses).max())
+    assert traj.format == "euroc" and not traj.by_index and np.array_equal(traj.time_stamps, t)
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(case=euroc_pose_rows(), data=st.data())
+def test_euroc_damaged_lines_are_one_line_errors_property(case, data):
+    """A row with too few columns, junk, nan, a fractional or negative stamp, a stamp not after the
+    previous one or a zero quaternion: one-line InputError naming the file and that line."""
+    from vislam.backend.data.tum import read_euroc_csv
+
+    lines, ns, _ = case
+    k = data.draw(st.integers(1, len(lines) - 1))
+    tokens = lines[k].split(",")
+    damage = data.draw(st.sampled_from(["short", "junk", "nan", "fraction", "negative", "order", "zero"]))
+    if damage == "order" and k == 1:
+        damage = "fraction"
+    if damage == "short":
+        tokens = tokens[:data.draw(st.integers(1, 7))]
+    elif damage == "junk":
+        tokens[data.draw(st.integers(1, 7))] = "x1"
+    elif damage == "nan":
+        tokens[data.draw(st.integers(1, 7))] = "nan"
+    elif damage == "fraction":
+        tokens[0] = tokens[0] + ".5"
+    elif damage == "negative":
+        tokens[0] = "-" + tokens[0]
+    elif damage == "order":
+        tokens[0] = str(ns[k - 2])
+    else:
+        tokens[4:8] = ["0", "0", "0", "0"]
+    lines = list(lines)
+    lines[k] = ",".join(tokens)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "data.csv"
+        path.write_text("\n".join(lines) + "\n")
+        with pytest.raises(InputError) as e:
+            read_euroc_csv(path)
+        msg = assert_clean_input_error(e.value, str(path))
+        assert msg.startswith(f"{path}:{k + 1}:"), msg
 
 
 # ------------------------------------------------------------------------------------------------

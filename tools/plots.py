@@ -20,16 +20,16 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from ..backend.data.files import atomic_write
-from ..backend.errors import InputError
+from ..backend.evaluation.metrics import Alignment, alignment
 
 __all__ = [
     "COLORS",
-    "Alignment",
     "TrajectoryPlot",
-    "align_to_ground_truth",
     "trajectory_figure",
     "plot_trajectories_topdown",
     "plot_errors_over_time",
+    "plot_xyz_over_time",
+    "plot_rpy_over_time",
     "plot_consistency",
     "plot_nees_over_time",
 ]
@@ -84,7 +84,7 @@ def _save(fig, path: str | os.PathLike) -> None:
         fig.savefig(tmp, dpi=DPI, format="png")
 
 
-# ---------------------------------------------------------------------------------------- alignment
+# ---------------------------------------------------------------------------------------- poses
 
 
 def _as_poses(traj: Any, name: str) -> np.ndarray:
@@ -97,73 +97,6 @@ def _as_poses(traj: Any, name: str) -> np.ndarray:
         poses[:, : arr.shape[1], 3] = arr
         return poses
     raise ValueError(f"trajectory {name!r} must have shape (N, 4, 4), (N, 3) or (N, 2), got {arr.shape}")
-
-
-@dataclass(frozen=True)
-class Alignment:
-    """``p -> scale * rotation @ p + translation``, moving an estimate onto the ground truth
-    (Umeyama on the time-matched positions, as ``backend.evaluation.metrics`` aligns for the ATE)."""
-
-    rotation: np.ndarray  # (3, 3)
-    translation: np.ndarray  # (3,)
-    scale: float  # 1 for SE(3)
-    sim3: bool
-    ate_rmse: float  # m, over the matched poses after alignment
-
-    @property
-    def name(self) -> str:
-        return "Sim(3)" if self.sim3 else "SE(3)"
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        """Aligned points.
-
-        Parameters
-        ----------
-        points : (K, 3) array
-
-        Returns
-        -------
-        (K, 3) array
-        """
-        return self.scale * np.asarray(points, dtype=float) @ self.rotation.T + self.translation
-
-
-def align_to_ground_truth(stamps: Any, poses: Any, gt_stamps: Any, gt_poses: Any, *, sim3: bool = False,
-                          max_diff: float = 0.01) -> Alignment:
-    """The SE(3) (or Sim(3)) alignment of an estimate to the ground truth, with its ATE RMSE.
-
-    Parameters
-    ----------
-    stamps : (N,) array, seconds
-    poses : (N, 4, 4) array or (N, 3) positions
-    gt_stamps : (M,) array, seconds
-    gt_poses : (M, 4, 4) array
-    sim3 : bool
-        Also fit the scale.
-    max_diff : float
-        Largest stamp difference (s) of a matched pair.
-
-    Returns
-    -------
-    Alignment
-        Equal to what ``metrics.trajectory_errors`` / ``alignment_scale`` use; raises ``InputError``
-        when fewer than 3 poses match or the matched positions are degenerate.
-    """
-    from evo.core.geometry import GeometryException, umeyama_alignment
-
-    from ..backend.evaluation.metrics import associate
-
-    est_m, gt_m, _ = associate(stamps, _as_poses(poses, "estimate"), gt_stamps, gt_poses, max_diff=max_diff)
-    x, y = est_m[:, :3, 3], gt_m[:, :3, 3]
-    try:
-        rotation, translation, scale = umeyama_alignment(x.T, y.T, sim3)
-    except GeometryException as exc:
-        raise InputError(f"cannot align the estimate to the ground truth ({exc}); are the {len(x)} matched "
-                         f"positions all on one straight line?") from exc
-    scale = float(scale)
-    moved = scale * x @ rotation.T + translation
-    ate = float(np.sqrt(np.mean(np.sum((y - moved) ** 2, axis=1))))
-    return Alignment(np.asarray(rotation, dtype=float), np.asarray(translation, dtype=float), scale, bool(sim3), ate)
 
 
 # ---------------------------------------------------------------------------------------- trajectories
@@ -192,9 +125,9 @@ def _alignment_lines(alignments: Mapping[str, Alignment]) -> list[str]:
         return []
     first = next(iter(alignments.values()))
     if len(alignments) == 1:
-        what = f"Sim(3), scale {first.scale:.5f}" if first.sim3 else "SE(3)"
+        what = f"Sim(3), scale {first.scale:.5f}" if first.kind == "sim3" else first.name
         return [f"aligned ({what}); ATE RMSE {_metres(first.ate_rmse)}"]
-    if first.sim3:
+    if first.kind == "sim3":
         per_curve = "; ".join(f"{name}: scale {a.scale:.5f}, ATE RMSE {_metres(a.ate_rmse)}"
                               for name, a in alignments.items())
     else:
@@ -230,6 +163,7 @@ def trajectory_figure(
     title: str = "",
     landmarks_of: str = "estimate",
     max_diff: float = 0.01,
+    origin: bool = False,
 ) -> TrajectoryPlot:
     """Top-down (x-y, equal aspect) figure of trajectories, the ground truth and the landmarks.
 
@@ -252,6 +186,8 @@ def trajectory_figure(
     landmarks_of : str
     max_diff : float
         Largest stamp difference (s) of a matched pair for the alignment.
+    origin : bool
+        Align the first matched poses instead (evo's ``align_origin``).
 
     Returns
     -------
@@ -270,7 +206,7 @@ def trajectory_figure(
     for name, (t, P) in parsed.items():
         positions = P[:, :3, 3]
         if ground_truth is not None:
-            alignments[name] = align_to_ground_truth(t, P, *ground_truth, sim3=sim3, max_diff=max_diff)
+            alignments[name] = alignment(t, P, *ground_truth, sim3=sim3, origin=origin, max_diff=max_diff)
             positions = alignments[name].apply(positions)
         xy[name] = positions[:, :2]
     gt_span = None
@@ -411,6 +347,79 @@ def plot_errors_over_time(
     fig.tight_layout()
     _save(fig, path)
     return fig
+
+
+def _three_panels(path, curves: Mapping[str, tuple[Any, Any]], values, axis_labels: tuple[str, str, str],
+                  title: str):
+    """Three stacked panels over time since the earliest stamp, a curve each per name (evo_traj's
+    ``xyz`` and ``rpy`` views); ``values(poses (N,4,4)) -> (N, 3)``."""
+    checked = {}
+    for name, (stamps, poses) in curves.items():
+        t = np.asarray(stamps, dtype=float)
+        P = _as_poses(poses, name)
+        if t.shape != (P.shape[0],):
+            raise ValueError(f"trajectory {name!r}: stamps must have shape ({P.shape[0]},), got {t.shape}")
+        if len(t):
+            checked[name] = (t, values(P))
+    t0 = min((t[0] for t, _ in checked.values()), default=0.0)
+    fig = _new_figure((9.0, 7.0))
+    axes = fig.subplots(3, 1, sharex=True)
+    others: dict = {}
+    for name, (t, v) in checked.items():
+        color = _color(name, others)
+        style = dict(_LINES.get(name, dict(linestyle="-", linewidth=1.2, zorder=3)))
+        for k, ax in enumerate(axes):
+            ax.plot(t - t0, v[:, k], color=color, label=name if k == 0 else None, **style)
+    for ax, label in zip(axes, axis_labels):
+        ax.set_ylabel(label)
+        ax.grid(True, linewidth=0.3)
+    axes[-1].set_xlabel("time [s]")
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(loc="best", fontsize="small")
+    if title:
+        axes[0].set_title(title, fontsize="medium")
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_xyz_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = ""):
+    """Position x, y, z over time of each curve (evo_traj's ``xyz`` view).
+
+    Parameters
+    ----------
+    path : path of the PNG
+    curves : mapping of str to (stamps (N,), poses (N, 4, 4))
+        Already in one frame (aligned); keyed by kind (colours of :data:`COLORS`).
+    title : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    return _three_panels(path, curves, lambda P: P[:, :3, 3], ("x [m]", "y [m]", "z [m]"), title)
+
+
+def plot_rpy_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = ""):
+    """Roll, pitch, yaw over time of each curve (evo_traj's ``rpy`` view): the fixed-axis x-y-z
+    angles of the rotation (``scipy`` ``as_euler("xyz")``, evo's ``sxyz``), unwrapped, in degrees.
+
+    Parameters
+    ----------
+    path : path of the PNG
+    curves : mapping of str to (stamps (N,), poses (N, 4, 4))
+    title : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from scipy.spatial.transform import Rotation
+
+    def rpy(P: np.ndarray) -> np.ndarray:
+        return np.degrees(np.unwrap(Rotation.from_matrix(P[:, :3, :3]).as_euler("xyz"), axis=0))
+
+    return _three_panels(path, curves, rpy, ("roll [deg]", "pitch [deg]", "yaw [deg]"), title)
 
 
 def _plain_log_ticks(ax) -> None:

@@ -24,7 +24,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..backend.data.covariance import POSE_COVARIANCE_FILE, write_pose_covariance
+from ..backend.data.covariance import POSE_COVARIANCE_FILE, TRAJECTORY_FILE, write_pose_covariance
 from ..backend.data.files import atomic_write
 from ..backend.data.tum import write_tum
 from ..backend.evaluation.consistency import trajectory_nees
@@ -74,8 +74,8 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
         "gyro_bias_final": result.gyro_bias,
         **({"accel_bias_final": result.accel_biases[-1], "velocity_final": result.velocity[-1]} if result.inertial else {}),
         "timing": {
-            "wall_seconds": stats.total_seconds,
-            "filter_seconds": stats.wall_seconds,
+            "run_seconds": stats.total_seconds,
+            "filter_seconds": stats.filter_seconds,
             "load_seconds": stats.load_seconds,
             "input_seconds": stats.input_seconds,
             "setup_seconds": stats.setup_seconds,
@@ -110,7 +110,7 @@ def write_run_outputs(
     t0 = time.perf_counter()
     errors = evaluate(result, *gt) if gt is not None else None
     notes = list(notes)
-    write_tum(out_dir / "trajectory.txt", result.time_stamps, result.world_T_imu,
+    write_tum(out_dir / TRAJECTORY_FILE, result.time_stamps, result.world_T_imu,
                       header="world_T_imu estimated by vislam")
     write_tum(out_dir / "dead_reckoning.txt", result.time_stamps, result.dead_reckoning,
                       header="world_T_imu by IMU dead reckoning")
@@ -127,8 +127,7 @@ def write_run_outputs(
     plots.plot_trajectories_topdown(out_dir / "trajectory.png", curves, gt, result.map_positions,
                                     title=f"{Path(source).name}: {result.config.estimator.mode}")
     if gt is not None:
-        write_error_plot(out_dir / "ate_over_time.png", {"estimate": result.world_T_imu, "dead reckoning": result.dead_reckoning},
-                         result.time_stamps, *gt)
+        write_error_plot(out_dir / "ate_over_time.png", curves, *gt)
     summary = summary_dict(result, source, errors, tracker)
     summary["notes"] = notes
     summary["timing"].update(process_timing(summary["timing"], time.perf_counter() - t0))
@@ -160,13 +159,15 @@ def real_time_text(factor: float) -> str:
     return f"{factor:.0f}x" if factor >= 10 else f"{factor:.1f}x" if factor >= 1 else f"{factor:.2f}x"
 
 
-def write_error_plot(path: Path, estimates: dict, time_stamps: np.ndarray, gt_t: np.ndarray, gt_poses: np.ndarray,
-                     sim3: bool = False, max_diff: float = 0.01) -> None:
-    """Position error over time of each named estimate (same stamps), each aligned to the ground truth
-    (poses matched within ``max_diff`` s)."""
-    series = {name: ate_per_pose(time_stamps, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, return_stamps=True)
-              for name, poses in estimates.items()}
-    title = f"position error after {'Sim(3)' if sim3 else 'SE(3)'} alignment"
+def write_error_plot(path: Path, estimates: dict, gt_t: np.ndarray, gt_poses: np.ndarray, sim3: bool = False,
+                     max_diff: float = 0.01, origin: bool = False) -> None:
+    """Position error over time of each named estimate (``{name: (stamps (N,), poses (N,4,4))}``), each
+    aligned to the ground truth (poses matched within ``max_diff`` s; ``origin``: first poses on each other)."""
+    series = {name: ate_per_pose(t, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, origin=origin,
+                                 return_stamps=True)
+              for name, (t, poses) in estimates.items()}
+    how = "first-pose" if origin else "Sim(3)" if sim3 else "SE(3)"
+    title = f"position error after {how} alignment"
     plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""))
 
 
@@ -198,7 +199,7 @@ def _nis_text(mean_nis: float) -> str:
 def _timing_text(t: dict) -> str:
     """The time a user waited (the whole process, when known) and its parts."""
     if "process_seconds" not in t:
-        return (f"wall {t['wall_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
+        return (f"run {t['run_seconds']:.2f} s for {t['sequence_seconds']:.1f} s of data "
                 f"({real_time_text(t['real_time_factor'])} real time)")
     startup = t.get("startup_seconds")
     parts = {"start-up": startup or 0.0, "kernels": t["kernel_seconds"],
@@ -242,6 +243,27 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     return "\n".join(lines)
 
 
+def path_labels(paths: list[str]) -> dict[str, str]:
+    """A short label per path (inputs of ``batch``, estimates of ``eval``): its file name, with as many
+    parent folders as it takes to tell files of the same name apart (``a/0027.npz``, ``b/0027.npz``)."""
+    unique = list(dict.fromkeys(paths))
+    parts = {p: Path(p).parts or (p,) for p in unique}
+    depth = max(len(v) for v in parts.values()) if parts else 1
+    for k in range(1, depth + 1):
+        labels = {p: "/".join(parts[p][-k:]) for p in unique}
+        if len(set(labels.values())) == len(unique):
+            return labels
+    return {p: p for p in unique}
+
+
+def file_stem(label: str) -> str:
+    """``label`` as a file or folder name: characters other than letters, digits and ``._=+-``
+    replaced by '_' ("" becomes "_")."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9._=+-]", "_", label) or "_"
+
+
 def rpe_label(errors: dict, requested_m: float = 100.0) -> str:
     """'RPE per 100 m', or where the ground truth's path was shorter than the ``requested_m`` metres
     of a segment (``backend.evaluation.metrics`` then counts frames) 'RPE per 10 frames (the ground
@@ -256,7 +278,12 @@ def rpe_label(errors: dict, requested_m: float = 100.0) -> str:
 def print_health(summary: dict) -> None:
     """The run's health warnings, a line each on stderr (shown with --quiet too: they say the result
     is not what was asked for)."""
+    print_warnings(summary["health"])
+
+
+def print_warnings(messages: Sequence[str]) -> None:
+    """Warnings, a line each on stderr ("warning: ...")."""
     import sys
 
-    for message in summary["health"]:
+    for message in messages:
         print(f"warning: {message}", file=sys.stderr)

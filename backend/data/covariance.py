@@ -27,10 +27,12 @@ from .files import atomic_write
 from .npz import open_npz
 from .sequence import check_numeric, format_number, input_error
 
-__all__ = ["read_pose_covariance", "write_pose_covariance", "POSE_COVARIANCE_FILE"]
+__all__ = ["read_pose_covariance", "write_pose_covariance", "POSE_COVARIANCE_FILE", "TRAJECTORY_FILE"]
 
 #: The file name a run writes beside ``trajectory.txt``
 POSE_COVARIANCE_FILE = "pose_covariance.npz"
+#: The trajectory file of a run whose covariance that is
+TRAJECTORY_FILE = "trajectory.txt"
 #: Largest |C - C^T| accepted, relative to the largest |C_ij| of the matrix (the filter's are symmetric
 #: to rounding, ~1e-16)
 SYMMETRY_TOL = 1e-9

@@ -1,5 +1,6 @@
 """Trajectory text files: TUM (``t tx ty tz qx qy qz qw`` a line, what evo and the TUM benchmark
-read) and KITTI odometry poses (the 12 numbers of a pose's top 3x4 a line, line k = frame k), and
+read), KITTI odometry poses (the 12 numbers of a pose's top 3x4 a line, line k = frame k) and EuRoC
+ASL pose csv (``timestamp [ns], px, py, pz, qw, qx, qy, qz[, ...]``, evo's ``euroc`` format), and
 :func:`read_trajectory`, which tells them apart by their columns."""
 
 from __future__ import annotations
@@ -16,7 +17,11 @@ from .files import atomic_write
 from .sequence import ORTHO_ACCEPT
 from .textio import content_lines, finite_numbers, read_lines
 
-__all__ = ["read_tum", "write_tum", "read_kitti_poses", "write_kitti_poses", "read_trajectory", "Trajectory"]
+__all__ = ["read_tum", "write_tum", "read_kitti_poses", "write_kitti_poses", "read_euroc_csv", "read_trajectory",
+           "Trajectory"]
+
+#: The leading columns of an EuRoC pose csv (``state_groundtruth_estimate0/data.csv`` holds 9 more)
+EUROC_POSE_COLUMNS = ("timestamp [ns]", "p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")
 
 
 
@@ -155,13 +160,62 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
     return poses
 
 
+def _nanoseconds(token: str, where: str) -> int:
+    if not token.isdigit():
+        raise InputError(f"{where}: time stamp {token!r} is not a whole number of nanoseconds (EuRoC csv)")
+    return int(token)
+
+
+def read_euroc_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read an EuRoC ASL pose csv; return ``(time_stamps (N,) seconds, world_T_body (N, 4, 4))``.
+
+    The first 8 comma-separated columns are :data:`EUROC_POSE_COLUMNS` (the quaternion scalar
+    first), as in ``mav0/state_groundtruth_estimate0/data.csv`` (whose velocity and bias columns
+    are ignored) and evo's ``euroc`` format; ``#`` lines and a first line of column names are
+    skipped, quaternions are normalised. InputError ``<file>:<line>: <problem>`` for a line of fewer
+    than 8 columns, a stamp that is not whole nanoseconds or not greater than the previous one, a
+    non-numeric or non-finite value, a zero-norm quaternion, and for a file without any pose.
+    """
+    stamps: list[int] = []
+    rows: list[list[float]] = []
+    for k, (lineno, line) in enumerate(content_lines(read_lines(path))):
+        tokens = [token.strip() for token in line.split(",")]
+        if k == 0 and not any(c.isdigit() for c in tokens[0]):
+            continue  # a first line of column names (no digit in its first column)
+        where = f"{path}:{lineno}"
+        if len(tokens) < len(EUROC_POSE_COLUMNS):
+            raise InputError(f"{where}: expected at least 8 comma-separated columns ({', '.join(EUROC_POSE_COLUMNS)}), "
+                             f"found {len(tokens)}")
+        ns = _nanoseconds(tokens[0], where)
+        values = finite_numbers(tokens[1:8], where)
+        if not any(values[3:]):
+            raise InputError(f"{where}: quaternion has zero norm")
+        if stamps and ns <= stamps[-1]:
+            raise InputError(f"{where}: time stamp {tokens[0]} is not greater than the previous one ({stamps[-1]})")
+        stamps.append(ns)
+        rows.append(values)
+    if not rows:
+        raise InputError(f"{path}: no poses found (empty EuRoC pose csv)")
+    data = np.asarray(rows, dtype=float)
+    quat = data[:, [4, 5, 6, 3]]  # x y z w
+    quat = quat / np.abs(quat).max(axis=1, keepdims=True)
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
+    poses[:, :3, 3] = data[:, 0:3]
+    ns = np.asarray(stamps, dtype=object)
+    seconds = np.array([float(n // 10**9) + (n % 10**9) * 1e-9 for n in ns], dtype=float)
+    return seconds, poses
+
+
 @dataclass(frozen=True)
 class Trajectory:
-    """Poses read from a trajectory file, with their time stamps (TUM) or their frame index (KITTI)."""
+    """Poses read from a trajectory file, with their time stamps (TUM, EuRoC csv) or their frame
+    index (KITTI)."""
 
-    time_stamps: np.ndarray  # (N,) seconds (TUM), or the frame index 0..N-1 (KITTI)
+    time_stamps: np.ndarray  # (N,) seconds (TUM, EuRoC), or the frame index 0..N-1 (KITTI)
     poses: np.ndarray  # (N,4,4)
-    format: str  # "tum" | "kitti"
+    format: str  # "tum" | "kitti" | "euroc"
 
     @property
     def by_index(self) -> bool:
@@ -170,17 +224,19 @@ class Trajectory:
 
 
 def read_trajectory(path: str | os.PathLike) -> Trajectory:
-    """A TUM or a KITTI pose file, told apart by the columns of its first pose line (8: TUM, 12:
-    KITTI); InputError naming the file and line for anything else (:func:`read_tum`,
-    :func:`read_kitti_poses`)."""
+    """A TUM, KITTI or EuRoC pose file, told apart by its first line that is no ``#`` comment (commas:
+    EuRoC csv; else 8 columns: TUM, 12: KITTI); InputError naming the file and line for anything
+    else (:func:`read_tum`, :func:`read_kitti_poses`, :func:`read_euroc_csv`)."""
     for lineno, line in content_lines(read_lines(path)):
+        if "," in line:
+            return Trajectory(*read_euroc_csv(path), "euroc")
         columns = len(line.split())
         if columns == 12:
             poses = read_kitti_poses(path)
             return Trajectory(np.arange(len(poses), dtype=float), poses, "kitti")
         if columns != 8:
-            raise InputError(f"{path}:{lineno}: expected 8 columns (TUM: t tx ty tz qx qy qz qw) or 12 (a KITTI pose: "
-                             f"the top 3x4, row-major), found {columns}")
+            raise InputError(f"{path}:{lineno}: expected 8 columns (TUM: t tx ty tz qx qy qz qw), 12 (a KITTI pose: "
+                             f"the top 3x4, row-major) or comma-separated EuRoC csv, found {columns}")
         break
     stamps, poses = read_tum(path)
     return Trajectory(stamps, poses, "tum")

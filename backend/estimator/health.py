@@ -21,6 +21,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional
 
+from ..errors import HealthWarning
+
 #: H3: a run whose gated share of observations is above this is called close to dead reckoning
 MAX_GATED_SHARE = 0.9
 
@@ -82,7 +84,7 @@ class HealthMonitor:
 
     def report(self, message: str) -> None:
         self.messages.append(message)
-        warnings.warn(message, RuntimeWarning, stacklevel=3)
+        warnings.warn(message, HealthWarning, stacklevel=3)
 
 
 def vision_check(observations: int, used: int, gated: int, slam: bool = True) -> Optional[str]:

@@ -58,7 +58,7 @@ from threadpoolctl import threadpool_limits
 
 from ..config import Config, Mode
 from ..data.sequence import Sequence
-from ..errors import ConfigError, VislamError
+from ..errors import ConfigError, HealthWarning, VislamError
 from ..geometry import se3
 from ..run.runner import run_sequence
 from .metrics import associate_indices
@@ -356,7 +356,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
         # the initial error is drawn from the filter's prior, as a consistency test requires
         bias = np.random.default_rng([seed, GYRO_BIAS_STREAM]).normal(0.0, config.noise.gyro_bias_sigma0, 3)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
+        warnings.simplefilter("ignore", HealthWarning)  # kept in the trace (health_messages)
         scene = scene_factory(seed, bias)
         truth = scene.world_T_imu_true
         n = scene.sequence.num_steps
@@ -634,7 +634,7 @@ def monte_carlo(
     completed = False
     try:
         with threadpool_limits(limits=1), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.simplefilter("ignore", HealthWarning)  # kept in the traces
             futures = [executor.submit(run_one, scene_factory, filter_config, s) for s in seeds]
             seed_of = {id(f): s for f, s in zip(futures, seeds)}
             try:

@@ -1,7 +1,8 @@
 """Trajectory error metrics (ATE, RPE) of an estimate against ground truth, computed with evo.
 
 * ATE: the estimate is aligned to the ground truth with Umeyama's method (SE(3) by default,
-  Sim(3) on request) using all time-matched positions; ATE is the translation error
+  Sim(3) on request, or only the first matched poses put on each other: evo's ``--align_origin``)
+  using all time-matched positions; ATE is the translation error
   ``|p_gt_i - p_est_aligned_i|`` per matched pose, summarised as RMSE / mean / median / max.   (M1)
 * RPE: for pose pairs ``(i, j)`` a fixed distance apart, the error of the relative motion
   ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; translation RMSE (metres) and rotation-angle RMSE
@@ -26,8 +27,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["TrajectoryErrors", "associate", "associate_indices", "trajectory_errors", "ate_per_pose", "alignment_scale",
-           "require_matches"]
+__all__ = ["TrajectoryErrors", "Alignment", "alignment", "associate", "associate_indices", "trajectory_errors",
+           "ate_per_pose", "aligned_poses", "alignment_scale", "evo_results", "require_matches"]
 
 MIN_MATCHES = 3
 FALLBACK_DELTA_FRAMES = 10
@@ -47,7 +48,7 @@ class TrajectoryErrors:
     rpe_unit: str  # "m" or "frames"
     num_matched: int  # poses matched in time
     path_length: float  # metres, along the matched ground-truth poses
-    alignment: str  # "se3" or "sim3"
+    alignment: str  # "se3", "sim3" or "origin"
 
     def as_dict(self) -> dict:
         """Plain-Python dict (floats, ints, strings) of all fields."""
@@ -174,21 +175,91 @@ def associate(
     )
 
 
-def _aligned(est_t, est_poses, gt_t, gt_poses, sim3: bool, max_diff: float, with_scale: bool = False):
-    """(aligned estimate, ground truth) evo trajectories of the matched poses, and with
-    ``with_scale`` the scale the alignment applied to the estimate."""
+@dataclass(frozen=True)
+class Alignment:
+    """``p -> scale * rotation @ p + translation`` (poses: ``T -> [[s R, t], [0, 1]] T`` with the
+    rotation part ``R R_T``), moving an estimate onto the ground truth; what evo's ``align`` /
+    ``align_origin`` applied to the matched poses."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    scale: float  # 1 unless Sim(3)
+    kind: str  # "se3", "sim3" or "origin"
+    ate_rmse: float  # m, over the matched poses after alignment
+
+    @property
+    def name(self) -> str:
+        """How the estimate was aligned, as the plots and the screen say it."""
+        return {"se3": "SE(3)", "sim3": "Sim(3)", "origin": "first poses"}[self.kind]
+
+    def apply(self, points: Any) -> np.ndarray:
+        """Aligned points: (K, 3) -> (K, 3)."""
+        return self.scale * np.asarray(points, dtype=float) @ self.rotation.T + self.translation
+
+    def apply_poses(self, poses: Any) -> np.ndarray:
+        """Aligned poses: (N, 4, 4) -> (N, 4, 4), as evo moves a trajectory (scale, then transform)."""
+        out = np.array(poses, dtype=float)
+        out[:, :3, 3] = self.apply(out[:, :3, 3])
+        out[:, :3, :3] = self.rotation @ out[:, :3, :3]
+        return out
+
+
+def _alignment_kind(sim3: bool, origin: bool) -> str:
+    if sim3 and origin:
+        raise ValueError("sim3 and origin alignment exclude each other (as evo's --align and --align_origin)")
+    return "origin" if origin else "sim3" if sim3 else "se3"
+
+
+def _aligned(est_t, est_poses, gt_t, gt_poses, sim3: bool, max_diff: float, origin: bool = False):
+    """(aligned estimate, ground truth, :class:`Alignment`): evo trajectories of the matched poses,
+    the estimate moved by evo's Umeyama ``align`` (``origin``: ``align_origin``)."""
     from evo.core.geometry import GeometryException
 
+    kind = _alignment_kind(sim3, origin)
     est_sync, ref_sync = _associated(est_t, est_poses, gt_t, gt_poses, max_diff)
     est_aligned = copy.deepcopy(est_sync)
-    try:
-        *_, scale = est_aligned.align(ref_sync, correct_scale=sim3)
-    except GeometryException as exc:
-        raise InputError(
-            f"cannot align the estimate to the ground truth ({exc}); are the "
-            f"{ref_sync.num_poses} matched positions all on one straight line?"
-        ) from exc
-    return (est_aligned, ref_sync, float(scale)) if with_scale else (est_aligned, ref_sync)
+    if origin:
+        T = est_aligned.align_origin(ref_sync)
+        rotation, translation, scale = T[:3, :3], T[:3, 3], 1.0
+    else:
+        try:
+            rotation, translation, scale = est_aligned.align(ref_sync, correct_scale=sim3)
+        except GeometryException as exc:
+            raise InputError(
+                f"cannot align the estimate to the ground truth ({exc}); are the "
+                f"{ref_sync.num_poses} matched positions all on one straight line?"
+            ) from exc
+    gap = est_aligned.positions_xyz - ref_sync.positions_xyz
+    ate = float(np.sqrt(np.mean(np.sum(gap**2, axis=1))))
+    found = Alignment(np.array(rotation, dtype=float), np.array(translation, dtype=float), float(scale), kind, ate)
+    return est_aligned, ref_sync, found
+
+
+def alignment(
+    est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, sim3: bool = False, origin: bool = False,
+    max_diff: float = 0.01,
+) -> Alignment:
+    """The alignment of an estimate to the ground truth that its ATE uses (see the module docstring).
+
+    Parameters
+    ----------
+    est_t : (N,) array, seconds
+    est_poses : (N, 4, 4) array
+    gt_t : (G,) array, seconds
+    gt_poses : (G, 4, 4) array
+    sim3 : bool
+        Also fit the scale (Umeyama, Sim(3)).
+    origin : bool
+        Put the first matched estimate pose on its ground truth instead (evo's ``align_origin``).
+    max_diff : float
+        Largest stamp difference (s) of a matched pair.
+
+    Returns
+    -------
+    Alignment
+        Raises :class:`InputError` when fewer than 3 poses match or the matched positions are degenerate.
+    """
+    return _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff, origin)[2]
 
 
 def _ape(est_aligned, ref):
@@ -254,16 +325,18 @@ def trajectory_errors(
     rpe_delta: float = 100.0,
     rpe_unit: str = "m",
     max_diff: float = 0.01,
+    origin: bool = False,
 ) -> TrajectoryErrors:
     """ATE and RPE of an estimate against ground truth (see the module docstring).
 
     Poses are ``world_T_imu`` ``(N, 4, 4)`` with stamps ``(N,)`` in seconds; they are
-    matched by nearest stamp within ``max_diff``. Raises :class:`InputError` if fewer than 3
-    poses match or the alignment is degenerate.
+    matched by nearest stamp within ``max_diff``; ``origin``: the first matched poses put on each
+    other instead of Umeyama's alignment. Raises :class:`InputError` if fewer than 3 poses match or
+    the alignment is degenerate.
     """
     from evo.core.metrics import StatisticsType
 
-    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    est_aligned, ref, _ = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff, origin)
     ape = _ape(est_aligned, ref)
     rpe_trans, rpe_rot, used_delta, used_unit = _rpe(est_aligned, ref, rpe_delta, rpe_unit)
     return TrajectoryErrors(
@@ -277,7 +350,7 @@ def trajectory_errors(
         rpe_unit=used_unit,
         num_matched=int(ref.num_poses),
         path_length=float(ref.path_length),
-        alignment="sim3" if sim3 else "se3",
+        alignment=_alignment_kind(sim3, origin),
     )
 
 
@@ -290,11 +363,12 @@ def ate_per_pose(
     sim3: bool = False,
     max_diff: float = 0.01,
     return_stamps: bool = False,
+    origin: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Translation error (metres) of every matched pose after alignment, as ``(M,)``; in
     the order of ``associate(...)``. With ``return_stamps`` returns ``(t (M,), errors)``,
     ready for ``vislam.tools.plots.plot_errors_over_time``."""
-    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    est_aligned, ref, _ = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff, origin)
     errors = np.array(_ape(est_aligned, ref).error, dtype=float)
     if return_stamps:
         return np.array(est_aligned.timestamps, dtype=float), errors
@@ -302,11 +376,12 @@ def ate_per_pose(
 
 
 def aligned_poses(
-    est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, sim3: bool = False, max_diff: float = 0.01
+    est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, sim3: bool = False, max_diff: float = 0.01,
+    origin: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps (M,), aligned estimate (M,4,4), ground truth (M,4,4)) of the matched poses, the
     estimate moved onto the ground truth by the same alignment as :func:`trajectory_errors`."""
-    est_aligned, ref = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff)
+    est_aligned, ref, _ = _aligned(est_t, est_poses, gt_t, gt_poses, sim3, max_diff, origin)
     return (np.array(est_aligned.timestamps, dtype=float), np.array(est_aligned.poses_se3, dtype=float),
             np.array(ref.poses_se3, dtype=float))
 
@@ -315,4 +390,43 @@ def alignment_scale(est_t: Any, est_poses: Any, gt_t: Any, gt_poses: Any, *, max
     """The scale a Sim(3) (Umeyama) alignment of the matched poses applies to the estimate, as in
     ``trajectory_errors(..., sim3=True)``: < 1 when the estimate's path is longer than the
     ground truth's."""
-    return _aligned(est_t, est_poses, gt_t, gt_poses, True, max_diff, with_scale=True)[2]
+    return _aligned(est_t, est_poses, gt_t, gt_poses, True, max_diff)[2].scale
+
+
+def evo_results(
+    est_t: Any,
+    est_poses: Any,
+    gt_t: Any,
+    gt_poses: Any,
+    *,
+    sim3: bool = False,
+    origin: bool = False,
+    rpe_delta: float = 100.0,
+    rpe_unit: str = "m",
+    max_diff: float = 0.01,
+    est_name: str = "estimate",
+    ref_name: str = "ground truth",
+):
+    """evo's APE and RPE results of the translation part (``evo.main_ape.ape``, ``evo.main_rpe.rpe``
+    on the matched poses, with the alignment and the pairs of :func:`trajectory_errors`: pass its
+    ``rpe_delta`` and ``rpe_unit``), the objects ``evo_ape`` / ``evo_rpe --save_results`` write and
+    ``evo_res`` compares (``evo.tools.file_interface.save_res_file``).
+
+    Returns
+    -------
+    (ape, rpe) : two ``evo.core.result.Result``
+    """
+    from evo.core.metrics import PoseRelation, Unit
+    from evo.main_ape import ape
+    from evo.main_rpe import rpe
+
+    kind = _alignment_kind(sim3, origin)
+    est_sync, ref_sync = _associated(est_t, est_poses, gt_t, gt_poses, max_diff)
+    est_sync.name, ref_sync.name = est_name, ref_name
+    how = dict(align=kind != "origin", correct_scale=kind == "sim3", align_origin=kind == "origin")
+    ape_result = ape(copy.deepcopy(ref_sync), copy.deepcopy(est_sync), PoseRelation.translation_part, **how)
+    unit = {"m": Unit.meters, "frames": Unit.frames}[rpe_unit]
+    rpe_result = rpe(copy.deepcopy(ref_sync), copy.deepcopy(est_sync), PoseRelation.translation_part,
+                     delta=rpe_delta if rpe_unit == "m" else int(rpe_delta), delta_unit=unit, all_pairs=True,
+                     pairs_from_reference=True, **how)
+    return ape_result, rpe_result

@@ -48,7 +48,7 @@ class RunStats:
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
     mean_nis: float = float("nan")  # per used observation; expectation 4 (a little less after gating)
-    wall_seconds: float = 0.0  # the filter loop
+    filter_seconds: float = 0.0  # the filter loop (predict and update of every step)
     load_seconds: float = 0.0  # reading the input (`vislam run`)
     input_seconds: float = 0.0  # producing the steps while the run goes (an image stream: decoding and tracking)
     setup_seconds: float = 0.0  # convention checks and noise estimation
@@ -75,7 +75,7 @@ class RunStats:
     @property
     def total_seconds(self) -> float:
         """Wall seconds of the whole run: loading, setup, producing the steps (tracking), the loop."""
-        return self.wall_seconds + self.setup_seconds + self.load_seconds + self.input_seconds
+        return self.filter_seconds + self.setup_seconds + self.load_seconds + self.input_seconds
 
     def as_dict(self) -> dict:
         out = dict(self.__dict__)
@@ -124,7 +124,7 @@ class RunBook:
         self.ekf.finish()
         stats = self.stats
         stats.steps = len(self.times)
-        stats.wall_seconds = sum(self.step_seconds) + time.perf_counter() - t0
+        stats.filter_seconds = sum(self.step_seconds) + time.perf_counter() - t0
         stats.setup_seconds = setup_seconds
         stats.load_seconds = load_seconds
         stats.input_seconds = input_seconds

@@ -5,9 +5,11 @@
 ``--vary`` lists over ``--config``/``--set``), on a local process pool (``--workers``) or a Ray
 cluster (``--ray ADDRESS``; ``--ray local`` starts one here), and writes ``batch.csv`` (input,
 configuration, ATE, RPE, mean NIS, gated share, seconds, real-time factor, health warnings),
-``batch.json`` and ``batch.png`` (ATE per input and configuration). ``{stem}`` in ``--gt`` is the
-input file's name without ``.npz``; an input without ground truth gets no ATE. A run that fails is
-a row with its one-line error; the exit code is then 1.
+``batch.json`` and ``batch.png`` (ATE per input and configuration), and per run
+``runs/INPUT/CONFIGURATION/`` with its ``trajectory.txt`` and ``pose_covariance.npz`` (so ``vislam
+eval`` and evo compare the runs afterwards). ``{stem}`` in ``--gt`` is the input file's name without
+``.npz``; an input without ground truth gets no ATE. A run that fails is a row with its one-line
+error; the exit code is then 1. Health warnings are counted in the table and listed on stderr.
 """
 
 from __future__ import annotations
@@ -18,13 +20,30 @@ import csv
 import itertools
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
-from ...backend.errors import ConfigError, VislamError
+import numpy as np
+
+from ...backend.errors import ConfigError, HealthWarning, VislamError
 from .. import console, options, outputs
 
 COLUMNS = ["input", "configuration", "steps", "ate_m", "rpe_m", "mean_nis", "gated_share", "seconds",
-           "real_time_factor", "health_warnings", "error"]
+           "real_time_factor", "health_warnings", "run_folder", "error"]
+#: The folder of every run's trajectory and pose covariance
+RUNS = "runs"
+
+
+@dataclass
+class BatchRun:
+    """What a worker sends back: the run's row and, when it ran, its trajectory and pose covariance."""
+
+    row: dict
+    health: list = field(default_factory=list)  # the run's health messages
+    time_stamps: Optional[np.ndarray] = None  # (N,) seconds
+    world_T_imu: Optional[np.ndarray] = None  # (N,4,4)
+    pose_covariance: Optional[np.ndarray] = None  # (N,6,6)
 
 
 def add_parser(sub) -> None:
@@ -62,24 +81,27 @@ def configurations(args: argparse.Namespace) -> list[tuple[str, object]]:
     return [(", ".join(c) or "defaults", base.with_assignments(list(c))) for c in combos]
 
 
-def run_one(path: str, config, gt_path: str | None) -> dict:
-    """One run in a worker: its row (module level, so a process pool or Ray can run it)."""
+def run_one(path: str, config, gt_path: str | None) -> BatchRun:
+    """One run in a worker: its row and trajectory (module level, so a process pool or Ray can run it)."""
     import warnings
 
     from ...backend.data.npz import load_sequence
     from ...backend.run.runner import run_sequence
 
     row = {"input": path}
+    run = BatchRun(row)
     try:
         t0 = time.perf_counter()
         seq = load_sequence(path)
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # health messages: counted in the row
+            warnings.simplefilter("ignore", HealthWarning)  # health messages: in the row
             result = run_sequence(seq, config, load_seconds=time.perf_counter() - t0)
         stats = result.stats
         row.update(steps=stats.steps, mean_nis=stats.mean_nis, gated_share=stats.gated_share,
                    seconds=stats.total_seconds, real_time_factor=stats.real_time_factor,
                    health_warnings=len(stats.health_messages))
+        run = BatchRun(row, list(stats.health_messages), result.time_stamps, result.world_T_imu,
+                       result.pose_covariance)
         if gt_path is not None:
             from ...backend.data.tum import read_tum
             from ...backend.evaluation.metrics import require_matches, trajectory_errors
@@ -90,12 +112,13 @@ def run_one(path: str, config, gt_path: str | None) -> dict:
             row.update(ate_m=errors.ate_rmse, rpe_m=errors.rpe_trans_rmse)
     except VislamError as exc:
         row["error"] = str(exc).splitlines()[0]
-    return row
+    return run
 
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ..pool import executor
+    from ..report import path_labels, print_warnings
 
     configs = configurations(args)
     varied = "; ".join(item.strip() for item in args.vary)
@@ -114,36 +137,53 @@ def main(args: argparse.Namespace) -> int:
             console.sayer(args.quiet)(f"note: no ground truth for {len(missing)} of {len(inputs)} input(s) (--gt "
                                       f"{args.gt}: no file {shown}); their ATE and RPE stay empty")
     jobs = [(p, label, config) for p in inputs for label, config in configs]
-    labels = input_labels(inputs)
+    labels = path_labels(inputs)
     with output_directory(args.out, args.force) as staging:  # checked before any work
         rows = [None] * len(jobs)
+        health: list[list[str]] = [[] for _ in jobs]
         with executor(args.workers, args.ray, len(jobs)) as pool, \
                 console.progress_bar(len(jobs), "batch", "run", console.progress_off(args)) as progress:
             futures = {pool.submit(run_one, p, config, gts[p]): i for i, (p, _, config) in enumerate(jobs)}
             for future in concurrent.futures.as_completed(futures):
                 i = futures[future]
-                rows[i] = dict(future.result(), label=labels[jobs[i][0]], configuration=jobs[i][1])
+                run = future.result()
+                rows[i] = dict(run.row, label=labels[jobs[i][0]], configuration=jobs[i][1])
+                if run.world_T_imu is not None:
+                    rows[i]["run_folder"] = _write_run(staging, run, labels[jobs[i][0]], jobs[i][1])
+                health[i] = [f"{labels[jobs[i][0]]}, {jobs[i][1]}: {m}" for m in run.health]
                 progress(i)
         _write_table(staging / "batch.csv", rows)
         outputs.write_json(staging / "batch.json", {"columns": COLUMNS, "rows": rows})
         _plot(staging / "batch.png", rows)
     if not args.quiet:
         print(format_table(rows))
-        print(f"wrote batch.csv, batch.json, batch.png to {args.out}/")
+        print(f"wrote batch.csv, batch.json, batch.png and {RUNS}/ (each run's trajectory.txt and "
+              f"pose_covariance.npz) to {args.out}/")
+    print_warnings([line for lines in health for line in lines])  # in the table's order; with --quiet too, as vislam run's: they say a result is not what was asked for
     return 1 if any(r.get("error") for r in rows) else 0
 
 
-def input_labels(paths: list[str]) -> dict[str, str]:
-    """A short label per input: its file name, with as many parent folders as it takes to tell
-    inputs of the same name apart (``a/0027.npz``, ``b/0027.npz``)."""
-    unique = list(dict.fromkeys(paths))
-    parts = {p: Path(p).parts or (p,) for p in unique}
-    depth = max(len(v) for v in parts.values()) if parts else 1
-    for k in range(1, depth + 1):
-        labels = {p: "/".join(parts[p][-k:]) for p in unique}
-        if len(set(labels.values())) == len(unique):
-            return labels
-    return {p: p for p in unique}
+def run_folder(label: str, configuration: str) -> str:
+    """``runs/INPUT/CONFIGURATION``, relative to the output directory: the input's label without
+    ``.npz`` and the configuration (``, `` as ``+``), other characters than letters, digits and
+    ``._=+-`` replaced by '_'."""
+    from ..report import file_stem
+
+    return f"{RUNS}/{file_stem(label.removesuffix('.npz'))}/{file_stem(configuration.replace(', ', '+'))}"
+
+
+def _write_run(staging: Path, run: BatchRun, label: str, configuration: str) -> str:
+    """The run's trajectory.txt and pose_covariance.npz in its folder; returns the folder (relative)."""
+    from ...backend.data.covariance import POSE_COVARIANCE_FILE, TRAJECTORY_FILE, write_pose_covariance
+    from ...backend.data.tum import write_tum
+
+    relative = run_folder(label, configuration)
+    folder = staging / relative
+    folder.mkdir(parents=True, exist_ok=True)
+    write_tum(folder / TRAJECTORY_FILE, run.time_stamps, run.world_T_imu,
+              header=f"world_T_imu of vislam batch: {label}, {configuration}")
+    write_pose_covariance(folder / POSE_COVARIANCE_FILE, run.time_stamps, run.pose_covariance)
+    return relative
 
 
 def _gt_candidate(pattern: str, input_path: str) -> str:
@@ -178,7 +218,8 @@ def _write_table(path: Path, rows: list[dict]) -> None:
 
 def format_table(rows: list[dict]) -> str:
     """The rows as a Markdown table (what the terminal shows)."""
-    shown = ["input", "configuration", "ate_m", "rpe_m", "mean_nis", "seconds", "real_time_factor", "error"]
+    shown = ["input", "configuration", "ate_m", "rpe_m", "mean_nis", "seconds", "real_time_factor", "health_warnings",
+             "error"]
     lines = ["| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
     for row in rows:
         lines.append("| " + " | ".join(_value(row.get(c)) if c != "input"

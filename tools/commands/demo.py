@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 
+from ...backend.errors import HealthWarning
 from .. import console, outputs
 
 
@@ -61,7 +62,7 @@ def _demo(args: argparse.Namespace, out: Path):
     print(f"demo: synthetic street, {seq.num_steps} steps, {seq.num_observations} observations, "
           f"velocity noise and gyro bias as configured in synth.scene.SceneConfig")
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
+        warnings.simplefilter("ignore", HealthWarning)  # listed in the summary, shown by print_health
         # the default run: conventions, noise and drift decided from the data, as for any input
         result = run_sequence(seq, say=console.sayer(False))
     gt = (seq.time_stamps, scene.world_T_imu_true)

@@ -1,15 +1,17 @@
-"""``vislam eval``: ATE and RPE of a trajectory against ground truth (evo), with plots; with the
-run's pose covariance (``pose_covariance.npz``) also the NEES of position and pose.
+"""``vislam eval``: ATE and RPE of one or more trajectories against one ground truth (evo), with
+plots and the result files ``evo_res`` compares; with a run's pose covariance
+(``pose_covariance.npz``) also the NEES of position and pose.
 
-Both files are TUM text (poses matched by time stamp) or both KITTI pose files (``poses/XX.txt``,
-what ``vislam run --format kitti`` writes: the left camera's poses, matched line by line); the
-format is told from the columns (``backend.data.tum.read_trajectory``)."""
+The files are TUM text or EuRoC csv (poses matched by time stamp), or all KITTI pose files
+(``poses/XX.txt``, what ``vislam run --format kitti`` writes: the left camera's poses, matched line
+by line); the format is told from the columns (``backend.data.tum.read_trajectory``)."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -24,13 +26,20 @@ COVARIANCE_STAMP_TOLERANCE = 1e-5
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("eval", help="ATE and RPE of a trajectory (TUM, or KITTI poses) against ground truth "
-                                    "(evo); NEES with the run's pose covariance")
-    p.add_argument("estimate", help="the estimated trajectory: TUM text (timestamp tx ty tz qx qy qz qw; a run's "
-                                    "trajectory.txt) or a KITTI pose file (12 numbers a line; trajectory_kitti.txt)")
-    p.add_argument("ground_truth", help="the ground truth in the same format: TUM poses are matched by time stamp "
-                                        "(within 0.01 s), KITTI poses line by line")
-    p.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
+    p = sub.add_parser("eval", help="ATE and RPE of trajectories (TUM, EuRoC csv or KITTI poses) against ground "
+                                    "truth (evo); NEES with the run's pose covariance")
+    p.add_argument("estimates", nargs="+", metavar="ESTIMATE",
+                   help="one or more estimated trajectories: TUM text (timestamp tx ty tz qx qy qz qw; a run's "
+                        "trajectory.txt), EuRoC csv (timestamp [ns], px, py, pz, qw, qx, qy, qz, ...) or KITTI pose "
+                        "files (12 numbers a line; trajectory_kitti.txt); several: one table and overlaid plots")
+    p.add_argument("ground_truth", help="the ground truth, the last argument: TUM or EuRoC csv (poses matched by time "
+                                        "stamp, within --t-max-diff) or, for KITTI estimates, a KITTI pose file "
+                                        "(matched line by line)")
+    align = p.add_mutually_exclusive_group()
+    align.add_argument("--sim3", action="store_true", help="Sim(3) alignment (default SE(3))")
+    align.add_argument("--align-origin", dest="align_origin", action="store_true",
+                       help="instead of a Umeyama alignment, put each estimate's first matched pose on the ground "
+                            "truth's (evo's --align_origin): the error then shows the drift from the start")
     p.add_argument("--delta", type=float, default=100.0,
                    help="RPE segment length in metres along the ground truth (default 100); every pose starts a "
                         "segment: evo_rpe --all_pairs --pairs_from_reference, the segments KITTI's devkit measures "
@@ -40,18 +49,32 @@ def add_parser(sub) -> None:
                    help="largest difference of two time stamps matched as one pose, seconds (default 0.01, as evo's "
                         "--t_max_diff)")
     p.add_argument("--t-offset", dest="t_offset", type=float, default=0.0, metavar="S",
-                   help="seconds added to the estimate's time stamps before matching (default 0, as evo's --t_offset)")
+                   help="seconds added to the estimates' time stamps before matching (default 0, as evo's --t_offset)")
     p.add_argument("--covariance", metavar="FILE",
                    help="the estimate's pose covariance (pose_covariance.npz of vislam run, the estimate's stamps) "
-                        "for the position and pose NEES; default: pose_covariance.npz beside the estimate when it "
-                        "exists; 'none': no NEES")
-    p.add_argument("--json", help="write the numbers as JSON (with alignment_scale: 1 for SE(3); with a covariance "
-                                  "also nees)")
+                        "for the position and pose NEES; default: pose_covariance.npz beside an estimate named "
+                        "trajectory.txt (a run's), when it exists; 'none': no NEES")
+    p.add_argument("--json", help="write the numbers as JSON (one estimate: its numbers, with alignment_scale: 1 "
+                                  "unless Sim(3), and nees with a covariance; several: ground_truth and a list "
+                                  "estimates of those)")
     p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
-                   "estimate's time span), ate_over_time.png and, with a covariance, nees_over_time.png")
+                   "estimates' time span), xyz_over_time.png, rpy_over_time.png, ate_over_time.png, with a "
+                   "covariance nees_over_time.png, and per estimate ape_NAME.zip and rpe_NAME.zip (evo's result "
+                   "files: evo_res DIR/ape_*.zip compares them)")
     p.add_argument("--force", action="store_true",
                    help="write into a non-empty --out directory and replace an existing --json file")
     p.set_defaults(func=main)
+
+
+@dataclass
+class Estimate:
+    """One estimate of the command line: its file, label, poses and pose covariance."""
+
+    path: str
+    name: str  # label on screen, in the plots and in the result files
+    time_stamps: np.ndarray  # (N,) seconds (shifted by --t-offset), or the frame index (KITTI)
+    poses: np.ndarray  # (N,4,4)
+    covariance: Optional[tuple[Path, np.ndarray]] = None  # (file, (N,6,6))
 
 
 def main(args: argparse.Namespace) -> int:
@@ -64,112 +87,247 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--t-max-diff must be a positive number of seconds, got {args.t_max_diff!r}")
     if not math.isfinite(args.t_offset):
         raise ConfigError(f"--t-offset must be a finite number of seconds, got {args.t_offset!r}")
-    est_t, est, gt_t, gt, by_index = _read_pair(args)
-    beside = None if by_index else covariance_file(args.estimate, args.covariance)
-    if beside is not None:
-        note_input(beside)  # read by default: an input like the two trajectories
+    twice = sorted({p for p in args.estimates if args.estimates.count(p) > 1})
+    if twice:
+        raise ConfigError(f"{twice[0]}: given twice as an estimate")
+    if len(args.estimates) > 1 and args.covariance not in (None, "none"):
+        raise ConfigError(f"--covariance {args.covariance}: one file for {len(args.estimates)} estimates; without "
+                          "the option the pose_covariance.npz beside each run's trajectory.txt is read")
+    estimates, gt, by_index = _read_all(args)
+    for e in estimates:
+        beside = None if by_index else covariance_file(e.path, args.covariance)
+        if beside is not None:
+            note_input(beside)  # read by default: an input like the trajectories
     if args.json is not None:
         check_output_file(args.json, overwrite=args.force)  # before any work
-    covariance = None if by_index else _read_covariance(args, est_t)  # against the file's own stamps
-    est_t = est_t + args.t_offset
-    require_matches(est_t, gt_t, args.ground_truth, max_diff=args.t_max_diff)
+    for e in estimates:
+        if not by_index:
+            e.covariance = _read_covariance(e.path, args.covariance, e.time_stamps)  # the file's own stamps
+            e.time_stamps = e.time_stamps + args.t_offset
+        require_matches(e.time_stamps, gt.time_stamps, args.ground_truth, max_diff=args.t_max_diff)
     with output_directory(args.out, args.force) if args.out is not None else contextlib.nullcontext() as staging:
-        _evaluate(args, est_t, est, gt_t, gt, covariance, staging, by_index)
+        written = _evaluate(args, estimates, gt, staging, by_index)
     if args.out is not None:
-        names = "eval.json, trajectories.png, ate_over_time.png" + (", nees_over_time.png" if covariance else "")
-        print(f"outputs in {args.out}/ ({names})")
+        print(f"outputs in {args.out}/ ({', '.join(written)})")
     return 0
 
 
-def _read_pair(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
-    """(estimate stamps, poses, ground truth stamps, poses, by index) of two files of one format;
-    KITTI pose files are stamped with their line index (matched line by line), without covariance."""
+def _read_all(args: argparse.Namespace):
+    """(estimates, ground truth, by index): the files of one kind, timed (TUM, EuRoC csv) or KITTI
+    pose files (stamped with their line index, matched line by line, without covariance)."""
     from ...backend.data.tum import read_trajectory
+    from ..report import path_labels
 
-    est, gt = read_trajectory(args.estimate), read_trajectory(args.ground_truth)
-    if est.format != gt.format:
-        kitti, tum = (args.estimate, args.ground_truth) if est.by_index else (args.ground_truth, args.estimate)
-        raise InputError(f"{kitti}: a KITTI pose file (camera poses, line k = frame k) and {tum} TUM text (IMU "
-                         "poses in time) cannot be matched: give both in one format (vislam run writes "
-                         "trajectory.txt, and trajectory_kitti.txt with --format kitti)")
-    if est.by_index and args.covariance not in (None, "none"):
-        raise InputError(f"{args.covariance}: the pose covariance of a run is of trajectory.txt (TUM, the IMU's "
-                         f"poses in time), not of the KITTI pose file {args.estimate}")
-    return est.time_stamps, est.poses, gt.time_stamps, gt.poses, est.by_index
+    gt = read_trajectory(args.ground_truth)
+    names = path_labels(args.estimates)
+    if len(args.estimates) == 1:
+        names = {args.estimates[0]: "estimate"}
+    estimates = []
+    for path in args.estimates:
+        est = read_trajectory(path)
+        if est.by_index != gt.by_index:
+            kitti, timed = (path, args.ground_truth) if est.by_index else (args.ground_truth, path)
+            raise InputError(f"{kitti}: a KITTI pose file (camera poses, line k = frame k) and {timed} (poses in "
+                             "time) cannot be matched: give all in one format (vislam run writes trajectory.txt, and "
+                             "trajectory_kitti.txt with --format kitti)")
+        if est.by_index and args.covariance not in (None, "none"):
+            raise InputError(f"{args.covariance}: the pose covariance of a run is of trajectory.txt (TUM, the IMU's "
+                             f"poses in time), not of the KITTI pose file {path}")
+        estimates.append(Estimate(path, names[path], est.time_stamps, est.poses))
+    return estimates, gt, gt.by_index
 
 
 def covariance_file(estimate: str, option: Optional[str]) -> Optional[Path]:
     """The pose covariance to read: ``option`` (``--covariance``; "none": no file), by default
-    ``pose_covariance.npz`` beside the estimate when it exists."""
-    from ...backend.data.covariance import POSE_COVARIANCE_FILE
+    ``pose_covariance.npz`` beside a run's ``trajectory.txt`` (whose covariance it is; not beside
+    ``dead_reckoning.txt`` or a renamed file) when it exists."""
+    from ...backend.data.covariance import POSE_COVARIANCE_FILE, TRAJECTORY_FILE
 
     if option is None:
         beside = Path(estimate).parent / POSE_COVARIANCE_FILE
-        return beside if beside.exists() else None
+        return beside if Path(estimate).name == TRAJECTORY_FILE and beside.exists() else None
     return None if option == "none" else Path(option)
 
 
-def _read_covariance(args: argparse.Namespace, est_t: np.ndarray) -> Optional[tuple[Path, np.ndarray]]:
+def _read_covariance(estimate: str, option: Optional[str], est_t: np.ndarray) -> Optional[tuple[Path, np.ndarray]]:
     """(file, covariance (N,6,6)) of the estimate's N stamps, or None; InputError naming the file when
     its stamps are not the estimate's."""
     from ...backend.data.covariance import read_pose_covariance
 
-    path = covariance_file(args.estimate, args.covariance)
+    path = covariance_file(estimate, option)
     if path is None:
         return None
     cov_t, cov = read_pose_covariance(path)
     if cov_t.shape != est_t.shape:
-        raise InputError(f"{path}: key 'time_stamps': {cov_t.size} stamps, the estimate {args.estimate} has "
+        raise InputError(f"{path}: key 'time_stamps': {cov_t.size} stamps, the estimate {estimate} has "
                          f"{est_t.size}: not the covariance of that trajectory")
     gap = np.abs(cov_t - est_t)
     if gap.max() > COVARIANCE_STAMP_TOLERANCE:
         k = int(np.argmax(gap > COVARIANCE_STAMP_TOLERANCE))
         raise InputError(f"{path}: key 'time_stamps': [{k}] = {cov_t[k]:.6f} differs from the estimate's "
-                         f"{est_t[k]:.6f} ({args.estimate}) by {gap[k]:.3g} s: not the covariance of that trajectory")
+                         f"{est_t[k]:.6f} ({estimate}) by {gap[k]:.3g} s: not the covariance of that trajectory")
     return path, cov
 
 
-def _evaluate(args: argparse.Namespace, est_t, est, gt_t, gt, covariance, out: Path | None,
-              by_index: bool = False) -> None:
-    from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
-    from ..plots import plot_nees_over_time, plot_trajectories_topdown
-    from ..report import nees_text, rpe_label, write_error_plot
+def _alignment_name(args: argparse.Namespace) -> str:
+    return "first-pose-aligned" if args.align_origin else "Sim(3)-aligned" if args.sim3 else "SE(3)-aligned"
 
-    max_diff = args.t_max_diff
-    errors = trajectory_errors(est_t, est, gt_t, gt, sim3=args.sim3, rpe_delta=args.delta, max_diff=max_diff)
-    d = errors.as_dict()
-    d["alignment_scale"] = alignment_scale(est_t, est, gt_t, gt, max_diff=max_diff) if args.sim3 else 1.0
-    d["t_offset"], d["t_max_diff"] = args.t_offset, max_diff
-    d["matched_by"] = ("line (KITTI pose files: line k = frame k)" if by_index
-                       else f"time stamp (within {max_diff:g} s" + (f", the estimate's shifted by {args.t_offset:+g} s)"
-                                                                     if args.t_offset else ")"))
+
+def _evaluate(args: argparse.Namespace, estimates: list[Estimate], gt, out: Path | None, by_index: bool) -> list[str]:
+    """Numbers of every estimate on screen, in --json and, with ``out``, every file of --out; returns
+    the names of the files written into ``out``."""
+    from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
+
+    how = dict(sim3=args.sim3, origin=args.align_origin, max_diff=args.t_max_diff)
+    matched_by = ("line (KITTI pose files: line k = frame k)" if by_index
+                  else f"time stamp (within {args.t_max_diff:g} s" + (f", the estimates' shifted by {args.t_offset:+g} s)"
+                                                                      if args.t_offset else ")"))
+    numbers, nees = [], []
+    for e in estimates:
+        errors = trajectory_errors(e.time_stamps, e.poses, gt.time_stamps, gt.poses, rpe_delta=args.delta, **how)
+        d = errors.as_dict()
+        d["alignment_scale"] = (alignment_scale(e.time_stamps, e.poses, gt.time_stamps, gt.poses,
+                                                max_diff=args.t_max_diff) if args.sim3 else 1.0)
+        d["t_offset"], d["t_max_diff"], d["matched_by"] = args.t_offset, args.t_max_diff, matched_by
+        found = None
+        if e.covariance is not None:
+            from ...backend.evaluation.consistency import trajectory_nees
+
+            path, cov = e.covariance
+            found = trajectory_nees(e.time_stamps, e.poses, cov, gt.time_stamps, gt.poses, max_diff=args.t_max_diff)
+            d["nees"] = {"covariance_file": str(path), **found.as_dict()}
+        numbers.append(d)
+        nees.append(found)
     if by_index:
         print("KITTI pose files: poses matched line by line (line k = frame k; the times in the plots are frames)")
-    elif args.t_offset or max_diff != 0.01:
-        print(f"poses matched by {d['matched_by']}")
-    print(f"ATE RMSE ({'Sim(3)' if args.sim3 else 'SE(3)'}-aligned) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
+    elif args.t_offset or args.t_max_diff != 0.01:
+        print(f"poses matched by {matched_by}")
+    if len(estimates) == 1:
+        _print_one(args, numbers[0])
+        document = numbers[0]
+    else:
+        print(format_table(args, estimates, numbers))
+        document = {"ground_truth": args.ground_truth,
+                    "estimates": [{"name": e.name, "file": e.path, **d} for e, d in zip(estimates, numbers)]}
+    if args.json is not None:
+        outputs.write_json(args.json, document)
+    if out is None:
+        return []
+    return _write_outputs(args, estimates, gt, numbers, nees, document, out)
+
+
+def _print_one(args: argparse.Namespace, d: dict) -> None:
+    from ..report import nees_text, rpe_label
+
+    print(f"ATE RMSE ({_alignment_name(args)}) {d['ate_rmse']:.3f} m (mean {d['ate_mean']:.3f}, "
           f"max {d['ate_max']:.3f}) over {d['path_length']:.1f} m, {d['num_matched']} poses; "
           f"{rpe_label(d, args.delta)}: {d['rpe_trans_rmse']:.3f} m, {d['rpe_rot_rmse_deg']:.3f} deg")
     if args.sim3:
         print(f"Sim(3) scale {d['alignment_scale']:.12g} (applied to the estimate; < 1: its path is longer "
               "than the ground truth's)")
-    nees = None
-    if covariance is not None:
-        from ...backend.evaluation.consistency import trajectory_nees
-
-        path, cov = covariance
-        nees = trajectory_nees(est_t, est, cov, gt_t, gt, max_diff=max_diff)
-        d["nees"] = {"covariance_file": str(path), **nees.as_dict()}
+    if "nees" in d:
         print(nees_text(d["nees"]["position"], "position"))
         print(nees_text(d["nees"]["pose"], "pose"))
-    if args.json is not None:
-        outputs.write_json(args.json, d)
-    if out is not None:
-        title = f"{Path(args.estimate).name} vs {Path(args.ground_truth).name}"
-        plot_trajectories_topdown(out / "trajectories.png", {"estimate": (est_t, est)}, (gt_t, gt), sim3=args.sim3,
-                                  title=title, max_diff=max_diff)
-        write_error_plot(out / "ate_over_time.png", {"estimate": est}, est_t, gt_t, gt, sim3=args.sim3,
-                         max_diff=max_diff)
-        if nees is not None:
-            plot_nees_over_time(out / "nees_over_time.png", nees, title=title)
-        outputs.write_json(out / "eval.json", d)
+
+
+def format_table(args: argparse.Namespace, estimates: list[Estimate], numbers: list[dict]) -> str:
+    """Several estimates against one ground truth: a heading line and a Markdown table (a row each)."""
+    from ..report import rpe_label
+
+    first = numbers[0]
+    head = (f"{len(estimates)} estimates against {args.ground_truth}, each {_alignment_name(args)}; "
+            f"{rpe_label(first, args.delta)}")
+    columns = ["estimate", "ATE RMSE [m]", "ATE max [m]", "RPE [m]", "RPE [deg]", "poses"]
+    if args.sim3:
+        columns.append("Sim(3) scale")
+    with_nees = any("nees" in d for d in numbers)
+    if with_nees:
+        columns += ["position NEES mean", "inside 95 %"]
+    lines = [head, "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for e, d in zip(estimates, numbers):
+        rpe = f"{d['rpe_trans_rmse']:.3f}"
+        if (d["rpe_delta"], d["rpe_unit"]) != (first["rpe_delta"], first["rpe_unit"]):
+            rpe += f" (per {d['rpe_delta']:g} {d['rpe_unit']})"
+        cells = [e.name, f"{d['ate_rmse']:.3f}", f"{d['ate_max']:.3f}", rpe, f"{d['rpe_rot_rmse_deg']:.3f}",
+                 str(d["num_matched"])]
+        if args.sim3:
+            cells.append(f"{d['alignment_scale']:.6f}")
+        if with_nees:
+            position = d.get("nees", {}).get("position")
+            if position is None or not position["steps"]:
+                cells += ["", ""]
+            else:
+                mean = position["mean"]
+                cells += ["inf" if mean is None else f"{mean:.2f}", f"{100 * position['share_inside_95']:.1f} %"]
+        lines.append("| " + " | ".join(cells) + " |")
+    if with_nees:
+        lines.append("position NEES: expected 3 and 95 % inside; empty: no pose covariance (a run's "
+                     "pose_covariance.npz is of its trajectory.txt)")
+    return "\n".join(lines)
+
+
+def result_file_stems(estimates: list[Estimate]) -> list[str]:
+    """A file-name stem per estimate for its evo result files: its label without the extension
+    (:func:`~vislam.tools.report.file_stem`), made unique."""
+    from ..report import file_stem, path_labels
+
+    labels = path_labels([e.path for e in estimates])
+    stems: list[str] = []
+    for e in estimates:
+        label = labels[e.path]
+        stem = file_stem(label.removesuffix(Path(label).suffix))
+        unique, k = stem, 2
+        while unique in stems:
+            unique, k = f"{stem}_{k}", k + 1
+        stems.append(unique)
+    return stems
+
+
+def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numbers: list[dict], nees: list,
+                   document: dict, out: Path) -> list[str]:
+    from evo.tools.file_interface import save_res_file
+
+    from ...backend.evaluation.metrics import alignment, evo_results
+    from ..plots import (GT_CROP_TOLERANCE, plot_nees_over_time, plot_rpy_over_time, plot_trajectories_topdown,
+                         plot_xyz_over_time)
+    from ..report import write_error_plot
+
+    how = dict(sim3=args.sim3, origin=args.align_origin, max_diff=args.t_max_diff)
+    gt_name = Path(args.ground_truth).name
+    title = (f"{Path(estimates[0].path).name} vs {gt_name}" if len(estimates) == 1
+             else f"{len(estimates)} estimates vs {gt_name}")
+    curves = {e.name: (e.time_stamps, e.poses) for e in estimates}
+    written = ["eval.json", "trajectories.png", "xyz_over_time.png", "rpy_over_time.png", "ate_over_time.png"]
+    plot_trajectories_topdown(out / "trajectories.png", curves, (gt.time_stamps, gt.poses), title=title, **how)
+    aligned = {e.name: (e.time_stamps, alignment(e.time_stamps, e.poses, gt.time_stamps, gt.poses, **how)
+                        .apply_poses(e.poses)) for e in estimates}
+    first = min(e.time_stamps[0] for e in estimates) - GT_CROP_TOLERANCE
+    last = max(e.time_stamps[-1] for e in estimates) + GT_CROP_TOLERANCE
+    keep = (gt.time_stamps >= first) & (gt.time_stamps <= last)
+    aligned["ground truth"] = (gt.time_stamps[keep], gt.poses[keep])
+    aligned_title = f"{title}; each estimate {_alignment_name(args)}"
+    plot_xyz_over_time(out / "xyz_over_time.png", aligned, title=aligned_title)
+    plot_rpy_over_time(out / "rpy_over_time.png", aligned, title=aligned_title)
+    write_error_plot(out / "ate_over_time.png", curves, gt.time_stamps, gt.poses, **how)
+    stems = result_file_stems(estimates)
+    for e, found, stem in zip(estimates, nees, stems):
+        if found is not None:
+            name = "nees_over_time.png" if len(estimates) == 1 else f"nees_over_time_{stem}.png"
+            plot_nees_over_time(out / name, found, title=f"{Path(e.path).name} vs {gt_name}")
+            written.append(name)
+    for e, d, stem in zip(estimates, numbers, stems):
+        ape, rpe = evo_results(e.time_stamps, e.poses, gt.time_stamps, gt.poses, rpe_delta=d["rpe_delta"],
+                               rpe_unit=d["rpe_unit"], est_name=stem, ref_name=gt_name, **how)
+        for kind, result in (("ape", ape), ("rpe", rpe)):
+            _save_result(save_res_file, out / f"{kind}_{stem}.zip", result)
+            written.append(f"{kind}_{stem}.zip")
+    outputs.write_json(out / "eval.json", document)
+    return written
+
+
+def _save_result(save_res_file, path: Path, result) -> None:
+    """evo's result file, written to a temporary name and renamed (``atomic_write``)."""
+    from ...backend.data.files import atomic_write
+
+    with atomic_write(path) as tmp:
+        save_res_file(str(tmp), result, confirm_overwrite=False)

@@ -11,7 +11,7 @@ import warnings
 from pathlib import Path
 
 from ...backend.config import Config
-from ...backend.errors import ConfigError, InputError
+from ...backend.errors import ConfigError, HealthWarning, InputError
 from .. import console, options
 
 
@@ -80,7 +80,7 @@ def main(args: argparse.Namespace) -> int:
     # the recording is moved into place after the outputs, and written whole before them (finish_writing)
     with _recorder(args) as recorder, output_directory(args.out, args.force, OUTPUT_SPACE) as staging:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # health messages: listed in the summary
+            warnings.simplefilter("ignore", HealthWarning)  # listed in the summary, shown by print_health
             drive = euroc_truth = None
             if images and is_euroc(args.data):
                 (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
