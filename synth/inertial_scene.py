@@ -24,13 +24,13 @@ import numpy as np
 
 from ..backend.data.files import atomic_write
 from ..backend.data.inertial import ADIS16448, ImuNoiseDensities
-from ..backend.data.npz import save_sequence
 from ..backend.data.sequence import SYNTHETIC_TRACKER, Sequence, validate_sequence
-from ..backend.data.tum import write_tum
+from ..backend.errors import ConfigError
 from ._random import generator
 from .inertial import GRAVITY, ROOM_BOX, frame_times, frame_truth, measure_imu, room, street
 from .landmarks import street_landmarks
 from .observe import Calibration, kitti_calibration, observe
+from .scene import write_with_truth
 
 __all__ = ["InertialSceneConfig", "InertialScene", "InertialSceneFactory", "make_inertial_scene", "write_inertial_scene",
            "room_points", "vi_sensor_calibration", "INERTIAL_SCENARIOS"]
@@ -60,7 +60,8 @@ def room_points(seed, count: int = 600) -> np.ndarray:
 
 @dataclass(frozen=True)
 class InertialSceneConfig:
-    """What :func:`make_inertial_scene` builds."""
+    """What :func:`make_inertial_scene` builds (:func:`check_inertial_scene`: the bounds a command
+    allows)."""
 
     scenario: str = "room"
     duration: float = 60.0  # s
@@ -82,6 +83,23 @@ class InertialSceneConfig:
             raise ValueError(f"scenario must be one of {INERTIAL_SCENARIOS}, got {self.scenario!r}")
         if not (self.duration > (self.start_at_rest or 0.0) + 1.0 and self.imu_rate > self.frame_rate > 0):
             raise ValueError("need duration > start_at_rest + 1 s and imu_rate > frame_rate > 0")
+
+
+#: The shortest and the longest inertial scene a command makes (s): 2 s at rest, then the motion;
+#: 200 Hz samples and 20 Hz tracks of an hour are about 1 GB
+MIN_SECONDS, MAX_SECONDS = 4.0, 3600.0
+
+
+def check_inertial_scene(scenario: str, duration: float) -> None:
+    """ConfigError naming the option for a scenario without a real IMU (``aerial``) or a duration
+    outside [:data:`MIN_SECONDS`, :data:`MAX_SECONDS`]; what ``vislam synth`` and ``vislam mc``
+    check before any work."""
+    if scenario not in INERTIAL_SCENARIOS:
+        raise ConfigError(f"--scenario {scenario} with --imu inertial: scenarios {' and '.join(INERTIAL_SCENARIOS)} "
+                          "(aerial has body velocities only)")
+    if not MIN_SECONDS <= duration <= MAX_SECONDS:
+        raise ConfigError(f"--duration {duration:g}: an inertial scene lasts {MIN_SECONDS:g} to {MAX_SECONDS:g} s "
+                          "(2 s at rest, then the motion)")
 
 
 @dataclass
@@ -156,15 +174,10 @@ class InertialSceneFactory:
 def write_inertial_scene(scene: InertialScene, out_dir) -> Path:
     """``data.npz`` (inertial layout), ``gt_tum.txt``, ``gt_states.npz`` (``time_stamps``, ``velocity``,
     ``gyro_bias``, ``accel_bias`` at the frames) and ``landmarks.npz`` into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     seq = scene.sequence
-    save_sequence(seq, out / "data.npz")
-    write_tum(out / "gt_tum.txt", seq.time_stamps, scene.world_T_imu_true,
-              header=f"{seq.source} ground truth world_T_imu (gravity-aligned world, z up): t tx ty tz qx qy qz qw")
+    out = write_with_truth(out_dir, seq, scene.world_T_imu_true, "world_T_imu (gravity-aligned world, z up)",
+                           np.arange(scene.landmark_positions.shape[0]), scene.landmark_positions)
     with atomic_write(out / "gt_states.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, time_stamps=seq.time_stamps, velocity=scene.velocity_true, gyro_bias=scene.gyro_bias_true,
                  accel_bias=scene.accel_bias_true)
-    with atomic_write(out / "landmarks.npz") as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, ids=np.arange(scene.landmark_positions.shape[0]), positions=scene.landmark_positions)
     return out

@@ -251,19 +251,29 @@ def make_scene(config: SceneConfig | None = None, noise_seed: int | None = None)
     )
 
 
+def write_with_truth(out_dir, seq: Sequence, world_T_imu_true: np.ndarray, frame: str, landmark_ids: np.ndarray,
+                     landmark_positions: np.ndarray) -> Path:
+    """What every synthetic scene writes into ``out_dir`` (created if missing): ``data.npz`` (``seq``),
+    ``gt_tum.txt`` (``world_T_imu_true`` (N,4,4) at its stamps; ``frame`` names the poses in the
+    header) and ``landmarks.npz`` (``ids`` (K,), ``positions`` (K,3)); returns the directory."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_sequence(seq, out / "data.npz")
+    write_tum(out / "gt_tum.txt", seq.time_stamps, world_T_imu_true,
+              header=f"{seq.source} ground truth {frame}: t tx ty tz qx qy qz qw")
+    with atomic_write(out / "landmarks.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, ids=landmark_ids, positions=landmark_positions)
+    return out
+
+
 def write_scene(scene: Scene, out_dir) -> Path:
     """Write ``data.npz`` (course 2022 layout), ``gt_tum.txt`` (world_T_imu) and ``landmarks.npz``
     (``ids``, ``positions``) into ``out_dir`` (created if missing); returns the directory. A scene
     with track errors beyond white noise and outliers also gets ``scene.json`` (its configuration
     and a summary of the drawn errors, :func:`scene_facts`) and ``track_errors.npz`` (the
     :class:`~vislam.synth.track_errors.TrackErrorTruth` arrays, tracks by id)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    save_sequence(scene.sequence, out / "data.npz")
-    write_tum(out / "gt_tum.txt", scene.sequence.time_stamps, scene.world_T_imu_true,
-              header=f"{scene.config.source} ground truth world_T_imu: t tx ty tz qx qy qz qw")
-    with atomic_write(out / "landmarks.npz") as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, ids=scene.landmark_ids, positions=scene.landmark_positions)
+    out = write_with_truth(out_dir, scene.sequence, scene.world_T_imu_true, "world_T_imu", scene.landmark_ids,
+                           scene.landmark_positions)
     if scene.config.track_errors.effects():
         with atomic_write(out / "track_errors.npz") as tmp, open(tmp, "wb") as fh:
             np.savez(fh, ids=scene.landmark_ids, **scene.track_errors._asdict())

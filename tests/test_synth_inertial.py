@@ -309,3 +309,23 @@ def test_reproducible_by_seed(name):
     assert not np.allclose(i1.linear_acceleration, i3.linear_acceleration)
     assert not np.allclose(t1.accel_bias[0], t3.accel_bias[0])
     np.testing.assert_array_equal(t1.noise_free.linear_acceleration, t3.noise_free.linear_acceleration)
+
+
+def test_the_commands_bounds_of_an_inertial_scene_are_one_check(tmp_path, capsys):
+    """vislam synth and vislam mc refuse the same scenarios and durations, with the same line."""
+    from vislam.backend.errors import ConfigError
+    from vislam.synth.inertial_scene import MAX_SECONDS, MIN_SECONDS, check_inertial_scene
+    from vislam.tools.cli import main
+
+    check_inertial_scene("room", MIN_SECONDS)
+    check_inertial_scene("street", MAX_SECONDS)
+    for scenario, duration, named in (("aerial", 10.0, "--scenario aerial"), ("room", MIN_SECONDS - 0.5, "--duration"),
+                                      ("street", MAX_SECONDS + 1.0, "--duration")):
+        with pytest.raises(ConfigError, match=named):
+            check_inertial_scene(scenario, duration)
+        lines = []
+        for command in (["synth"], ["mc", "--runs", "2"]):
+            assert main([*command, "--imu", "inertial", "--scenario", scenario, "--duration", str(duration),
+                         "--out", str(tmp_path / "x")]) == 2
+            lines.append(capsys.readouterr().err.strip())
+        assert lines[0] == lines[1] and named in lines[0] and not (tmp_path / "x").exists()

@@ -129,22 +129,18 @@ def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
     robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
     mismatches, which an undamped fit can follow even from the right answer, left out); None when
     fewer than ``min_points`` remain or the fit fails."""
-    from .two_view import MIN_DISPARITY, fit_pair
+    from .two_view import fit_pair, matched_pixels
 
     K = seq.K
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     R_ic = np.asarray(seq.imu_T_cam, dtype=float)[:3, :3]
-    ia, za = seq.observations(a)
-    ib, zb = seq.observations(b)
-    _, i, j = np.intersect1d(ia, ib, return_indices=True)
-    near = (za[i, 0] - za[i, 2] > MIN_DISPARITY) & (zb[j, 0] - zb[j, 2] > MIN_DISPARITY)
-    i, j = i[near], j[near]
-    if i.size < min_points:
+    za, zb = matched_pixels(seq, a, b)
+    if za.shape[0] < min_points:
         return None
-    guess, agree = _motion_guess(za[i], zb[j], cam, R_ic.T @ Ia_R_Ib.T @ R_ic)
+    guess, agree = _motion_guess(za, zb, cam, R_ic.T @ Ia_R_Ib.T @ R_ic)
     if agree.sum() < min_points:
         return None
-    return fit_pair(za[i[agree]], zb[j[agree]], cam, min_points=min_points, step=a, gap=b - a, initial=guess)
+    return fit_pair(za[agree], zb[agree], cam, min_points=min_points, step=a, gap=b - a, initial=guess)
 
 
 def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> tuple[float, float] | None:

@@ -29,7 +29,7 @@ from ..compiled import jit, warms_up
 from ..data.sequence import Sequence
 from ..geometry import se3
 
-__all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "pair_steps", "pooled_mean_square"]
+__all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps", "pooled_mean_square"]
 
 #: Huber threshold (px) of the fit.
 HUBER_PX = 1.0
@@ -395,6 +395,23 @@ def pair_steps(num_steps: int, gap: int, max_pairs: int, skip: np.ndarray | None
     return candidates
 
 
+def matched_pixels(seq: Sequence, a: int, b: int, rng: np.random.Generator | None = None,
+                   extra_noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(za, zb), (m,4) each: the pixels at steps ``a`` and ``b`` of the tracks seen at both, row by
+    row the same track, kept where both disparities exceed ``MIN_DISPARITY``; with ``rng``, white
+    noise of ``extra_noise`` px is added to every pixel first (the disparities are those of the
+    noisy pixels)."""
+    ids_a, za = seq.observations(a)
+    ids_b, zb = seq.observations(b)
+    _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
+    za, zb = za[ia], zb[ib]
+    if rng is not None:
+        za = za + rng.normal(0.0, extra_noise, za.shape)
+        zb = zb + rng.normal(0.0, extra_noise, zb.shape)
+    keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
+    return za[keep], zb[keep]
+
+
 def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = False, min_points: int = 12,
               skip: np.ndarray | None = None, steps: np.ndarray | None = None, extra_noise: float = 0.0,
               seed: int = 0) -> list[TwoViewFit]:
@@ -407,17 +424,10 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
     rng = np.random.default_rng(seed) if extra_noise > 0 else None
     fits = []
     for k in pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps:
-        ids_a, za = seq.observations(int(k))
-        ids_b, zb = seq.observations(int(k) + gap)
-        _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
-        za, zb = za[ia], zb[ib]
-        if rng is not None:
-            za = za + rng.normal(0.0, extra_noise, za.shape)
-            zb = zb + rng.normal(0.0, extra_noise, zb.shape)
-        keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
-        if keep.sum() < min_points:
+        za, zb = matched_pixels(seq, int(k), int(k) + gap, rng, extra_noise)
+        if za.shape[0] < min_points:
             continue
-        fit = fit_pair(za[keep], zb[keep], cam, offset, min_points, int(k), gap)
+        fit = fit_pair(za, zb, cam, offset, min_points, int(k), gap)
         if fit is not None:
             fits.append(fit)
     return fits

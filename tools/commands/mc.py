@@ -58,15 +58,12 @@ def main(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     if args.imu == "inertial":
-        from ...synth.inertial_scene import InertialSceneConfig, InertialSceneFactory
-        from .synth import MAX_INERTIAL_SECONDS
+        from ...synth.inertial_scene import InertialSceneConfig, InertialSceneFactory, check_inertial_scene
 
-        if args.scenario == "aerial" or args.true_noise:
-            raise ConfigError("--imu inertial: scenarios room and street, and no --true-noise (the noise is decided "
-                              "from each run's data)")
-        if not 4.0 <= args.duration <= MAX_INERTIAL_SECONDS:
-            raise ConfigError(f"--duration {args.duration:g}: an inertial scene lasts 4 to {MAX_INERTIAL_SECONDS:g} s")
         args.scenario = args.scenario or "room"
+        check_inertial_scene(args.scenario, args.duration)
+        if args.true_noise:
+            raise ConfigError("--imu inertial: no --true-noise (the noise is decided from each run's data)")
         # no gross outliers: a landmark started from one (its track's first observation) would enter the
         # map's NEES with a position nothing supports; the filter's own model is what is tested here
         factory = InertialSceneFactory(InertialSceneConfig(scenario=args.scenario, duration=args.duration,

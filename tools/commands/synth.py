@@ -111,23 +111,16 @@ def track_error_summary(scene) -> str:
     return "; ".join(parts)
 
 
-#: The longest inertial scene (s): 200 Hz samples and 20 Hz tracks of an hour are about 1 GB
-MAX_INERTIAL_SECONDS = 3600.0
-
-
 def _inertial(args: argparse.Namespace) -> int:
     """``--imu inertial``: a flight (room) or drive (street) with a real IMU's samples (``synth.inertial_scene``)."""
     from ...backend.data.files import output_directory
-    from ...synth.inertial_scene import InertialSceneConfig, make_inertial_scene, write_inertial_scene
+    from ...synth.inertial_scene import (InertialSceneConfig, check_inertial_scene, make_inertial_scene,
+                                         write_inertial_scene)
 
     scenario = args.scenario or "room"
-    if scenario == "aerial":
-        raise VislamError("--imu inertial: scenarios room and street (aerial has body velocities only)")
+    check_inertial_scene(scenario, args.duration)
     if args.render or args.track_errors != "none" or args.errors:
         raise VislamError("--imu inertial: no --render, --track-errors or --errors yet (white pixel noise and outliers)")
-    if not 4.0 <= args.duration <= MAX_INERTIAL_SECONDS:
-        raise VislamError(f"--duration {args.duration:g}: an inertial scene lasts 4 to {MAX_INERTIAL_SECONDS:g} s "
-                          "(2 s at rest, then the motion)")
     config = InertialSceneConfig(scenario=scenario, duration=args.duration, seed=args.seed)
     with output_directory(args.out, args.force) as staging:
         scene = make_inertial_scene(config)

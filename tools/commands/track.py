@@ -34,7 +34,6 @@ def add_parser(sub) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import check_output_file
-    from ...backend.data.npz import save_sequence
     from ...frontend.track import open_tracking_input, track_directory
 
     out = check_output_file(args.out, overwrite=args.force)  # refused before any work
@@ -50,18 +49,8 @@ def main(args: argparse.Namespace) -> int:
     if args.imu_input == "inertial":
         return _track_raw_inertial(args, config, out)
     directory, imu, _ = open_tracking_input(args.images, args.imu, args.imu_T_cam, config, args.draw)
-    say = console.sayer(args.quiet)
-    for note in imu.notes:
-        say(f"note: {note}")
-    say(console.configuration_text(args.verbose, config))
-    with console.progress_bar(len(directory), "track", "frame", console.progress_off(args)) as progress:
-        seq = track_directory(directory, imu, config, None, progress, args.draw)
-    save_sequence(seq, out)
-    per_frame = seq.num_observations / seq.num_steps
-    if not args.quiet:
-        print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
-              f"({per_frame:.0f} per frame); wrote {out}")
-    return 0
+    return _track_and_write(args, config, out, imu.notes, len(directory),
+                            lambda progress: track_directory(directory, imu, config, None, progress, args.draw))
 
 
 def _track_raw_inertial(args: argparse.Namespace, config, out) -> int:
@@ -70,7 +59,7 @@ def _track_raw_inertial(args: argparse.Namespace, config, out) -> int:
     from ...frontend.track import track_raw_inertial
 
     drive = open_inertial_drive(args.images, args.imu, args.imu_T_cam)
-    return _write_inertial(args, config, out, drive.imu.notes, len(drive.stereo),
+    return _track_and_write(args, config, out, drive.imu.notes, len(drive.stereo),
                            lambda progress: track_raw_inertial(drive, config, progress, args.draw))
 
 
@@ -80,13 +69,13 @@ def _track_euroc(args: argparse.Namespace, config, out) -> int:
     from ...frontend.track import track_euroc
 
     data = open_euroc_input(args.images, args.imu, args.imu_T_cam, args.imu_input)
-    return _write_inertial(args, config, out, data.notes, len(data.frames),
+    return _track_and_write(args, config, out, data.notes, len(data.frames),
                            lambda progress: track_euroc(data, config, progress, args.draw))
 
 
-def _write_inertial(args: argparse.Namespace, config, out, notes, frames: int, track) -> int:
-    """Say the input's notes and the configuration, ``track(progress)`` its ``frames`` into an
-    inertial sequence, and write it to ``out`` in the inertial layout."""
+def _track_and_write(args: argparse.Namespace, config, out, notes, frames: int, track) -> int:
+    """Say the input's notes and the configuration, ``track(progress)`` its ``frames`` into a
+    sequence, and write it to ``out`` (the inertial layout when it holds a real IMU's samples)."""
     from ...backend.data.npz import save_sequence
 
     say = console.sayer(args.quiet)
@@ -97,7 +86,8 @@ def _write_inertial(args: argparse.Namespace, config, out, notes, frames: int, t
         seq = track(progress)
     save_sequence(seq, out)
     if not args.quiet:
-        print(f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
-              f"({seq.num_observations / seq.num_steps:.0f} per frame), {seq.imu.num_samples} IMU samples; "
-              f"wrote {out} (inertial layout)")
+        counts = (f"{seq.num_steps} frames, {seq.num_features} tracks, {seq.num_observations} stereo observations "
+                  f"({seq.num_observations / seq.num_steps:.0f} per frame)")
+        print(f"{counts}, {seq.imu.num_samples} IMU samples; wrote {out} (inertial layout)" if seq.inertial
+              else f"{counts}; wrote {out}")
     return 0
