@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import yaml
 
-from ..backend.data.inertial import ImuSamples, check_imu_samples, check_noise_densities, KALIBR_KEYS
+from ..backend.data.inertial import ImuNoiseDensities, ImuSamples, check_imu_samples, check_noise_densities, KALIBR_KEYS
 from ..backend.data.sequence import check_camera_matrix, input_error, nearest_rigid
 from ..backend.data.files import note_input
 from ..backend.data.textio import read_lines, text_float
@@ -292,8 +292,28 @@ class StereoRectification:
                 cv2.remap(right, self.map_right_x, self.map_right_y, cv2.INTER_LINEAR))
 
 
+class RectifiedRig:
+    """What a rectified stereo pair on an IMU gives the tracker (:class:`EurocDataset`,
+    ``frontend.bag.BagDataset``): needs ``rectification`` and ``imu`` (an :class:`EurocImu`)."""
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) rectified left intrinsics."""
+        return self.rectification.K
+
+    @property
+    def baseline(self) -> float:
+        """Rectified baseline (m)."""
+        return self.rectification.baseline
+
+    @property
+    def imu_T_cam(self) -> np.ndarray:
+        """(4, 4) the rectified left camera in the IMU frame."""
+        return self.rectification.imu_T_cam(self.imu.body_T_imu)
+
+
 @dataclass(frozen=True, eq=False)
-class EurocDataset:
+class EurocDataset(RectifiedRig):
     """Everything of a EuRoC sequence but the image pixels (read on demand by :meth:`read_pair`).
 
     Attributes
@@ -319,21 +339,6 @@ class EurocDataset:
     rectification: StereoRectification
     ground_truth: GroundTruth | None
     notes: tuple[str, ...] = ()
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) rectified left intrinsics."""
-        return self.rectification.K
-
-    @property
-    def baseline(self) -> float:
-        """Rectified baseline (m)."""
-        return self.rectification.baseline
-
-    @property
-    def imu_T_cam(self) -> np.ndarray:
-        """(4, 4) the rectified left camera in the IMU frame."""
-        return self.rectification.imu_T_cam(self.imu.body_T_imu)
 
     def read_pair(self, index: int, rectified: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """(left, right) (h, w) uint8 grey images of pair ``index``, rectified unless ``rectified`` is
@@ -461,9 +466,9 @@ def _numbers(src: str, key: str, value, count: int | None = None) -> np.ndarray:
     return np.array([_number(src, f"{key}[{i}]", v) for i, v in enumerate(value)], dtype=np.float64)
 
 
-def _required(src: str, data: dict, key: str, what: str):
+def _required(src: str, data: dict, key: str, what: str, prefix: str = ""):
     if key not in data or data[key] is None:
-        raise input_error(src, key, f"missing ({what})")
+        raise input_error(src, prefix + key, f"missing ({what})")
     return data[key]
 
 
@@ -498,12 +503,19 @@ def _T_BS(src: str, data: dict) -> tuple[np.ndarray, str | None]:
         entries, key = value["data"], "T_BS.data"
     else:
         entries, key = value, "T_BS"
+    return rigid_matrix(src, key, entries, "T_BS")
+
+
+def rigid_matrix(src: str, key: str, entries, name: str | None = None) -> tuple[np.ndarray, str | None]:
+    """A 4x4 rigid transform from YAML: a nested list of 4 rows of 4 numbers (Kalibr's ``T_cam_imu``)
+    or 16 numbers row by row, checked rigid and re-orthonormalized (:func:`nearest_rigid`, naming
+    ``name`` or ``key``); (matrix, note or None)."""
     if isinstance(entries, list) and len(entries) == 4 and all(isinstance(r, list) for r in entries):
         rows = [_numbers(src, f"{key}[{i}]", r, 4) for i, r in enumerate(entries)]
         T = np.array(rows)
     else:
         T = _numbers(src, key, entries, 16).reshape(4, 4)
-    return nearest_rigid(src, "T_BS", T)
+    return nearest_rigid(src, name or key, T)
 
 
 # ---------------------------------------------------------------------------------------------- sensor.yaml
@@ -527,29 +539,41 @@ def read_camera_yaml(path) -> CameraCalibration:
     data = _read_yaml(path, "a camera's sensor.yaml: T_BS, intrinsics, distortion_model, distortion_coefficients, "
                             "resolution")
     _sensor_type(src, data, "camera")
+    K, distortion, resolution = pinhole(src, data)
+    body_T_cam, note = _T_BS(src, data)
+    return CameraCalibration(body_T_cam=body_T_cam, K=K, distortion=distortion, resolution=resolution,
+                             rate_hz=_rate(src, data), source=src, notes=(note,) if note else ())
+
+
+def pinhole(src: str, data: dict, prefix: str = "",
+            distortion_key: str = "distortion_coefficients") -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """(K (3,3), distortion (4,) k1 k2 p1 p2, (width, height)) of a camera's YAML mapping ``data``:
+    ``camera_model`` (pinhole, the default), ``distortion_model`` (radial-tangential / radtan),
+    ``resolution``, ``intrinsics`` and the coefficients under ``distortion_key`` (EuRoC's
+    ``distortion_coefficients``, Kalibr's ``distortion_coeffs``); errors name ``prefix`` + the key."""
     model = data.get("camera_model", "pinhole")
     if model is None or str(model).strip().lower() != "pinhole":
-        raise input_error(src, "camera_model", f"{_show(model)} is not supported (only 'pinhole', with "
-                                               "radial-tangential distortion)")
-    dist_model = _required(src, data, "distortion_model", "radial-tangential")
+        raise input_error(src, prefix + "camera_model", f"{_show(model)} is not supported (only 'pinhole', with "
+                                                        "radial-tangential distortion)")
+    dist_model = _required(src, data, "distortion_model", "radial-tangential", prefix)
     if str(dist_model).strip().lower() not in RADTAN_NAMES:
-        raise input_error(src, "distortion_model", f"{_show(dist_model)} is not supported (only "
-                                                   "'radial-tangential': k1, k2, p1, p2)")
-    body_T_cam, note = _T_BS(src, data)
-    resolution = _numbers(src, "resolution", _required(src, data, "resolution", "[width, height] in pixels"), 2)
+        raise input_error(src, prefix + "distortion_model", f"{_show(dist_model)} is not supported (only "
+                                                            "'radial-tangential': k1, k2, p1, p2)")
+    resolution = _numbers(src, prefix + "resolution",
+                          _required(src, data, "resolution", "[width, height] in pixels", prefix), 2)
     if not (np.all(resolution == np.round(resolution)) and np.all(resolution >= 1)):
-        raise input_error(src, "resolution", f"expected two whole numbers >= 1 (width, height), got {resolution.tolist()}")
+        raise input_error(src, prefix + "resolution",
+                          f"expected two whole numbers >= 1 (width, height), got {resolution.tolist()}")
     w, h = (int(x) for x in resolution)
-    fu, fv, cu, cv = _numbers(src, "intrinsics", _required(src, data, "intrinsics", "[fu, fv, cu, cv]"), 4)
+    fu, fv, cu, cv = _numbers(src, prefix + "intrinsics",
+                              _required(src, data, "intrinsics", "[fu, fv, cu, cv]", prefix), 4)
     if not (fu > 0 and fv > 0):
-        raise input_error(src, "intrinsics", f"focal lengths fu = {fu:g}, fv = {fv:g} must be > 0")
+        raise input_error(src, prefix + "intrinsics", f"focal lengths fu = {fu:g}, fv = {fv:g} must be > 0")
     if not (0 <= cu <= w and 0 <= cv <= h):
-        raise input_error(src, "intrinsics", f"principal point ({cu:g}, {cv:g}) outside the {w}x{h} image")
-    distortion = _numbers(src, "distortion_coefficients",
-                          _required(src, data, "distortion_coefficients", "[k1, k2, p1, p2]"), 4)
-    K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
-    return CameraCalibration(body_T_cam=body_T_cam, K=K, distortion=distortion, resolution=(w, h),
-                             rate_hz=_rate(src, data), source=src, notes=(note,) if note else ())
+        raise input_error(src, prefix + "intrinsics", f"principal point ({cu:g}, {cv:g}) outside the {w}x{h} image")
+    distortion = _numbers(src, prefix + distortion_key,
+                          _required(src, data, distortion_key, "[k1, k2, p1, p2]", prefix), 4)
+    return np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]), distortion, (w, h)
 
 
 # ---------------------------------------------------------------------------------------------- CSV
@@ -644,18 +668,23 @@ def read_imu(mav0) -> EurocImu:
     EurocImu
     """
     root = find_mav0(mav0)
-    yaml_path = root / "imu0" / "sensor.yaml"
+    noise, body_T_imu, rate, notes = read_imu_yaml(root / "imu0" / "sensor.yaml")
+    csv_path = root / "imu0" / "data.csv"
+    ns, rows, _ = _read_csv(csv_path, IMU_COLUMNS, "IMU samples: " + ",".join(IMU_COLUMNS))
+    samples = check_imu_samples(str(csv_path), ns_to_seconds(ns), rows[:, 3:6], rows[:, 0:3], noise,
+                                keys=("timestamp", "a_RS_S", "w_RS_S"))
+    return EurocImu(samples=samples, body_T_imu=body_T_imu, rate_hz=rate, notes=notes)
+
+
+def read_imu_yaml(path) -> tuple[ImuNoiseDensities, np.ndarray, float | None, tuple[str, ...]]:
+    """The IMU's ``sensor.yaml``: (noise densities, ``T_BS`` (4,4), ``rate_hz`` or None, notes)."""
+    yaml_path = Path(path)
     ysrc = str(yaml_path)
     data = _read_yaml(yaml_path, "the IMU's sensor.yaml: T_BS and " + ", ".join(KALIBR_KEYS))
     _sensor_type(ysrc, data, "imu")
     body_T_imu, note = _T_BS(ysrc, data)
     values = {k: _number(ysrc, k, data[k]) for k in KALIBR_KEYS if data.get(k) is not None}
-    noise = check_noise_densities(ysrc, values)
-    csv_path = root / "imu0" / "data.csv"
-    ns, rows, _ = _read_csv(csv_path, IMU_COLUMNS, "IMU samples: " + ",".join(IMU_COLUMNS))
-    samples = check_imu_samples(str(csv_path), ns_to_seconds(ns), rows[:, 3:6], rows[:, 0:3], noise,
-                                keys=("timestamp", "a_RS_S", "w_RS_S"))
-    return EurocImu(samples=samples, body_T_imu=body_T_imu, rate_hz=_rate(ysrc, data), notes=(note,) if note else ())
+    return check_noise_densities(ysrc, values), body_T_imu, _rate(ysrc, data), (note,) if note else ()
 
 
 # ---------------------------------------------------------------------------------------------- frames

@@ -191,13 +191,14 @@ def _check_stream(stereo: StereoDirectory, imu: ImuVelocities, raw: bool) -> Non
 
 def track_euroc(data, config: TrackerConfig | None = None, progress: Callable[[int, int], None] | None = None,
                 draw_dir=None) -> Sequence:
-    """Track every stereo pair of an EuRoC ASL folder (path or :class:`~frontend.euroc.EurocDataset`),
-    rectified (``frontend.euroc.StereoRectification``), into an inertial sequence: the pairs' tracks,
-    the rectified left camera's K, baseline and ``imu_T_cam``, and the IMU's samples (``Sequence.imu``)
-    with the noise densities of ``imu0/sensor.yaml``. ``progress(index, n)`` after each pair."""
-    from .euroc import EurocDataset, read_euroc
+    """Track every stereo pair of an EuRoC ASL folder (path or :class:`~frontend.euroc.EurocDataset`)
+    or a ROS bag (:class:`~frontend.bag.BagDataset`), rectified (``frontend.euroc.StereoRectification``),
+    into an inertial sequence: the pairs' tracks, the rectified left camera's K, baseline and
+    ``imu_T_cam``, and the IMU's samples (``Sequence.imu``) with their noise densities (``imu0/sensor.yaml``,
+    Kalibr's ``imu.yaml``). ``progress(index, n)`` after each pair."""
+    from .euroc import RectifiedRig, read_euroc
 
-    data = data if isinstance(data, EurocDataset) else read_euroc(data)
+    data = data if isinstance(data, RectifiedRig) else read_euroc(data)
     config = config if config is not None else TrackerConfig()
     w, h = data.rectification.size
     if min(w, h) < config.min_image_side:

@@ -19,8 +19,8 @@ from .commands import COMMANDS
 EXIT_USAGE = 2
 #: The arguments of any command that name what it reads: no output may land on them
 #: (``backend.data.files.inputs_of_the_run``); readers add what they find themselves (calibration files).
-INPUT_ARGUMENTS = ("data", "inputs", "images", "estimate", "ground_truth", "imu", "imu_T_cam", "gt", "covariance",
-                   "config")
+INPUT_ARGUMENTS = ("data", "inputs", "images", "estimates", "ground_truth", "imu", "imu_T_cam", "gt", "covariance",
+                   "config", "calib", "imu_calib")
 EXIT_INTERRUPTED = 130  # after Ctrl-C; 128 + the signal's number after SIGTERM or SIGHUP
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, as a shell reports a command whose reader left
 

@@ -19,6 +19,36 @@ def add_config_options(p: argparse.ArgumentParser, tables: str = "any table",
                    help=f"override one option, e.g. {example} (repeatable)")
 
 
+def add_bag_options(p: argparse.ArgumentParser) -> None:
+    """The options of a ROS bag input (``frontend.bag``): its calibration and, where the bag does
+    not tell them, its topics."""
+    p.add_argument("--calib", metavar="FILE|DIR", help="a ROS bag's cameras: Kalibr's camchain.yaml (cam0 and cam1: "
+                   "intrinsics, radtan distortion, resolution, T_cam_imu, timeshift_cam_imu) or an EuRoC folder "
+                   "holding cam0/sensor.yaml, cam1/sensor.yaml (and imu0/sensor.yaml: the IMU's noise)")
+    p.add_argument("--imu-calib", dest="imu_calib", metavar="FILE",
+                   help="a ROS bag's IMU noise: Kalibr's imu.yaml (noise densities and random walks; default: "
+                        "the EuRoC folder's imu0/sensor.yaml, else measured at rest)")
+    for side, what in (("left", "the left camera's sensor_msgs/Image or CompressedImage"),
+                       ("right", "the right camera's"), ("imu", "the sensor_msgs/Imu")):
+        p.add_argument(f"--{side}-topic", dest=f"{side}_topic", metavar="TOPIC",
+                       help=f"{what} topic of a ROS bag (default: the calibration's rostopic, else the only "
+                            "candidate; two image topics: left the first by name)")
+
+
+def check_bag_options(args: argparse.Namespace, positional: str) -> bool:
+    """Whether ``args.<positional>`` is a ROS bag (``frontend.bag.is_bag``); ConfigError when a bag
+    option is given for another input."""
+    from ..frontend.bag import is_bag
+
+    bag = is_bag(getattr(args, positional))
+    if not bag:
+        for flag in ("calib", "imu_calib", "left_topic", "right_topic", "imu_topic", "gt_topic"):
+            if getattr(args, flag, None) is not None:
+                raise ConfigError(f"{getattr(args, positional)}: --{flag.replace('_', '-')} is for a ROS bag (a ROS 1 "
+                                  ".bag file or a ROS 2 bag folder with metadata.yaml)")
+    return bag
+
+
 def add_filter_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["slam", "mapping", "dead-reckoning"], help="estimator.mode (default slam)")
     p.add_argument("--full-state", action="store_true", help="estimator.full_state: keep every landmark in the state")

@@ -20,7 +20,8 @@ def add_parser(sub) -> None:
     p.add_argument("data", help="feature + IMU file in the course .npz layout (IMU velocities or a real IMU's samples), "
                                "a stereo image directory (with --imu), a KITTI raw drive (..._sync/: IMU and ground "
                                "truth from its oxts/) or an EuRoC ASL folder (mav0/: raw stereo pairs, rectified, the "
-                               "IMU's samples, ground truth from state_groundtruth_estimate0/)")
+                               "IMU's samples, ground truth from state_groundtruth_estimate0/) or a ROS bag (a ROS 1 "
+                               ".bag or a ROS 2 bag folder, with --calib: its stereo images and IMU topics)")
     p.add_argument("--imu", help="with an odometry-layout image directory: IMU velocities (CSV t,vx,vy,vz,wx,wy,wz "
                                  "or a course .npz)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
@@ -46,6 +47,11 @@ def add_parser(sub) -> None:
     p.add_argument("--rerun-live", dest="rerun_live", action="store_true",
                    help="stream the same to a Rerun viewer while the run goes (one is started if none is running)")
     console.add_verbosity_options(p)
+    options.add_bag_options(p)
+    p.add_argument("--gt-topic", dest="gt_topic", metavar="TOPIC",
+                   help="a ROS bag's ground truth: a geometry_msgs/PoseStamped, PoseWithCovarianceStamped, "
+                        "TransformStamped or nav_msgs/Odometry topic (its frame's poses taken as the IMU's; or --gt, "
+                        "a TUM file); written as ground_truth.txt")
     options.add_config_options(p)
     options.add_filter_flags(p)
     p.set_defaults(func=main)
@@ -64,7 +70,12 @@ def main(args: argparse.Namespace) -> int:
     from ...frontend.euroc import is_euroc
     from ..report import format_summary, print_health, write_run_outputs
 
-    images = Path(args.data).is_dir()
+    bag = options.check_bag_options(args, "data")
+    images = Path(args.data).is_dir() or bag
+    if bag:
+        for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam)):
+            if value:
+                raise InputError(f"{args.data}: {flag} is not for a ROS bag: its IMU topic and --calib give them")
     if not images:
         for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam), ("--draw", args.draw)):
             if value:
@@ -82,7 +93,9 @@ def main(args: argparse.Namespace) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", HealthWarning)  # listed in the summary, shown by print_health
             drive = euroc_truth = None
-            if images and is_euroc(args.data):
+            if bag:
+                (result, notes), gt, euroc_truth = _run_bag(args, config, tracker, gt, say, recorder)
+            elif images and is_euroc(args.data):
                 (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
             elif images and args.imu_input == "inertial":
                 (result, notes), gt, drive = _run_raw_inertial(args, config, tracker, gt, say, recorder)
@@ -94,7 +107,8 @@ def main(args: argparse.Namespace) -> int:
             recorder.log_result(result, gt[2] if gt else None)
         if euroc_truth is not None:
             write_tum(staging / GROUND_TRUTH, euroc_truth.times, euroc_truth.world_T_imu,
-                      header=f"world_T_imu from {euroc_truth.source} (EuRoC ground truth of the body = IMU frame)")
+                      header=f"world_T_imu from {euroc_truth.source}" + ("" if bag else " (EuRoC ground truth of the "
+                                                                                       "body = IMU frame)"))
         if drive is not None and result.inertial:
             write_tum(staging / GROUND_TRUTH, *drive.level_ground_truth[1:],
                       header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
@@ -184,15 +198,36 @@ def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recor
     filter with the inertial state over the sequence. Returns ((result, notes), ground truth, the
     folder's ground truth or None): without ``--gt`` its state_groundtruth_estimate0 is the ground truth."""
     from ...frontend.euroc import open_euroc_input
-    from ...frontend.track import track_euroc
 
     t0 = time.perf_counter()
     data = open_euroc_input(args.data, args.imu, args.imu_T_cam, args.imu_input)
+    return _run_rig(args, data, "EuRoC", config, tracker, gt, say, recorder, t0)
+
+
+def _run_bag(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
+    """A ROS bag with its calibration (``frontend.bag.open_bag``): as an EuRoC folder, the pairs
+    rectified and tracked, then the inertial filter; ground truth from ``--gt`` or ``--gt-topic``."""
+    from ...frontend.bag import open_bag
+
+    t0 = time.perf_counter()
+    if gt is not None and args.gt_topic is not None:
+        raise ConfigError(f"--gt {args.gt} and --gt-topic {args.gt_topic}: give one ground truth")
+    data = open_bag(args.data, args.calib, args.imu_calib, args.left_topic, args.right_topic, args.imu_topic,
+                    args.gt_topic)
+    kind = f"ROS bag (topics {data.topics.left}, {data.topics.right}, {data.topics.imu})"
+    return _run_rig(args, data, kind, config, tracker, gt, say, recorder, t0)
+
+
+def _run_rig(args: argparse.Namespace, data, kind: str, config: Config, tracker, gt, say, recorder, t0: float):
+    """A rectified stereo pair on a real IMU (``frontend.euroc.RectifiedRig``: an EuRoC folder or a
+    bag) tracked and filtered; ((result, notes), ground truth, the input's own ground truth or None)."""
+    from ...frontend.track import track_euroc
+
     truth = data.ground_truth if gt is None else None
     if truth is not None:
         gt = (truth.source, truth.times, truth.world_T_imu)
     notes = list(data.notes)
-    say(f"vislam run {args.data}: EuRoC, {len(data.frames)} stereo pairs ({data.rectification.size[0]}x"
+    say(f"vislam run {args.data}: {kind}, {len(data.frames)} stereo pairs ({data.rectification.size[0]}x"
         f"{data.rectification.size[1]}, rectified: fx {data.K[0, 0]:.1f} px, baseline {data.baseline:.4f} m), "
         f"{data.imu.samples.num_samples} IMU samples at {data.imu.samples.rate_hz:.0f} Hz"
         + (f"; ground truth {truth.source}" if truth is not None else ""))

@@ -1,11 +1,12 @@
 """``vislam track``: stereo images (KITTI odometry layout + IMU, or a KITTI raw drive with its OXTS
-velocities) -> observations in the course .npz layout; an EuRoC folder, or a raw drive with
-``--imu-input inertial``, -> the inertial layout (the IMU's samples)."""
+velocities) -> observations in the course .npz layout; an EuRoC folder, a ROS bag (with its
+calibration), or a raw drive with ``--imu-input inertial``, -> the inertial layout (the IMU's samples)."""
 
 from __future__ import annotations
 
 import argparse
 
+from ...backend.errors import ConfigError
 from .. import console, options
 
 
@@ -14,7 +15,8 @@ def add_parser(sub) -> None:
                                      "observations in the course .npz layout")
     p.add_argument("images", help="directory with image_0/, image_1/, calib.txt, times.txt; a KITTI raw drive "
                                   "DATE/DATE_drive_NNNN_sync/ (image_00/, image_01/, oxts/; calibration in DATE/); or an "
-                                  "EuRoC ASL folder mav0/ (written in the inertial layout: the IMU's samples)")
+                                  "EuRoC ASL folder mav0/ or a ROS bag (a ROS 1 .bag or a ROS 2 bag folder, with "
+                                  "--calib; both written in the inertial layout: the IMU's samples)")
     p.add_argument("--imu", help="IMU velocities: CSV t,vx,vy,vz,wx,wy,wz or a course .npz (frame i = step i); "
                                  "needed with the odometry layout (a raw drive has its oxts/)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="4x4 text imu_T_cam (needed with a CSV)")
@@ -27,6 +29,7 @@ def add_parser(sub) -> None:
                    help="replace an existing --out file and write into a --draw directory holding files")
     p.add_argument("--draw", metavar="DIR", help="write each frame's tracks as PNG (left image on top with track "
                                                  "tails, right image below with the stereo matches)")
+    options.add_bag_options(p)
     options.add_config_options(p, "its [tracker] table", example="tracker.target_tracks=500")
     console.add_verbosity_options(p)
     p.set_defaults(func=main)
@@ -44,6 +47,8 @@ def main(args: argparse.Namespace) -> int:
     config = options.tracker_config(args, only=True)
     from ...frontend.euroc import is_euroc
 
+    if options.check_bag_options(args, "images"):
+        return _track_bag(args, config, out)
     if is_euroc(args.images):
         return _track_euroc(args, config, out)
     if args.imu_input == "inertial":
@@ -71,6 +76,19 @@ def _track_euroc(args: argparse.Namespace, config, out) -> int:
     data = open_euroc_input(args.images, args.imu, args.imu_T_cam, args.imu_input)
     return _track_and_write(args, config, out, data.notes, len(data.frames),
                            lambda progress: track_euroc(data, config, progress, args.draw))
+
+
+def _track_bag(args: argparse.Namespace, config, out) -> int:
+    """A ROS bag -> the inertial layout (rectified pairs' tracks, the IMU topic's samples)."""
+    from ...frontend.bag import open_bag
+    from ...frontend.track import track_euroc
+
+    for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam)):
+        if value:
+            raise ConfigError(f"{args.images}: {flag} is not for a ROS bag: its IMU topic and --calib give them")
+    data = open_bag(args.images, args.calib, args.imu_calib, args.left_topic, args.right_topic, args.imu_topic)
+    return _track_and_write(args, config, out, data.notes, len(data.frames),
+                            lambda progress: track_euroc(data, config, progress, args.draw))
 
 
 def _track_and_write(args: argparse.Namespace, config, out, notes, frames: int, track) -> int:
