@@ -149,3 +149,48 @@ def write_kalibr_imu(path: Path, noise, topic: str | None = "/imu0") -> Path:
         entry["rostopic"] = topic
     path.write_text(yaml.safe_dump({"imu0": entry}))
     return path
+
+
+def synthetic_street_bag(root: Path, duration: float, ros1: bool = True, encoding: str = "mono8"):
+    """A bag of ``vislam synth --imu inertial --scenario street``'s drive (seed 0) with rendered stereo
+    images (``synth.render``: the street world along its path, the KITTI-like rig) on ``/left`` and
+    ``/right``, its IMU samples on ``/imu`` and its true poses on ``/truth`` (PoseStamped); Kalibr's
+    camchain.yaml and imu.yaml of it. Returns (bag, camchain, imu.yaml, the scene)."""
+    from vislam.backend.geometry import se3
+    from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
+    from vislam.synth.observe import kitti_calibration
+    from vislam.synth.render import RENDER_STREAM, build_street_planes, render_pair
+
+    scene = make_inertial_scene(InertialSceneConfig(scenario="street", duration=duration, seed=0))
+    seq, cal, T = scene.sequence, kitti_calibration(), scene.world_T_imu_true
+    planes = build_street_planes(T, np.random.default_rng([0, RENDER_STREAM]))
+    ts = _typestore(ros1)
+    frames_ns = _seconds_to_ns(seq.time_stamps)
+    messages = []
+    for k, ns in enumerate(int(n) for n in frames_ns):
+        for topic, img in zip(("/left", "/right"), render_pair(planes, T[k], cal)):
+            msg = image_message(ts, ros1, ns, k, img)
+            if encoding == "bgr8":
+                colour = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+                msg = ts.types["sensor_msgs/msg/Image"](header=msg.header, height=img.shape[0], width=img.shape[1],
+                                                        encoding="bgr8", is_bigendian=0, step=3 * img.shape[1],
+                                                        data=colour.ravel())
+            messages.append((ns, topic, "sensor_msgs/msg/Image", msg))
+        messages.append((ns, "/truth", "geometry_msgs/msg/PoseStamped",
+                         pose_message(ts, ros1, ns, k, T[k], "geometry_msgs/msg/PoseStamped")))
+    imu = seq.imu
+    for i, (ns, a, w) in enumerate(zip(_seconds_to_ns(imu.time_stamps), imu.linear_acceleration, imu.angular_velocity)):
+        messages.append((int(ns), "/imu", "sensor_msgs/msg/Imu", imu_message(ts, ros1, int(ns), i, a, w)))
+    messages.sort(key=lambda m: m[0])
+    bag = write_bag(root / ("street.bag" if ros1 else "street_ros2"), messages, ros1)
+    K = cal.K
+    cam_T_imu = se3.inverse(cal.imu_T_cam)
+    right_T_left = np.eye(4)
+    right_T_left[0, 3] = -cal.baseline
+    doc = {name: dict(camera_model="pinhole", intrinsics=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
+                      distortion_model="radtan", distortion_coeffs=[0.0] * 4, resolution=[cal.width, cal.height],
+                      T_cam_imu=T_cam_imu.tolist(), rostopic=topic)
+           for name, T_cam_imu, topic in (("cam0", cam_T_imu, "/left"), ("cam1", right_T_left @ cam_T_imu, "/right"))}
+    camchain = root / "street_camchain.yaml"
+    camchain.write_text(yaml.safe_dump(doc))
+    return bag, camchain, write_kalibr_imu(root / "street_imu.yaml", imu.noise, "/imu"), scene
