@@ -9,7 +9,8 @@ noise, drift, bad tracks, a disparity offset, repeated frames, frame jitter, out
 :mod:`~vislam.synth.grid` lists a seeded grid of scenes split into a tuning and a held-out part;
 :mod:`~vislam.synth.inertial` makes continuous-time flights and drives with exact derivatives and the
 samples of a real IMU (specific force and rate, Kalibr noise, random-walk biases);
-:mod:`~vislam.synth.render` renders stereo images of a scene.
+:mod:`~vislam.synth.render` renders stereo images of a scene, and :mod:`~vislam.synth.asl` writes an
+inertial street drive with its rendered pairs as an EuRoC ASL folder.
 Depends on ``backend`` only; the names below load on first use.
 """
 
@@ -29,6 +30,10 @@ _PUBLIC = {
     "InertialTrajectory": "inertial",
     "measure_imu": "inertial",
     "frame_truth": "inertial",
+    "InertialSceneConfig": "inertial_scene",
+    "make_inertial_scene": "inertial_scene",
+    "write_inertial_scene": "inertial_scene",
+    "write_euroc_folder": "asl",
 }
 
 __all__ = list(_PUBLIC)

@@ -842,24 +842,12 @@ def write_kitti_sequence(
         times = np.asarray(times, dtype=float)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or times.shape != (poses.shape[0],):
         raise ValueError(f"need poses (N,4,4) and times (N,), got {poses.shape} and {times.shape}")
-    if planes is None:
-        planes = build_street_planes(poses, np.random.default_rng([0 if seed is None else int(seed), RENDER_STREAM]))
-    world = _world_of(planes)
     out = Path(out_dir)
     (out / "image_0").mkdir(parents=True, exist_ok=True)
     (out / "image_1").mkdir(parents=True, exist_ok=True)
     params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
-    n = poses.shape[0]
-    pending = None
-    for k in range(n):
-        left, right = render_pair(world, poses[k], calibration)
-        if pending is not None:  # the previous pair was encoded on a worker while this one rendered
-            pending.result()
-        pending = _pool().submit(_write_pngs, out, k, left, right, params)
-        if progress is not None:
-            progress(k, n)
-    if pending is not None:
-        pending.result()
+    paths = [(out / "image_0" / f"{k:06d}.png", out / "image_1" / f"{k:06d}.png") for k in range(poses.shape[0])]
+    render_to_png(poses, calibration, paths, planes, seed=seed, params=params, progress=progress)
     _write_text(out / "calib.txt", kitti_calib_text(calibration))
     _write_text(out / "times.txt", "".join(f"{t:.6e}\n" for t in times - times[0]))
     world_T_cam = poses @ np.asarray(calibration.imu_T_cam, dtype=float)
@@ -867,8 +855,29 @@ def write_kitti_sequence(
     return out
 
 
-def _write_pngs(out: Path, k: int, left: np.ndarray, right: np.ndarray, params) -> None:
-    for folder, img in (("image_0", left), ("image_1", right)):
-        path = out / folder / f"{k:06d}.png"
+def render_to_png(poses: np.ndarray, calibration, paths, planes=None, *, seed: int | None = None, params=(),
+                  progress=None) -> None:
+    """Render the stereo pair of every pose ``poses`` (N,4,4) of the rig ``calibration`` and write it
+    to ``paths[k]`` = (left PNG, right PNG); each pair is encoded on a worker while the next one
+    renders. ``planes``: the world (None: :func:`build_street_planes` along the poses with
+    ``default_rng([seed or 0, RENDER_STREAM])``); ``params``: cv2.imwrite's; ``progress(k, n)``."""
+    if planes is None:
+        planes = build_street_planes(poses, np.random.default_rng([0 if seed is None else int(seed), RENDER_STREAM]))
+    world = _world_of(planes)
+    n = poses.shape[0]
+    pending = None
+    for k in range(n):
+        left, right = render_pair(world, poses[k], calibration)
+        if pending is not None:  # the previous pair was encoded on a worker while this one rendered
+            pending.result()
+        pending = _pool().submit(_write_pngs, paths[k], left, right, list(params))
+        if progress is not None:
+            progress(k, n)
+    if pending is not None:
+        pending.result()
+
+
+def _write_pngs(paths, left: np.ndarray, right: np.ndarray, params) -> None:
+    for path, img in zip(paths, (left, right)):
         if not cv2.imwrite(str(path), img, params):
             raise OSError(f"could not write {path}")

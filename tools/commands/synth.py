@@ -32,7 +32,9 @@ def add_parser(sub) -> None:
     p.add_argument("--duration", type=float, default=60.0, help="seconds of an inertial scene (default: 60)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
-    p.add_argument("--render", action="store_true", help="also render rectified stereo images (KITTI odometry layout)")
+    p.add_argument("--render", action="store_true", help="also render rectified stereo images of the street: the KITTI "
+                                                         "odometry layout; with --imu inertial an EuRoC ASL folder mav0/ "
+                                                         "(images, IMU samples, ground truth) that vislam run reads")
     p.add_argument("--track-errors", dest="track_errors", choices=sorted(PRESETS), default="none",
                    help="errors of the tracks: none (white pixel noise of 0.5 px only) or kitti-like ("
                         + ", ".join(f"{k}={v:g}" for k, v in PRESETS["kitti-like"].as_dict().items() if v)
@@ -119,16 +121,28 @@ def _inertial(args: argparse.Namespace) -> int:
 
     scenario = args.scenario or "room"
     check_inertial_scene(scenario, args.duration)
-    if args.render or args.track_errors != "none" or args.errors:
-        raise VislamError("--imu inertial: no --render, --track-errors or --errors yet (white pixel noise and outliers)")
+    if args.track_errors != "none" or args.errors:
+        raise VislamError("--imu inertial: no --track-errors or --errors yet (white pixel noise and outliers)")
+    if args.render and scenario != "street":
+        raise VislamError("--render: only the street scenario has a textured world so far")
     config = InertialSceneConfig(scenario=scenario, duration=args.duration, seed=args.seed)
+    wrote = "data.npz (inertial layout), gt_tum.txt, gt_states.npz, landmarks.npz"
     with output_directory(args.out, args.force) as staging:
         scene = make_inertial_scene(config)
         write_inertial_scene(scene, staging)
+        if args.render:
+            from ...synth.asl import write_euroc_folder
+            from .. import console
+
+            frames = scene.sequence.num_steps
+            console.sayer(args.quiet)(f"rendering {frames} stereo pairs into an EuRoC ASL folder (mav0/)")
+            with console.progress_bar(frames, "render", "frame", console.progress_off(args)) as progress:
+                write_euroc_folder(scene, staging, progress=progress)
+            wrote += (", mav0/ (EuRoC ASL layout: the rendered pairs, the IMU's samples, the ground truth; "
+                      f"vislam run {args.out}/mav0)")
     seq = scene.sequence
     if not args.quiet:
         print(f"{scenario} scene with a real IMU, seed {args.seed}: {seq.num_steps} frames at {config.frame_rate:g} Hz, "
               f"{seq.imu.num_samples} IMU samples at {config.imu_rate:g} Hz, {seq.num_observations} observations of "
-              f"{seq.num_features} tracks; wrote data.npz (inertial layout), gt_tum.txt, gt_states.npz, landmarks.npz "
-              f"to {args.out}/")
+              f"{seq.num_features} tracks; wrote {wrote} to {args.out}/")
     return 0
