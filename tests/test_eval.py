@@ -154,6 +154,10 @@ def test_xyz_and_rpy_plots_draw_the_poses_they_are_given():
         for k, ax in enumerate(fig.axes[:3]):
             np.testing.assert_allclose(ax.get_lines()[0].get_ydata(), expected[:, k], atol=1e-9)
         assert [ax.get_ylabel() for ax in fig.axes[:3]] == ["roll [deg]", "pitch [deg]", "yaw [deg]"]
+        assert fig.axes[2].get_xlabel() == "time [s]"
+        fig = plot_xyz_over_time(Path(d) / "frames.png", {"estimate": (np.arange(len(t), dtype=float), poses)},
+                                 xlabel="frame")
+        assert fig.axes[2].get_xlabel() == "frame"
         assert (Path(d) / "xyz.png").stat().st_size > 0
 
 

@@ -302,6 +302,7 @@ def plot_errors_over_time(
     series: Mapping[str, tuple[Any, Any]],
     title: str,
     ylabel: str = "error [m]",
+    xlabel: str = "time [s]",
 ):
     """Errors over time since the earliest stamp, each with its RMSE as a dashed line.
 
@@ -310,7 +311,7 @@ def plot_errors_over_time(
     path : path of the PNG
     series : mapping of str to (time_stamps (N,), errors (N,))
         Keyed by curve kind (colours of :data:`COLORS`).
-    title, ylabel : str
+    title, ylabel, xlabel : str
 
     Returns
     -------
@@ -339,7 +340,7 @@ def plot_errors_over_time(
             ax.axhline(rmse, color=color, linestyle="--", linewidth=0.8)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize="small")
-    ax.set_xlabel("time [s]")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, linewidth=0.3)
     if title:
@@ -350,7 +351,7 @@ def plot_errors_over_time(
 
 
 def _three_panels(path, curves: Mapping[str, tuple[Any, Any]], values, axis_labels: tuple[str, str, str],
-                  title: str):
+                  title: str, xlabel: str = "time [s]"):
     """Three stacked panels over time since the earliest stamp, a curve each per name (evo_traj's
     ``xyz`` and ``rpy`` views); ``values(poses (N,4,4)) -> (N, 3)``."""
     checked = {}
@@ -373,7 +374,7 @@ def _three_panels(path, curves: Mapping[str, tuple[Any, Any]], values, axis_labe
     for ax, label in zip(axes, axis_labels):
         ax.set_ylabel(label)
         ax.grid(True, linewidth=0.3)
-    axes[-1].set_xlabel("time [s]")
+    axes[-1].set_xlabel(xlabel)
     if axes[0].get_legend_handles_labels()[0]:
         axes[0].legend(loc="best", fontsize="small")
     if title:
@@ -383,7 +384,8 @@ def _three_panels(path, curves: Mapping[str, tuple[Any, Any]], values, axis_labe
     return fig
 
 
-def plot_xyz_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = ""):
+def plot_xyz_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = "",
+                       xlabel: str = "time [s]"):
     """Position x, y, z over time of each curve (evo_traj's ``xyz`` view).
 
     Parameters
@@ -392,15 +394,18 @@ def plot_xyz_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, 
     curves : mapping of str to (stamps (N,), poses (N, 4, 4))
         Already in one frame (aligned); keyed by kind (colours of :data:`COLORS`).
     title : str
+    xlabel : str
+        The time axis ("frame" for poses matched by index).
 
     Returns
     -------
     matplotlib.figure.Figure
     """
-    return _three_panels(path, curves, lambda P: P[:, :3, 3], ("x [m]", "y [m]", "z [m]"), title)
+    return _three_panels(path, curves, lambda P: P[:, :3, 3], ("x [m]", "y [m]", "z [m]"), title, xlabel)
 
 
-def plot_rpy_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = ""):
+def plot_rpy_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, Any]], title: str = "",
+                       xlabel: str = "time [s]"):
     """Roll, pitch, yaw over time of each curve (evo_traj's ``rpy`` view): the fixed-axis x-y-z
     angles of the rotation (``scipy`` ``as_euler("xyz")``, evo's ``sxyz``), unwrapped, in degrees.
 
@@ -409,6 +414,8 @@ def plot_rpy_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, 
     path : path of the PNG
     curves : mapping of str to (stamps (N,), poses (N, 4, 4))
     title : str
+    xlabel : str
+        The time axis ("frame" for poses matched by index).
 
     Returns
     -------
@@ -419,7 +426,7 @@ def plot_rpy_over_time(path: str | os.PathLike, curves: Mapping[str, tuple[Any, 
     def rpy(P: np.ndarray) -> np.ndarray:
         return np.degrees(np.unwrap(Rotation.from_matrix(P[:, :3, :3]).as_euler("xyz"), axis=0))
 
-    return _three_panels(path, curves, rpy, ("roll [deg]", "pitch [deg]", "yaw [deg]"), title)
+    return _three_panels(path, curves, rpy, ("roll [deg]", "pitch [deg]", "yaw [deg]"), title, xlabel)
 
 
 def _plain_log_ticks(ax) -> None:

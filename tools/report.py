@@ -160,7 +160,7 @@ def real_time_text(factor: float) -> str:
 
 
 def write_error_plot(path: Path, estimates: dict, gt_t: np.ndarray, gt_poses: np.ndarray, sim3: bool = False,
-                     max_diff: float = 0.01, origin: bool = False) -> None:
+                     max_diff: float = 0.01, origin: bool = False, xlabel: str = "time [s]") -> None:
     """Position error over time of each named estimate (``{name: (stamps (N,), poses (N,4,4))}``), each
     aligned to the ground truth (poses matched within ``max_diff`` s; ``origin``: first poses on each other)."""
     series = {name: ate_per_pose(t, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, origin=origin,
@@ -168,7 +168,8 @@ def write_error_plot(path: Path, estimates: dict, gt_t: np.ndarray, gt_poses: np
               for name, (t, poses) in estimates.items()}
     how = "first-pose" if origin else "Sim(3)" if sim3 else "SE(3)"
     title = f"position error after {how} alignment"
-    plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""))
+    plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""),
+                                xlabel=xlabel)
 
 
 def nees_text(summary: dict, what: str) -> str:

@@ -199,7 +199,7 @@ def _evaluate(args: argparse.Namespace, estimates: list[Estimate], gt, out: Path
         numbers.append(d)
         nees.append(found)
     if by_index:
-        print("KITTI pose files: poses matched line by line (line k = frame k; the times in the plots are frames)")
+        print("KITTI pose files: poses matched line by line (line k = frame k; the plots count frames)")
     elif args.t_offset or args.t_max_diff != 0.01:
         print(f"poses matched by {matched_by}")
     if len(estimates) == 1:
@@ -213,7 +213,7 @@ def _evaluate(args: argparse.Namespace, estimates: list[Estimate], gt, out: Path
         outputs.write_json(args.json, document)
     if out is None:
         return []
-    return _write_outputs(args, estimates, gt, numbers, nees, document, out)
+    return _write_outputs(args, estimates, gt, numbers, nees, document, out, by_index)
 
 
 def _print_one(args: argparse.Namespace, d: dict) -> None:
@@ -284,7 +284,7 @@ def result_file_stems(estimates: list[Estimate]) -> list[str]:
 
 
 def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numbers: list[dict], nees: list,
-                   document: dict, out: Path) -> list[str]:
+                   document: dict, out: Path, by_index: bool = False) -> list[str]:
     from evo.tools.file_interface import save_res_file
 
     from ...backend.evaluation.metrics import alignment, evo_results
@@ -306,9 +306,10 @@ def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numb
     keep = (gt.time_stamps >= first) & (gt.time_stamps <= last)
     aligned["ground truth"] = (gt.time_stamps[keep], gt.poses[keep])
     aligned_title = f"{title}; each estimate {_alignment_name(args)}"
-    plot_xyz_over_time(out / "xyz_over_time.png", aligned, title=aligned_title)
-    plot_rpy_over_time(out / "rpy_over_time.png", aligned, title=aligned_title)
-    write_error_plot(out / "ate_over_time.png", curves, gt.time_stamps, gt.poses, **how)
+    xlabel = "frame" if by_index else "time [s]"  # KITTI pose files: the index is the only time
+    plot_xyz_over_time(out / "xyz_over_time.png", aligned, title=aligned_title, xlabel=xlabel)
+    plot_rpy_over_time(out / "rpy_over_time.png", aligned, title=aligned_title, xlabel=xlabel)
+    write_error_plot(out / "ate_over_time.png", curves, gt.time_stamps, gt.poses, **how, xlabel=xlabel)
     stems = result_file_stems(estimates)
     for e, found, stem in zip(estimates, nees, stems):
         if found is not None:
