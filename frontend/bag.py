@@ -28,11 +28,12 @@ import numpy as np
 
 from ..backend.data.files import note_input
 from ..backend.data.inertial import ImuNoiseDensities, check_imu_samples
+from ..backend.data.tum import ns_to_seconds, poses_from_quaternions
 from ..backend.errors import InputError
-from .euroc import CameraCalibration, EurocImu, RectifiedRig, StereoRectification, ns_to_seconds
+from .euroc import CameraCalibration, EurocImu, RectifiedRig, StereoRectification
 from .kalibr import KalibrCameras, read_camchain, read_kalibr_imu
 
-__all__ = ["BagDataset", "BagFrames", "BagTopics", "BagTruth", "is_bag", "open_bag", "pair_tolerance", "read_calibration"]
+__all__ = ["BagDataset", "BagFrames", "BagTopics", "BagTruth", "is_bag", "open_bag", "pair_tolerance"]
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -183,23 +184,21 @@ def _stamps(reader, connections, path, topic: str) -> np.ndarray:
     return stamps
 
 
-def _pairs(path, left_ns: np.ndarray, right_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def _pairs(left_ns: np.ndarray, right_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """(left stamps, right stamps) of the pairs, each left image with the nearest right one within the
-    tolerance, both unique and in time order; and the images left without a partner."""
+    tolerance, both unique and in time order; and the images left without a partner. Both topics
+    hold a message (``_stamps``)."""
     tol = int(round(pair_tolerance(left_ns) * 1e9))
     lefts, rights = np.unique(left_ns), np.unique(right_ns)
-    if rights.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), int(left_ns.size)
-    j = np.clip(np.searchsorted(rights, lefts), 1, rights.size - 1) if rights.size > 1 else np.zeros(lefts.size, int)
-    if rights.size > 1:
-        j = np.where(np.abs(rights[j - 1] - lefts) <= np.abs(rights[j] - lefts), j - 1, j)
+    after = np.searchsorted(rights, lefts)
+    before, after = np.clip(after - 1, 0, rights.size - 1), np.clip(after, 0, rights.size - 1)
+    j = np.where(np.abs(rights[before] - lefts) <= np.abs(rights[after] - lefts), before, after)
     ok = np.abs(rights[j] - lefts) <= tol
     keep_l, keep_r = lefts[ok], rights[j[ok]]
     _, first = np.unique(keep_r, return_index=True)  # a right image in one pair only
     first = np.sort(first)
     keep_l, keep_r = keep_l[first], keep_r[first]
-    unmatched = int(left_ns.size + right_ns.size - 2 * keep_l.size)
-    return keep_l, keep_r, unmatched
+    return keep_l, keep_r, int(left_ns.size + right_ns.size - 2 * keep_l.size)
 
 
 def _imu_samples(reader, connections, path, topic: str, noise: ImuNoiseDensities | None):
@@ -219,8 +218,6 @@ def _imu_samples(reader, connections, path, topic: str, noise: ImuNoiseDensities
 def _truth(reader, connections, path, topic: str) -> BagTruth:
     """The poses of ``topic`` (:data:`POSES`) by header stamp; InputError (one line) for another
     type, fewer than 3 poses, a zero quaternion or a repeated stamp."""
-    from ..backend.geometry import se3
-
     types = {c.topic: c.msgtype for c in connections}
     if topic not in types:
         raise InputError(f"{path}: no topic {topic} (--gt-topic); the bag's topics: "
@@ -241,15 +238,13 @@ def _truth(reader, connections, path, topic: str) -> BagTruth:
     ns, values = _by_stamp(rows)
     if np.any(np.diff(ns) <= 0):
         raise InputError(f"{path}: topic {topic}: two poses share the stamp {ns[np.flatnonzero(np.diff(ns) <= 0)[0]]} ns")
-    norm = np.linalg.norm(values[:, 3:], axis=1)
-    if not np.all(np.isfinite(values)) or np.any(norm == 0):
-        bad = int(np.flatnonzero(~(np.isfinite(values).all(axis=1) & (norm > 0)))[0])
+    good = np.isfinite(values).all(axis=1) & np.any(values[:, 3:] != 0, axis=1)
+    if not good.all():
+        bad = int(np.flatnonzero(~good)[0])
         raise InputError(f"{path}: topic {topic}: the pose at {ns[bad] * 1e-9:.9f} s is not finite or its quaternion "
                          "is zero")
-    poses = np.tile(np.eye(4), (len(ns), 1, 1))
-    poses[:, :3, :3] = se3.rotation_from_quaternion(values[:, 3:] / norm[:, None])
-    poses[:, :3, 3] = values[:, :3]
-    return BagTruth(ns_to_seconds(ns), poses, f"{path} (topic {topic}, {types[topic]})")
+    return BagTruth(ns_to_seconds(ns), poses_from_quaternions(values[:, :3], values[:, 3:]),
+                    f"{path} (topic {topic}, {types[topic]})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -352,7 +347,7 @@ class BagDataset(RectifiedRig):
         return np.ascontiguousarray(img)
 
 
-def read_calibration(calib) -> tuple[KalibrCameras, np.ndarray, ImuNoiseDensities | None]:
+def _read_calibration(calib) -> tuple[KalibrCameras, np.ndarray, ImuNoiseDensities | None]:
     """(the cameras, ``body_T_imu`` (4,4), the IMU's noise or None) of ``calib``: a Kalibr
     ``camchain.yaml`` (the body frame is the IMU's; no noise in it), or an EuRoC folder (``mav0`` or
     the folder holding it) whose ``cam0/sensor.yaml``, ``cam1/sensor.yaml`` and, when present,
@@ -372,7 +367,7 @@ def read_calibration(calib) -> tuple[KalibrCameras, np.ndarray, ImuNoiseDensitie
 
 def open_bag(path, calib, imu_calib=None, left_topic: str | None = None, right_topic: str | None = None,
              imu_topic: str | None = None, gt_topic: str | None = None) -> BagDataset:
-    """The bag at ``path`` with the calibration ``calib`` (:func:`read_calibration`: Kalibr's
+    """The bag at ``path`` with the calibration ``calib`` (:func:`_read_calibration`: Kalibr's
     ``camchain.yaml`` or an EuRoC folder's ``sensor.yaml`` files) and ``imu_calib`` (Kalibr's
     ``imu.yaml``, the noise densities; without either, the run measures them at rest): topics
     (module docstring), the stereo pairs' stamps, the IMU's samples, the rectification and, with
@@ -389,7 +384,7 @@ def open_bag(path, calib, imu_calib=None, left_topic: str | None = None, right_t
     if calib is None:
         raise InputError(f"{root}: a bag needs its cameras' calibration: --calib camchain.yaml (Kalibr) or an EuRoC "
                          "folder holding cam0/sensor.yaml and cam1/sensor.yaml")
-    cameras, body_T_imu, noise = read_calibration(calib)
+    cameras, body_T_imu, noise = _read_calibration(calib)
     imu_topic_calib = None
     if imu_calib is not None:
         noise, imu_topic_calib = read_kalibr_imu(imu_calib)
@@ -411,7 +406,7 @@ def open_bag(path, calib, imu_calib=None, left_topic: str | None = None, right_t
         raise _open_error(root, exc) from None
     finally:
         reader.close()
-    pair_left, pair_right, unmatched = _pairs(root, left_ns, right_ns)
+    pair_left, pair_right, unmatched = _pairs(left_ns, right_ns)
     if pair_left.size < 2:
         raise InputError(f"{root}: {pair_left.size} stereo pair(s) of {topics.left} and {topics.right} within "
                          f"{pair_tolerance(left_ns) * 1e3:.1f} ms of each other; at least 2 needed")

@@ -42,6 +42,7 @@ from ..backend.data.inertial import ImuNoiseDensities, ImuSamples, check_imu_sam
 from ..backend.data.sequence import check_camera_matrix, input_error, nearest_rigid
 from ..backend.data.files import note_input
 from ..backend.data.textio import read_lines, text_float
+from ..backend.data.tum import ns_to_seconds
 from ..backend.errors import InputError
 from ..backend.geometry import se3
 from .images import read_grey
@@ -364,13 +365,6 @@ class EurocDataset(RectifiedRig):
 
 def _fmt(v) -> str:
     return "[" + ", ".join(f"{float(x):.6g}" for x in np.ravel(v)) + "]"
-
-
-def ns_to_seconds(ns) -> np.ndarray:
-    """Integer nanoseconds (int64 array) as float64 seconds: whole seconds plus the fraction, so the
-    result is within one float64 step of ``ns / 1e9`` computed exactly."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def is_euroc(path) -> bool:

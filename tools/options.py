@@ -37,11 +37,16 @@ def add_bag_options(p: argparse.ArgumentParser) -> None:
 
 def check_bag_options(args: argparse.Namespace, positional: str) -> bool:
     """Whether ``args.<positional>`` is a ROS bag (``frontend.bag.is_bag``); ConfigError when a bag
-    option is given for another input."""
+    option is given for another input, or ``--imu`` / ``--imu-T-cam`` for a bag."""
     from ..frontend.bag import is_bag
 
     bag = is_bag(getattr(args, positional))
-    if not bag:
+    if bag:
+        for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam)):
+            if value:
+                raise ConfigError(f"{getattr(args, positional)}: {flag} is not for a ROS bag: its IMU topic and "
+                                  "--calib give them")
+    else:
         for flag in ("calib", "imu_calib", "left_topic", "right_topic", "imu_topic", "gt_topic"):
             if getattr(args, flag, None) is not None:
                 raise ConfigError(f"{getattr(args, positional)}: --{flag.replace('_', '-')} is for a ROS bag (a ROS 1 "

@@ -29,6 +29,7 @@ __all__ = [
     "plot_trajectories_topdown",
     "plot_errors_over_time",
     "plot_xyz_over_time",
+    "within_span",
     "plot_rpy_over_time",
     "plot_consistency",
     "plot_nees_over_time",
@@ -85,6 +86,16 @@ def _save(fig, path: str | os.PathLike) -> None:
 
 
 # ---------------------------------------------------------------------------------------- poses
+
+
+def within_span(stamps: Any, curves_stamps) -> np.ndarray:
+    """(M,) bool: which of the ground truth's ``stamps`` (M,) lie within the span of the curves'
+    stamps (each (N_i,), increasing), widened by ``GT_CROP_TOLERANCE`` on both sides: the ground
+    truth every figure draws."""
+    first = min(t[0] for t in curves_stamps) - GT_CROP_TOLERANCE
+    last = max(t[-1] for t in curves_stamps) + GT_CROP_TOLERANCE
+    stamps = np.asarray(stamps, dtype=float)
+    return (stamps >= first) & (stamps <= last)
 
 
 def _as_poses(traj: Any, name: str) -> np.ndarray:
@@ -214,9 +225,7 @@ def trajectory_figure(
         gt_t = np.asarray(ground_truth[0], dtype=float)
         gt_xy = _as_poses(ground_truth[1], "ground truth")[:, :2, 3]
         if parsed:
-            first = min(t[0] for t, _ in parsed.values()) - GT_CROP_TOLERANCE
-            last = max(t[-1] for t, _ in parsed.values()) + GT_CROP_TOLERANCE
-            keep = (gt_t >= first) & (gt_t <= last)
+            keep = within_span(gt_t, [t for t, _ in parsed.values()])
             gt_t, gt_xy = gt_t[keep], gt_xy[keep]
         if len(gt_t):
             xy["ground truth"] = gt_xy

@@ -18,11 +18,30 @@ from .sequence import ORTHO_ACCEPT
 from .textio import content_lines, finite_numbers, read_lines
 
 __all__ = ["read_tum", "write_tum", "read_kitti_poses", "write_kitti_poses", "read_euroc_csv", "read_trajectory",
-           "Trajectory"]
+           "Trajectory", "poses_from_quaternions", "ns_to_seconds"]
 
 #: The leading columns of an EuRoC pose csv (``state_groundtruth_estimate0/data.csv`` holds 9 more)
 EUROC_POSE_COLUMNS = ("timestamp [ns]", "p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")
 
+
+
+def poses_from_quaternions(positions: Any, quaternions: Any) -> np.ndarray:
+    """(N,4,4) poses from positions (N,3) and quaternions (N,4) ``[qx, qy, qz, qw]`` of any non-zero
+    norm (each scaled by its largest component first, so no square overflows, then normalized)."""
+    quat = np.asarray(quaternions, dtype=float)
+    quat = quat / np.abs(quat).max(axis=1, keepdims=True)
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    poses = np.tile(np.eye(4), (len(quat), 1, 1))
+    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
+    poses[:, :3, 3] = positions
+    return poses
+
+
+def ns_to_seconds(ns: Any) -> np.ndarray:
+    """Integer nanoseconds (int64 array) as float64 seconds: whole seconds plus the fraction, so the
+    result is within one float64 step of ``ns / 1e9`` computed exactly."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def _check_poses(world_T_imu: Any, what: str = "world_T_imu") -> np.ndarray:
@@ -102,12 +121,7 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         raise InputError(f"{path}: no poses found (empty trajectory file)")
     data = np.asarray(rows, dtype=float)
-    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)  # scaled first: no overflow
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
-    poses[:, :3, 3] = data[:, 1:4]
-    return data[:, 0].copy(), poses
+    return data[:, 0].copy(), poses_from_quaternions(data[:, 1:4], data[:, 4:8])
 
 
 def write_kitti_poses(path: str | os.PathLike, world_T_imu: Any, imu_T_cam: Any, header: str | None = None) -> None:
@@ -197,15 +211,7 @@ def read_euroc_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         raise InputError(f"{path}: no poses found (empty EuRoC pose csv)")
     data = np.asarray(rows, dtype=float)
-    quat = data[:, [4, 5, 6, 3]]  # x y z w
-    quat = quat / np.abs(quat).max(axis=1, keepdims=True)
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = se3.rotation_from_quaternion(quat)
-    poses[:, :3, 3] = data[:, 0:3]
-    ns = np.asarray(stamps, dtype=object)
-    seconds = np.array([float(n // 10**9) + (n % 10**9) * 1e-9 for n in ns], dtype=float)
-    return seconds, poses
+    return ns_to_seconds(stamps), poses_from_quaternions(data[:, 0:3], data[:, [4, 5, 6, 3]])  # w last
 
 
 @dataclass(frozen=True)

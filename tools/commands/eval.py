@@ -71,7 +71,8 @@ class Estimate:
     """One estimate of the command line: its file, label, poses and pose covariance."""
 
     path: str
-    name: str  # label on screen, in the plots and in the result files
+    name: str  # on screen and in the plots: "estimate" when alone, else its label
+    label: str  # the shortest path suffix that tells it from the others (``report.path_labels``)
     time_stamps: np.ndarray  # (N,) seconds (shifted by --t-offset), or the frame index (KITTI)
     poses: np.ndarray  # (N,4,4)
     covariance: Optional[tuple[Path, np.ndarray]] = None  # (file, (N,6,6))
@@ -119,9 +120,7 @@ def _read_all(args: argparse.Namespace):
     from ..report import path_labels
 
     gt = read_trajectory(args.ground_truth)
-    names = path_labels(args.estimates)
-    if len(args.estimates) == 1:
-        names = {args.estimates[0]: "estimate"}
+    labels = path_labels(args.estimates)
     estimates = []
     for path in args.estimates:
         est = read_trajectory(path)
@@ -133,7 +132,8 @@ def _read_all(args: argparse.Namespace):
         if est.by_index and args.covariance not in (None, "none"):
             raise InputError(f"{args.covariance}: the pose covariance of a run is of trajectory.txt (TUM, the IMU's "
                              f"poses in time), not of the KITTI pose file {path}")
-        estimates.append(Estimate(path, names[path], est.time_stamps, est.poses))
+        name = "estimate" if len(args.estimates) == 1 else labels[path]
+        estimates.append(Estimate(path, name, labels[path], est.time_stamps, est.poses))
     return estimates, gt, gt.by_index
 
 
@@ -176,18 +176,18 @@ def _alignment_name(args: argparse.Namespace) -> str:
 def _evaluate(args: argparse.Namespace, estimates: list[Estimate], gt, out: Path | None, by_index: bool) -> list[str]:
     """Numbers of every estimate on screen, in --json and, with ``out``, every file of --out; returns
     the names of the files written into ``out``."""
-    from ...backend.evaluation.metrics import alignment_scale, trajectory_errors
+    from ...backend.evaluation.metrics import alignment, trajectory_errors
 
     how = dict(sim3=args.sim3, origin=args.align_origin, max_diff=args.t_max_diff)
     matched_by = ("line (KITTI pose files: line k = frame k)" if by_index
                   else f"time stamp (within {args.t_max_diff:g} s" + (f", the estimates' shifted by {args.t_offset:+g} s)"
                                                                       if args.t_offset else ")"))
-    numbers, nees = [], []
+    numbers, nees, alignments = [], [], []
     for e in estimates:
         errors = trajectory_errors(e.time_stamps, e.poses, gt.time_stamps, gt.poses, rpe_delta=args.delta, **how)
+        alignments.append(alignment(e.time_stamps, e.poses, gt.time_stamps, gt.poses, **how))
         d = errors.as_dict()
-        d["alignment_scale"] = (alignment_scale(e.time_stamps, e.poses, gt.time_stamps, gt.poses,
-                                                max_diff=args.t_max_diff) if args.sim3 else 1.0)
+        d["alignment_scale"] = alignments[-1].scale  # 1 unless Sim(3)
         d["t_offset"], d["t_max_diff"], d["matched_by"] = args.t_offset, args.t_max_diff, matched_by
         found = None
         if e.covariance is not None:
@@ -213,7 +213,9 @@ def _evaluate(args: argparse.Namespace, estimates: list[Estimate], gt, out: Path
         outputs.write_json(args.json, document)
     if out is None:
         return []
-    return _write_outputs(args, estimates, gt, numbers, nees, document, out, by_index)
+    written = _write_outputs(args, estimates, gt, numbers, nees, alignments, out, by_index)
+    outputs.write_json(out / "eval.json", document)
+    return written
 
 
 def _print_one(args: argparse.Namespace, d: dict) -> None:
@@ -269,13 +271,11 @@ def format_table(args: argparse.Namespace, estimates: list[Estimate], numbers: l
 def result_file_stems(estimates: list[Estimate]) -> list[str]:
     """A file-name stem per estimate for its evo result files: its label without the extension
     (:func:`~vislam.tools.report.file_stem`), made unique."""
-    from ..report import file_stem, path_labels
+    from ..report import file_stem
 
-    labels = path_labels([e.path for e in estimates])
     stems: list[str] = []
     for e in estimates:
-        label = labels[e.path]
-        stem = file_stem(label.removesuffix(Path(label).suffix))
+        stem = file_stem(e.label.removesuffix(Path(e.label).suffix))
         unique, k = stem, 2
         while unique in stems:
             unique, k = f"{stem}_{k}", k + 1
@@ -284,12 +284,14 @@ def result_file_stems(estimates: list[Estimate]) -> list[str]:
 
 
 def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numbers: list[dict], nees: list,
-                   document: dict, out: Path, by_index: bool = False) -> list[str]:
+                   alignments: list, out: Path, by_index: bool = False) -> list[str]:
+    """Every file of --out but eval.json (the caller's); ``alignments``: each estimate's
+    (``metrics.Alignment``). Returns the names written."""
     from evo.tools.file_interface import save_res_file
 
-    from ...backend.evaluation.metrics import alignment, evo_results
-    from ..plots import (GT_CROP_TOLERANCE, plot_nees_over_time, plot_rpy_over_time, plot_trajectories_topdown,
-                         plot_xyz_over_time)
+    from ...backend.evaluation.metrics import evo_results
+    from ..plots import (plot_nees_over_time, plot_rpy_over_time, plot_trajectories_topdown, plot_xyz_over_time,
+                         within_span)
     from ..report import write_error_plot
 
     how = dict(sim3=args.sim3, origin=args.align_origin, max_diff=args.t_max_diff)
@@ -299,11 +301,8 @@ def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numb
     curves = {e.name: (e.time_stamps, e.poses) for e in estimates}
     written = ["eval.json", "trajectories.png", "xyz_over_time.png", "rpy_over_time.png", "ate_over_time.png"]
     plot_trajectories_topdown(out / "trajectories.png", curves, (gt.time_stamps, gt.poses), title=title, **how)
-    aligned = {e.name: (e.time_stamps, alignment(e.time_stamps, e.poses, gt.time_stamps, gt.poses, **how)
-                        .apply_poses(e.poses)) for e in estimates}
-    first = min(e.time_stamps[0] for e in estimates) - GT_CROP_TOLERANCE
-    last = max(e.time_stamps[-1] for e in estimates) + GT_CROP_TOLERANCE
-    keep = (gt.time_stamps >= first) & (gt.time_stamps <= last)
+    aligned = {e.name: (e.time_stamps, a.apply_poses(e.poses)) for e, a in zip(estimates, alignments)}
+    keep = within_span(gt.time_stamps, [e.time_stamps for e in estimates])
     aligned["ground truth"] = (gt.time_stamps[keep], gt.poses[keep])
     aligned_title = f"{title}; each estimate {_alignment_name(args)}"
     xlabel = "frame" if by_index else "time [s]"  # KITTI pose files: the index is the only time
@@ -322,7 +321,6 @@ def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numb
         for kind, result in (("ape", ape), ("rpe", rpe)):
             _save_result(save_res_file, out / f"{kind}_{stem}.zip", result)
             written.append(f"{kind}_{stem}.zip")
-    outputs.write_json(out / "eval.json", document)
     return written
 
 

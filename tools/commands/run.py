@@ -72,10 +72,6 @@ def main(args: argparse.Namespace) -> int:
 
     bag = options.check_bag_options(args, "data")
     images = Path(args.data).is_dir() or bag
-    if bag:
-        for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam)):
-            if value:
-                raise InputError(f"{args.data}: {flag} is not for a ROS bag: its IMU topic and --calib give them")
     if not images:
         for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam), ("--draw", args.draw)):
             if value:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 
-from ...backend.errors import ConfigError
 from .. import console, options
 
 
@@ -83,9 +82,6 @@ def _track_bag(args: argparse.Namespace, config, out) -> int:
     from ...frontend.bag import open_bag
     from ...frontend.track import track_euroc
 
-    for flag, value in (("--imu", args.imu), ("--imu-T-cam", args.imu_T_cam)):
-        if value:
-            raise ConfigError(f"{args.images}: {flag} is not for a ROS bag: its IMU topic and --calib give them")
     data = open_bag(args.images, args.calib, args.imu_calib, args.left_topic, args.right_topic, args.imu_topic)
     return _track_and_write(args, config, out, data.notes, len(data.frames),
                             lambda progress: track_euroc(data, config, progress, args.draw))
