@@ -1,7 +1,11 @@
 """Compiled kernels (numba): the decorator every kernel uses, and their warm-up.
 
 Kernels are compiled on first use and cached beside their source (``cache=True``): the first run
-after an install compiles for up to a minute; later processes load the cache in ~0.5 s. A module that
+after an install compiles for up to a minute; later processes load the cache in ~0.5 s. numba
+keys a kernel's cache to its own file only, and a kernel that calls one of another module holds
+that one's machine code too: after a change of that module alone (a ``git pull`` into an
+editable install) it would run the old code. So the caches under ``backend/`` are dropped
+whenever a source there changed since they were written (:func:`drop_stale_caches`). A module that
 defines kernels registers a function calling each of them once on tiny arguments of the types
 the filter passes (:func:`warms_up`); :func:`warm_up` runs every registered one that has not run
 yet, so no step of a run pays for compiling, and reports the seconds apart from the run's timing.
@@ -9,15 +13,61 @@ yet, so no step of a run pays for compiling, and reports the seconds apart from 
 
 from __future__ import annotations
 
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Callable
 
 from numba import njit
 
 from . import signals
 
-__all__ = ["jit", "warms_up", "warm_up", "warm_up_seconds", "NOTICE_AFTER"]
+__all__ = ["jit", "warms_up", "warm_up", "warm_up_seconds", "drop_stale_caches", "NOTICE_AFTER"]
+
+#: The file under ``backend/__pycache__`` holding the sources' fingerprint the caches were made from.
+FINGERPRINT = "kernels.fingerprint"
+
+
+def _walk(root: Path):
+    for entry in os.scandir(root):
+        if entry.is_dir(follow_symlinks=False):
+            yield from _walk(Path(entry.path))
+        else:
+            yield entry
+
+
+def drop_stale_caches(root: Path = Path(__file__).resolve().parent) -> int:
+    """Delete numba's cache files (``*.nbi``, ``*.nbc``) under ``root`` when a ``.py`` file there
+    changed (size or time stamp) since the last call, and note the sources' new fingerprint; returns
+    the files deleted. Where ``root`` is not writable (an installed package) numba caches elsewhere
+    and nothing is done."""
+    entries = list(_walk(root))
+    sources = sorted((e.path, e.stat().st_size, e.stat().st_mtime_ns) for e in entries
+                     if e.name.endswith(".py") and "__pycache__" not in e.path)
+    fingerprint = repr(sources)
+    stamp = root / "__pycache__" / FINGERPRINT
+    try:
+        if stamp.read_text() == fingerprint:
+            return 0
+    except OSError:
+        pass
+    dropped = 0
+    try:
+        for e in entries:
+            if e.name.endswith((".nbi", ".nbc")):
+                os.unlink(e.path)
+                dropped += 1
+        stamp.parent.mkdir(exist_ok=True)
+        tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}")
+        tmp.write_text(fingerprint)
+        os.replace(tmp, stamp)
+    except OSError:  # read-only install, or another process got there first
+        pass
+    return dropped
+
+
+drop_stale_caches()
 
 #: The options of every kernel: cached, GIL released, numpy's error model (1/0 -> inf, no exception).
 jit = njit(cache=True, nogil=True, error_model="numpy")
