@@ -109,6 +109,7 @@ def test_planted_constant_offset_is_found_and_applied(beta0):
     offset = identify_stereo_offset(seq, seq.imu_T_cam)
     e = offset.estimate
     assert offset.active
+    assert e["weights"] == "inverse variance", e  # the pairs' variances are right here: the precise weights kept
     assert abs(e["beta_mean_px"] - beta0) < max(4 * e["beta_mean_se"], 0.05), e
     corrected = offset.correct(seq.obs_pixels[:5], 0.0)
     np.testing.assert_allclose(corrected[:, 2] - seq.obs_pixels[:5, 2], offset.offsets(0.0))
@@ -216,8 +217,8 @@ def test_pairs_whose_noise_raised_beta_do_not_outweigh_the_rest(name, planted):
     """Aerial scenes of the grid (disparities of 5-20 px, drifting tracks, 0.5-0.75 px noise): a pair's
     own variance of beta shrinks where noise raised its beta (rank correlation of beta_k and 1 / var
     about 0.4-0.7 here), so inverse-variance weights found +4 px on s206 where none was planted, and
-    removed it. Weighted by points, the estimate is within 3 standard errors of the planted offset,
-    and an offset is removed only where one was planted."""
+    removed it. The two means disagree there, the points' one is taken: within 3 standard errors of
+    the planted offset, and an offset is removed only where one was planted."""
     from vislam.synth.grid import GRID
 
     spec = next(s for s in GRID if s.name.startswith(name))
@@ -225,5 +226,6 @@ def test_pairs_whose_noise_raised_beta_do_not_outweigh_the_rest(name, planted):
     seq = make_scene(spec.scene_config()).sequence
     offset = identify_stereo_offset(seq, seq.imu_T_cam)
     e = offset.estimate
+    assert e["weights"] == "points", e
     assert abs(e["beta_mean_px"] - planted) < 3 * e["beta_mean_se"], e
     assert offset.active == (planted != 0.0), e
