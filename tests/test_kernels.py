@@ -506,13 +506,16 @@ runs = [run_sequence(to_sequence(make_drive(40, seed=1)), config)
                        Config.from_values({"estimator.error_model": "body"}))]
 reported = [r.stats.kernel_seconds == compiled.warm_up_seconds() > 0 for r in runs]
 before, registered, done = at_setup[0]
-print(json.dumps([before, counts(), reported, registered, done, len(at_setup)]))
+inertial_only = [f for f in compiled._registered if compiled._only.get(f) == "inertial"]
+print(json.dumps([before, counts(), reported, registered, done, len(at_setup), len(inertial_only),
+                  any(f in compiled._done for f in inertial_only)]))
 """
 
 
 def test_warm_up_compiles_what_the_filter_calls():
     """Every kernel signature a run needs is compiled (or loaded) by ``compiled.warm_up`` before the
-    run's convention test, so neither the setup nor a step pays for it; in a fresh process, as other
+    run's convention test, so neither the setup nor a step pays for it, and a velocity run warms up
+    none of the kernels registered for a real IMU's runs only; in a fresh process, as other
     tests call kernels too. The kernels are the jitted functions of ``backend.estimator.covariance``,
     ``.tracks``, ``.update``, ``.invariant`` and ``.linalg``, ``geometry.camera.triangulate_rows``,
     ``run.conventions._left_errors`` and ``run.timing._repeats_sorted``."""
@@ -525,14 +528,52 @@ def test_warm_up_compiles_what_the_filter_calls():
     out = subprocess.run([sys.executable, "-c", _NO_LAZY_COMPILE], cwd=root, capture_output=True, text=True,
                          check=False)
     assert out.returncode == 0, out.stderr
-    before, after, reported, registered, done, decisions = json.loads(out.stdout.strip().splitlines()[-1])
+    before, after, reported, registered, done, decisions, inertial_only, inertial_done = json.loads(
+        out.stdout.strip().splitlines()[-1])
     assert decisions == 3  # each run decided its conventions
-    assert registered >= 8 and done == registered  # every module's warm-up ran
+    assert inertial_only >= 1 and not inertial_done  # a velocity run compiles no kernel only a real IMU's run calls
+    assert registered >= 8 and done == registered - inertial_only  # every other module's warm-up ran
     for module in ("covariance", "tracks", "update", "invariant", "linalg"):
         assert any(name.startswith(module + ".") for name in before)
     assert len(before) >= 9 and all(n >= 1 for n in before.values())  # all loaded before the convention test
     assert after == before
     assert reported == [True, True, True]  # each run reports the process's warm-up, apart from its timing
+
+
+_NO_LAZY_COMPILE_INERTIAL = r"""
+import json, warnings
+warnings.simplefilter("ignore")
+from vislam.backend import compiled
+from vislam.backend.estimator import covariance, inertial, invariant, linalg, tracks, update
+from vislam.backend.run.inertial import run_inertial
+from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
+
+def counts():
+    return {m.__name__ + "." + n: len(f.signatures) for m in (covariance, inertial, invariant, linalg, tracks, update)
+            for n, f in vars(m).items() if hasattr(f, "signatures") and f.py_func.__module__ == m.__name__}
+
+compiled.warm_up(inertial=True)
+before = counts()
+run_inertial(make_inertial_scene(InertialSceneConfig(duration=6.0)).sequence)
+after = counts()
+print(json.dumps([before, after]))
+"""
+
+
+def test_warm_up_compiles_what_an_inertial_run_calls():
+    """A real IMU's run finds every kernel signature it calls compiled (or loaded) by
+    ``compiled.warm_up(inertial=True)``: none is compiled in the middle of the run (in a fresh process)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", _NO_LAZY_COMPILE_INERTIAL], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=False)
+    assert out.returncode == 0, out.stderr
+    before, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert before["vislam.backend.estimator.inertial.integrate_kernel"] >= 1
+    assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
 
 
 def test_warm_up_says_so_when_it_takes_a_while(monkeypatch):

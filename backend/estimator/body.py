@@ -107,7 +107,7 @@ class BodyModel(ErrorModel):
         residual, off_row, H_x, H_m, in_front = self.observe(state, slots, pixels)
         H_x = np.ascontiguousarray(H_x.reshape(-1, 6))
         H_m = np.ascontiguousarray(H_m)
-        HP, S, nis = innovation_covariance(state.P, H_x, H_m, slots, pixel_var, residual, off_row)
+        HP, S, nis = innovation_covariance(state.P, H_x, H_m, slots, pixel_var, residual, off_row, state.core)
         return Innovation(residual, off_row, H_x, H_m, HP, S, nis, in_front)
 
     # ---------------------------------------------------------------- landmarks (B4)

@@ -120,5 +120,5 @@ def _warm_up() -> None:
     P = np.eye(CORE + 6)
     mirror_lower_inplace(P)
     gather_symmetric(P, np.arange(CORE + 3, dtype=np.int64))
-    gather_landmarks(P, np.arange(2, dtype=np.int64))
+    gather_landmarks(P, np.arange(2, dtype=np.int64), CORE)  # core given, as StateHelper.marginalize passes it
     augment(P, np.zeros((3, 6)), np.ones((1, 3, 4)), 1.0)

@@ -175,7 +175,7 @@ class VisualInertialEKF:
         expected_landmarks: int | None = None,
         inertial: InertialStart | None = None,
     ) -> None:
-        warm_up()  # compile or load the kernels now (once per process), not in the first step
+        warm_up(inertial=inertial is not None)  # compile or load the kernels now (once per process), not in the first step
         self.kernel_seconds = warm_up_seconds()
         self.camera = camera
         self.config = config.validate()

@@ -244,7 +244,9 @@ def propagate(mean: InertialMean, imu: ImuSamples, t0: float, t1: float, noise: 
     times, acc, gyr = interval_knots(imu, t0, t1)
     T = mean.world_T_imu
     qc = continuous_variances(noise) if noise is not None else np.zeros(12)
-    R, v, p, Phi, Q = integrate_kernel(T[:3, :3], mean.velocity, T[:3, 3], mean.gyro_bias, mean.accel_bias,
+    # contiguous copies: the signature the warm-up compiled (a view of T would be another one, compiled mid-run)
+    R, v, p, Phi, Q = integrate_kernel(np.ascontiguousarray(T[:3, :3]), mean.velocity, np.ascontiguousarray(T[:3, 3]),
+                                       mean.gyro_bias, mean.accel_bias,
                                        times, acc, gyr, np.asarray(gravity, dtype=float), qc, _GL_X, _GL_W,
                                        noise is not None)
     out = mean.copy()
@@ -365,7 +367,7 @@ class InertialModel(InvariantModel):
         state.gyro_bias, state.accel_bias = mean.gyro_bias, mean.accel_bias
 
 
-@warms_up
+@warms_up(only="inertial")
 def _warm_up() -> None:
     t = np.array([0.0, 0.005, 0.01])
     acc = np.tile([0.0, 0.0, 9.81], (3, 1))

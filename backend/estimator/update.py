@@ -414,7 +414,7 @@ def _warm_up() -> None:
     H_m = np.ones((k, 3, 3))
     residual = np.ones((k, 3))
     off_row = np.zeros(k)
-    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row)
+    HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row, CORE)  # core given, as the models pass it
     one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
     inlier = np.array([True, False])
     joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)

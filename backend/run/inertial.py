@@ -216,7 +216,7 @@ def run_inertial(seq: Sequence, config: Config | None = None, *, decisions: Iner
     :func:`decide_inertial` (unless ``decisions`` are given), then :class:`InertialRun` frame by frame."""
     config = (config if config is not None else Config()).validate()
     with threadpool_limits(limits=config.execution.blas_threads):
-        warm_up()
+        warm_up(inertial=True)
         t0 = time.perf_counter()
         if decisions is None:
             decisions = decide_inertial(seq, config)
