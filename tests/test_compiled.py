@@ -35,3 +35,101 @@ def test_caches_are_dropped_when_any_source_changed_and_kept_otherwise(tmp_path)
     os.utime(sub / "b.py", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # same size, newer
     assert drop_stale_caches(tmp_path) == 2
 
+
+
+_PROBE = '''
+import os, time
+from vislam.backend.compiled import warms_up
+
+@warms_up
+def _warm_up():
+    """Stands for a module's kernels: notes which process warmed it up."""
+    if __name__ in os.environ.get("PROBE_FAIL", "").split() and os.getpid() == int(os.environ["PROBE_MAIN"]):
+        raise KeyboardInterrupt  # a stop while this process compiles
+    time.sleep({seconds})
+    with open(os.environ["PROBE_LOG"], "a") as log:
+        log.write(f"{{__name__}} {{os.getpid()}}\\n")
+'''
+
+
+def _probes(tmp_path, monkeypatch, count=4):
+    """``count`` importable modules whose warm-ups log (module, pid), registered here only."""
+    import importlib
+    import sys
+
+    from vislam.backend import compiled
+
+    monkeypatch.setattr(compiled, "_registered", [])
+    monkeypatch.setattr(compiled, "_done", set())
+    monkeypatch.syspath_prepend(str(tmp_path))  # a spawned helper gets this process's sys.path
+    monkeypatch.setenv("PROBE_LOG", str(tmp_path / "log.txt"))
+    monkeypatch.setenv("PROBE_MAIN", str(os.getpid()))
+    names = []
+    for i in range(count):
+        name = f"vislam_probe_{i}"
+        (tmp_path / f"{name}.py").write_text(_PROBE.format(seconds=0.5 + 0.1 * i))
+        sys.modules.pop(name, None)
+        importlib.import_module(name)
+        monkeypatch.delitem(sys.modules, name)
+        names.append(name)
+    return compiled, names
+
+
+def test_a_first_compile_shares_the_modules_with_a_helper_process(tmp_path, monkeypatch):
+    """With nothing cached the modules are compiled here and in one helper process, each module once
+    between them; the caller then runs the helper's modules' warm-ups itself (loading their caches)."""
+    compiled, names = _probes(tmp_path, monkeypatch)
+    compiled._compile_with_a_helper(list(compiled._registered), inertial=False)
+    lines = [line.split() for line in (tmp_path / "log.txt").read_text().splitlines()]
+    by_module = {}
+    for module, pid in lines:
+        by_module.setdefault(module, []).append(int(pid))
+    assert sorted(by_module) == sorted(names) and all(len(p) == 1 for p in by_module.values())  # each once
+    pids = {p[0] for p in by_module.values()}
+    assert os.getpid() in pids and len(pids) == 2  # here and in the helper
+    mine = {f.__module__ for f in compiled._done}
+    assert mine == {m for m, p in by_module.items() if p == [os.getpid()]}  # the helper's are left to the caller
+
+
+def test_a_stop_during_a_first_compile_ends_the_helper(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM (a KeyboardInterrupt here) while this process compiles: the helper process
+    is ended with it, none is left behind."""
+    import multiprocessing
+
+    import pytest
+
+    compiled, names = _probes(tmp_path, monkeypatch)
+    monkeypatch.setenv("PROBE_FAIL", " ".join(names))  # whichever module this process takes first
+    with pytest.raises(KeyboardInterrupt):
+        compiled._compile_with_a_helper(list(compiled._registered), inertial=False)
+    assert multiprocessing.active_children() == []
+
+
+def test_a_helper_is_used_until_a_whole_warm_up_wrote_its_caches(tmp_path, monkeypatch):
+    """The first warm-up after a change (no note of a whole warm-up) compiles with a helper; once every
+    kernel but the real IMU's is warmed up the note is written, and later runs just load; a change of a
+    source drops the note with the caches."""
+    from vislam.backend import compiled
+
+    (tmp_path / "a.py").write_text("x = 1\n")
+    drop_stale_caches(tmp_path)
+    monkeypatch.setattr(compiled, "CACHE_NOTES", tmp_path / "__pycache__")
+    assert compiled._compiling_everything()
+
+    def kernels():
+        pass
+
+    def imu_kernels():
+        pass
+
+    monkeypatch.setattr(compiled, "_registered", [kernels, imu_kernels])
+    monkeypatch.setattr(compiled, "_only", {imu_kernels: "inertial"})
+    monkeypatch.setattr(compiled, "_done", set())
+    compiled._note_warmed()
+    assert compiled._compiling_everything()  # nothing warmed up yet
+    compiled._done.add(kernels)
+    compiled._note_warmed()
+    assert not compiled._compiling_everything()  # the velocity run's kernels are all cached
+    (tmp_path / "a.py").write_text("x = 10\n")
+    drop_stale_caches(tmp_path)
+    assert compiled._compiling_everything()

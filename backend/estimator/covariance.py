@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..compiled import jit, warms_up
+from ..geometry.se3 import put_block
 from .layout import CORE, landmark_row
 
 
@@ -65,7 +66,7 @@ def augment(P, J_xi, J_z, pixel_var):
     D = P.shape[0]
     n3 = J_xi.shape[0]
     out = np.empty((D + n3, D + n3))
-    out[:D, :D] = P
+    put_block(out, 0, 0, P)
     cross = np.zeros((n3, D))
     for i in range(n3):
         for j in range(6):

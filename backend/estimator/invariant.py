@@ -83,7 +83,7 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
     X = np.zeros((D, w))
     Z = np.zeros((D, w))
     G = X[:, w - 6:]
-    G[:6] = G_pose
+    se3.put_block(G, 0, 0, G_pose)
     for i in range(K):
         W = se3.hat3(points[i])
         r = landmark_row(CORE, i)

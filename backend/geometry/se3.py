@@ -71,6 +71,22 @@ def small_matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return A @ B
 
 
+def put_block(out: np.ndarray, row: int, col: int, block: np.ndarray) -> None:
+    """out[row:row + m, col:col + n] = block (m,n), in place. Python uses numpy's slice assignment;
+    compiled code gets a loop nest instead (numba's first 2-d slice assignment in a process costs
+    about 3 s of compiling: measured on numba 0.60)."""
+    out[row:row + block.shape[0], col:col + block.shape[1]] = block
+
+
+@overload(put_block)
+def _put_block_compiled(out, row, col, block):
+    def put(out, row, col, block):
+        for i in range(block.shape[0]):
+            for j in range(block.shape[1]):
+                out[row + i, col + j] = block[i, j]
+    return put
+
+
 @overload(small_matmul)
 def _small_matmul_compiled(A, B):
     if B.ndim == 1:
@@ -180,7 +196,7 @@ def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     xi = np.asarray(xi, dtype=np.float64)
     R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
-    T[:3, :3] = R
+    put_block(T, 0, 0, R)
     T[:3, 3] = small_matmul(J, np.ascontiguousarray(xi[:3]))
     return T, J
 
@@ -232,9 +248,9 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
     R = np.ascontiguousarray(T[:3, :3])
     A = np.zeros((6, 6))
-    A[:3, :3] = R
-    A[3:, 3:] = R
-    A[:3, 3:] = small_matmul(hat3(T[:3, 3]), R)
+    put_block(A, 0, 0, R)
+    put_block(A, 3, 3, R)
+    put_block(A, 0, 3, small_matmul(hat3(T[:3, 3]), R))
     return A
 
 
@@ -259,9 +275,9 @@ def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
     xi = np.asarray(xi, dtype=np.float64)
     J = np.zeros((6, 6))
     Jl = left_jacobian_so3(xi[3:])
-    J[:3, :3] = Jl
-    J[3:, 3:] = Jl
-    J[:3, 3:] = _q_matrix(xi)
+    put_block(J, 0, 0, Jl)
+    put_block(J, 3, 3, Jl)
+    put_block(J, 0, 3, _q_matrix(xi))
     return J
 
 

@@ -227,8 +227,8 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
     for i in range(n):
         p[i, 0], p[i, 1], p[i, 2] = za[i, 0], za[i, 1], za[i, 0] - za[i, 2]
     z = np.empty((n, 8))
-    z[:, :4] = za
-    z[:, 4:] = zb
+    se3.put_block(z, 0, 0, za)
+    se3.put_block(z, 0, 4, zb)
     S = np.zeros((g, g))
     pred = np.empty(8)
     Jp = np.zeros((8, 3))
