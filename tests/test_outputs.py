@@ -393,3 +393,51 @@ def test_open3d_is_imported_without_its_web_viewer(tmp_path):
     assert result["light"] == []
     assert result["points"] == np.eye(3).tolist()
     assert result["real_dash"]
+
+
+def _small_run():
+    from vislam.backend.run.runner import run_sequence
+    from vislam.synth.scene import SceneConfig, make_scene
+
+    scene = make_scene(SceneConfig(steps=40, seed=2))
+    return run_sequence(scene.sequence), (scene.sequence.time_stamps, scene.world_T_imu_true)
+
+
+def test_the_output_helper_writes_what_the_run_would(tmp_path):
+    """``tools.output_process``: with the helper process writing the PNG and PLY files, a run's outputs
+    are the same files, byte for byte, as written in the run's own process."""
+    from vislam.tools.output_process import output_process
+    from vislam.tools.report import write_run_outputs
+
+    result, gt = _small_run()
+    here, there = tmp_path / "here", tmp_path / "there"
+    here.mkdir()
+    there.mkdir()
+    write_run_outputs(result, here, "scene.npz", gt)
+    with output_process() as helper:
+        assert helper is not None
+        write_run_outputs(result, there, "scene.npz", gt, helper=helper)
+    assert listing(here) == listing(there) and "map.ply" in listing(here) and "ate_over_time.png" in listing(here)
+    for name in ("map.ply", "trajectory.png", "ate_over_time.png", "trajectory.txt"):
+        assert (here / name).read_bytes() == (there / name).read_bytes(), name
+
+
+def test_a_helper_that_is_gone_leaves_its_outputs_to_the_run(tmp_path):
+    """A helper that died (or failed) writes nothing: the run writes those files itself; and the helper
+    is ended with its block, by a stop too (no process left)."""
+    import multiprocessing
+
+    from vislam.tools.output_process import output_process
+    from vislam.tools.report import write_run_outputs
+
+    result, gt = _small_run()
+    with output_process() as helper:
+        helper._process.kill()
+        helper._process.join()
+        write_run_outputs(result, tmp_path, "scene.npz", gt, helper=helper)
+    assert {"map.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(tmp_path))
+    with pytest.raises(KeyboardInterrupt):
+        with output_process() as helper:
+            helper.submit("write_map_ply", tmp_path / "other.ply", *make_map()[1:3])
+            raise KeyboardInterrupt
+    assert multiprocessing.active_children() == []

@@ -68,6 +68,7 @@ def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ...backend.data.tum import read_tum, write_tum
     from ...frontend.euroc import is_euroc
+    from ..output_process import output_process
     from ..report import format_summary, print_health, write_run_outputs
 
     bag = options.check_bag_options(args, "data")
@@ -85,7 +86,9 @@ def main(args: argparse.Namespace) -> int:
     say = console.sayer(args.quiet)
     out = Path(args.out)
     # the recording is moved into place after the outputs, and written whole before them (finish_writing)
-    with _recorder(args) as recorder, output_directory(args.out, args.force, OUTPUT_SPACE) as staging:
+    # the helper that writes the figures and point clouds ends before the staging directory is removed
+    with _recorder(args) as recorder, output_directory(args.out, args.force, OUTPUT_SPACE) as staging, \
+            output_process() as helper:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", HealthWarning)  # listed in the summary, shown by print_health
             drive = euroc_truth = None
@@ -113,7 +116,7 @@ def main(args: argparse.Namespace) -> int:
             write_tum(staging / GROUND_TRUTH, drive.imu.time_stamps, drive.world_T_imu,
                       header=f"world_T_imu from the OXTS records of {drive.stereo.root} (KITTI devkit "
                              "convertOxtsToPose; world = the IMU frame at the first frame)")
-        summary = write_run_outputs(result, staging, str(args.data), gt[1:] if gt else None, tracker, notes)
+        summary = write_run_outputs(result, staging, str(args.data), gt[1:] if gt else None, tracker, notes, helper)
         if args.format == "kitti":
             from ...backend.data.tum import write_kitti_poses
 
