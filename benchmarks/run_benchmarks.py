@@ -52,7 +52,10 @@ t0 = time.perf_counter()
 from vislam.backend.config import Config
 from vislam.backend.data.npz import load_sequence
 from vislam.backend.run.runner import run_sequence
+from vislam.tools.output_process import output_process
 from vislam.tools.report import write_run_outputs
+helper_block = output_process()  # as `vislam run`: figures and point clouds written by a helper process
+helper = helper_block.__enter__()
 t_import = time.perf_counter() - t0
 t1 = time.perf_counter()
 seq = load_sequence(sys.argv[1])
@@ -63,8 +66,9 @@ result = min(runs, key=lambda r: r.stats.filter_seconds)  # best of REPEATS: the
 step_min_s = float(np.min([r.step_seconds for r in runs], axis=0).sum())  # each step's fastest run
 t2 = time.perf_counter()
 with tempfile.TemporaryDirectory() as out:
-    write_run_outputs(result, Path(out), sys.argv[1])
+    write_run_outputs(result, Path(out), sys.argv[1], helper=helper)
 t_write = time.perf_counter() - t2
+helper_block.__exit__(None, None, None)
 s = result.stats
 print(json.dumps({
     "steps": s.steps, "observations": s.observations, "used": s.observations_used,
