@@ -36,12 +36,14 @@ def landmark_errors(scene, ids: np.ndarray, positions: np.ndarray, world_T_imu: 
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
+    from ..output_process import output_process
     from ..report import format_summary, print_health
 
     t0 = time.perf_counter()
     out = Path(args.out)
-    with output_directory(args.out, args.force) as staging:  # checked before any work
-        summary, scene_dir, median_err, compared = _demo(args, staging)
+    # checked before any work; the helper writing figures and point clouds ends before the staging is removed
+    with output_directory(args.out, args.force) as staging, output_process() as helper:
+        summary, scene_dir, median_err, compared = _demo(args, staging, helper)
     print(format_summary(summary))
     print_health(summary)
     print(f"landmarks within 20 m: median error {median_err:.3f} m over {compared}")
@@ -49,7 +51,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _demo(args: argparse.Namespace, out: Path):
+def _demo(args: argparse.Namespace, out: Path, helper=None):
     from ...backend.run.runner import run_sequence
     from ...synth.scene import SceneConfig, make_scene, write_scene
     from ..report import write_run_outputs
@@ -66,7 +68,7 @@ def _demo(args: argparse.Namespace, out: Path):
         # the default run: conventions, noise and drift decided from the data, as for any input
         result = run_sequence(seq, say=console.sayer(False))
     gt = (seq.time_stamps, scene.world_T_imu_true)
-    summary = write_run_outputs(result, out, "synthetic:street", gt)
+    summary = write_run_outputs(result, out, "synthetic:street", gt, helper=helper)
     median_err, compared = landmark_errors(scene, result.map_ids, result.map_positions, result.world_T_imu)
     summary["landmark_error_median_m_within_20m"] = median_err
     outputs.write_json(out / "summary.json", summary)
