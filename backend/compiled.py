@@ -1,7 +1,7 @@
 """Compiled kernels (numba): the decorator every kernel uses, and their warm-up.
 
 Kernels are compiled on first use and cached beside their source (``cache=True``): the first run
-after an install compiles for up to a minute; later processes load the cache in ~0.5 s. numba
+after an install compiles for about 20 s on 2 cores; later processes load the cache in ~0.3 s. numba
 keys a kernel's cache to its own file only, and a kernel that calls one of another module holds
 that one's machine code too: after a change of that module alone (a ``git pull`` into an
 editable install) it would run the old code. So the caches under ``backend/`` are dropped

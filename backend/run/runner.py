@@ -37,7 +37,7 @@ __all__ = ["run_sequence", "run_stream", "decide", "decide_online", "decisive", 
 #: One time stamp of a stream: (t, linear velocity (3,), angular velocity (3,), ids (n,), pixels (n,4))
 Step = tuple
 Observer = Callable[[int, VisualInertialEKF, Optional[StepStats]], None]
-COMPILING = "vislam: compiling the filter's kernels (once after an install or an update, up to a minute) ..."
+COMPILING = "vislam: compiling the filter's kernels (once after an install or an update, about 20 s) ..."
 
 
 def _quiet(_: str) -> None:
