@@ -106,7 +106,7 @@ def _compiling_everything() -> bool:
 
 def _note_warmed() -> None:
     """Say that a whole warm-up (every kernel but a real IMU's run's) has written its caches."""
-    if all(f in _done for f in _registered if _only.get(f) != "inertial") and not (CACHE_NOTES / WARMED).exists():
+    if all(f in _done for f in _registered if _serves(f, False)) and not (CACHE_NOTES / WARMED).exists():
         try:
             (CACHE_NOTES / WARMED).touch()
         except OSError:
@@ -138,6 +138,11 @@ def warms_up(function: Callable[[], None] | None = None, *, only: str | None = N
     return register if function is None else register(function)
 
 
+def _serves(function: Callable[[], None], inertial: bool) -> bool:
+    """Whether the registered warm-up ``function`` serves a run (a real IMU's with ``inertial``)."""
+    return inertial or _only.get(function) != "inertial"
+
+
 def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False) -> float:
     """Compile or load every registered kernel not warmed up yet in this process (those registered
     ``only="inertial"`` with ``inertial`` only); returns the seconds spent (0 when there was nothing
@@ -145,7 +150,7 @@ def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False) ->
     seconds (compiling after an install or an update)."""
     global _seconds
     with _lock:
-        todo = [f for f in _registered if f not in _done and (inertial or _only.get(f) != "inertial")]
+        todo = [f for f in _registered if f not in _done and _serves(f, inertial)]
         if not todo:
             return 0.0
         timer = threading.Timer(NOTICE_AFTER, notice) if notice is not None else None
@@ -202,7 +207,7 @@ def _compile_in_helper(modules: list[str], claims: str, inertial: bool) -> None:
         if _claim(claims, name):
             importlib.import_module(name)  # registers its warm-ups here
             for f in _registered:
-                if f.__module__ == name and (inertial or _only.get(f) != "inertial"):
+                if f.__module__ == name and _serves(f, inertial):
                     f()
 
 

@@ -438,6 +438,6 @@ def test_a_helper_that_is_gone_leaves_its_outputs_to_the_run(tmp_path):
     assert {"map.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(tmp_path))
     with pytest.raises(KeyboardInterrupt):
         with output_process() as helper:
-            helper.submit("write_map_ply", tmp_path / "other.ply", *make_map()[1:3])
+            helper.submit(write_map_ply, tmp_path / "other.ply", *make_map()[1:3])
             raise KeyboardInterrupt
     assert multiprocessing.active_children() == []

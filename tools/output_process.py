@@ -23,37 +23,27 @@ __all__ = ["OutputProcess", "output_process"]
 JOIN_SECONDS = 5.0
 
 
-def _functions() -> dict[str, Callable[..., Any]]:
-    """The outputs the helper writes, by name."""
-    from . import outputs, plots, report
-
-    return {"write_map_ply": outputs.write_map_ply, "plot_trajectories_topdown": plots.plot_trajectories_topdown,
-            "write_error_plot": report.write_error_plot}
-
-
 def _serve(conn) -> None:
-    """The helper: import the libraries, then call each function it is sent until the run's end of
-    the pipe closes (or the run terminates it)."""
+    """The helper: import the libraries, then call each function it is sent (a module-level function,
+    sent by its name) until the run's end of the pipe closes (or the run terminates it)."""
     for name in ("SIGINT", "SIGHUP"):
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), signal.SIG_IGN)
-    from . import outputs
+    from . import outputs, plots, report  # noqa: F401 (the modules of the functions it is sent, imported now)
 
     outputs.import_open3d()
     import matplotlib.figure  # noqa: F401 (imported now, while the run computes)
 
-    functions = _functions()
     while True:
         try:
-            job = conn.recv()
+            function, args, kwargs = conn.recv()
         except EOFError:
             return
-        name, args, kwargs = job
         try:
-            value = functions[name](*args, **kwargs)
-            conn.send(("ok", name, value if isinstance(value, bool) else None))  # write_map_ply's answer
-        except Exception as exc:  # the run writes it itself and says why if that fails too
-            conn.send(("error", name, f"{type(exc).__name__}: {exc}"))
+            value = function(*args, **kwargs)
+            conn.send((True, value if isinstance(value, bool) else None))  # an answer (write_map_ply's), no figure
+        except Exception:  # the run writes it itself, and says why if that fails too
+            conn.send((False, None))
 
 
 class OutputProcess:
@@ -65,26 +55,27 @@ class OutputProcess:
         self._process = ctx.Process(target=_serve, args=(child,), name="vislam-outputs", daemon=True)
         self._process.start()
         child.close()
-        self._jobs: list[tuple[str, tuple, dict]] = []
+        self._jobs: list[tuple[Callable[..., Any], tuple, dict]] = []
 
-    def submit(self, name: str, *args: Any, **kwargs: Any) -> None:
-        """Send the helper one output to write: the function ``name`` of :func:`_functions` with its arguments."""
-        self._jobs.append((name, args, kwargs))
+    def submit(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Send the helper one output to write: ``function(*args, **kwargs)``, a module-level function."""
+        self._jobs.append((function, args, kwargs))
         try:
-            self._conn.send((name, args, kwargs))
-        except (OSError, ValueError):  # the helper is gone: results() leaves the job to the caller
+            self._conn.send((function, args, kwargs))
+        except (OSError, ValueError):  # the helper is gone: results() does the job here
             pass
 
-    def results(self) -> list[tuple[str, tuple, dict, Optional[tuple[Any]]]]:
-        """Wait for every job sent: ``(name, args, kwargs, (value,))`` per job in order, ``None`` in place
-        of ``(value,)`` where the helper did not write it (it failed, or is gone): the caller's to write."""
+    def results(self) -> list[Any]:
+        """Wait for every job sent; each one's value in order (a bool, or None: figures stay in the
+        helper). A job the helper did not do (it failed, or is gone) is done here, and its value is
+        this process's call's."""
         out = []
-        for name, args, kwargs in self._jobs:
+        for function, args, kwargs in self._jobs:
             try:
-                status, _, value = self._conn.recv()
+                done, value = self._conn.recv()
             except (EOFError, OSError):
-                status, value = "gone", None
-            out.append((name, args, kwargs, (value,) if status == "ok" else None))
+                done = False
+            out.append(value if done else function(*args, **kwargs))
         self._jobs = []
         return out
 

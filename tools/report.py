@@ -112,14 +112,14 @@ def write_run_outputs(
     t0 = time.perf_counter()
     curves = {"estimate": (result.time_stamps, result.world_T_imu),
               "dead reckoning": (result.time_stamps, result.dead_reckoning)}
-    slow = [("write_map_ply", (out_dir / "map.ply", result.map_positions, result.map_covariances), {}),
-            ("plot_trajectories_topdown", (out_dir / "trajectory.png", curves, gt, result.map_positions),
+    slow = [(outputs.write_map_ply, (out_dir / "map.ply", result.map_positions, result.map_covariances), {}),
+            (plots.plot_trajectories_topdown, (out_dir / "trajectory.png", curves, gt, result.map_positions),
              {"title": f"{Path(source).name}: {result.config.estimator.mode}"})]
     if gt is not None:
-        slow.append(("write_error_plot", (out_dir / "ate_over_time.png", curves, *gt), {}))
+        slow.append((write_error_plot, (out_dir / "ate_over_time.png", curves, *gt), {}))
     if helper is not None:
-        for name, args, kwargs in slow:
-            helper.submit(name, *args, **kwargs)
+        for function, args, kwargs in slow:
+            helper.submit(function, *args, **kwargs)
     errors = evaluate(result, *gt) if gt is not None else None
     notes = list(notes)
     write_tum(out_dir / TRAJECTORY_FILE, result.time_stamps, result.world_T_imu,
@@ -132,13 +132,9 @@ def write_run_outputs(
                                  result.accel_biases)
     outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
     outputs.write_trajectory_ply(out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps)
-    local = {"write_map_ply": outputs.write_map_ply, "plot_trajectories_topdown": plots.plot_trajectories_topdown,
-             "write_error_plot": write_error_plot}
-    done = helper.results() if helper is not None else [(name, args, kwargs, None) for name, args, kwargs in slow]
-    for name, args, kwargs, value in done:
-        value = value[0] if value is not None else local[name](*args, **kwargs)  # the helper's, or here
-        if name == "write_map_ply" and not value:
-            notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
+    written = helper.results() if helper is not None else [f(*args, **kwargs) for f, args, kwargs in slow]
+    if not written[0]:  # write_map_ply's answer
+        notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
     summary = summary_dict(result, source, errors, tracker)
     summary["notes"] = notes
     summary["timing"].update(process_timing(summary["timing"], time.perf_counter() - t0))
