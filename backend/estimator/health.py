@@ -29,11 +29,13 @@ MAX_GATED_SHARE = 0.9
 
 @dataclass
 class HealthMonitor:
-    """Watches the NIS (H1) and collects one message per episode of trouble (H1, H2)."""
+    """Watches the NIS (H1) and collects one message per episode of trouble (H1, H2); ``silent``:
+    collects without warning (a trial run of the decisions, not the run a user asked for)."""
 
     window: int
     warn_factor: float
     messages: list[str] = field(default_factory=list)
+    silent: bool = False
     _nis: deque = field(default_factory=deque)
     _count: deque = field(default_factory=deque)
     _gated: deque = field(default_factory=deque)
@@ -84,7 +86,8 @@ class HealthMonitor:
 
     def report(self, message: str) -> None:
         self.messages.append(message)
-        warnings.warn(message, HealthWarning, stacklevel=3)
+        if not self.silent:
+            warnings.warn(message, HealthWarning, stacklevel=3)
 
 
 def vision_check(observations: int, used: int, gated: int, slam: bool = True) -> Optional[str]:
