@@ -113,6 +113,47 @@ def test_likelihood_prefers_the_true_imu_noise(clean, clean_decisions):
     assert scores[0.2] > scores[0.02] and scores[0.2] > scores[2.0]
 
 
+def test_likelihood_trials_do_not_warn_for_the_users_run(clean, clean_decisions):
+    """A trial run of L2 is not the user's run: its health episodes (here a pixel noise 40 times too
+    large, NIS far below 4) are collected, not raised as HealthWarnings."""
+    import dataclasses
+    import warnings
+
+    from vislam.backend.errors import HealthWarning
+
+    loose = dataclasses.replace(clean_decisions, pixels=dataclasses.replace(clean_decisions.pixels, sigma=20.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        score, tested = log_likelihood(clean.sequence, loose, Config(), steps=150)
+    assert tested > 0 and np.isfinite(score)
+    assert not [w for w in caught if issubclass(w.category, HealthWarning)]
+    # the same decisions in a run of its own do warn: the trial above had an episode to keep quiet
+    from vislam.backend.run.online import OnlineRun
+    from vislam.backend.geometry.camera import StereoCamera
+
+    run = OnlineRun(StereoCamera(clean.sequence.K, clean.sequence.baseline), loose, Config())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for k, step in enumerate(clean.sequence.steps()):
+            if k >= 150:
+                break
+            run.step(*step)
+    run.ekf.close()
+    assert [w for w in caught if issubclass(w.category, HealthWarning)]
+
+
+def test_likelihood_search_stops_two_candidates_past_its_peak():
+    """L2's search over a noise's factors: it stops once two candidates in a row fall below the best
+    before them, not at a single dip."""
+    from vislam.backend.run.decisions import _past_the_peak
+
+    assert not _past_the_peak([-3.0, -2.0, -1.0])
+    assert not _past_the_peak([-3.0, -2.0, -2.5])  # one below the peak
+    assert not _past_the_peak([-3.0, -2.0, -2.5, -1.5])  # a dip, then higher
+    assert _past_the_peak([-3.0, -2.0, -2.5, -2.1])
+    assert not _past_the_peak([-2.0, -2.0, -2.0])  # ties are not below
+
+
 def test_hold_error_is_left_out_where_the_truth_moves_by_the_held_samples():
     """The project's velocity-model scenes move by exactly the held twists (piecewise constant), so
     holding a sample costs nothing there: on a grid scene whose IMU noise comes from the white noise

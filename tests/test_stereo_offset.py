@@ -90,6 +90,24 @@ def test_exact_tracks_give_exactly_no_offset():
     assert abs(offset.estimate["beta_mean_px"]) < 1e-6 and offset.estimate["steps"] >= 150
 
 
+@pytest.mark.parametrize("extra_noise", [0.0, 0.5])
+def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch, extra_noise):
+    """D2 over many step pairs in two threads: the same fits, in the same order, bit for bit, as one
+    thread gives (the noise of a SIMEX re-fit is drawn in step order before the threads start)."""
+    from vislam.backend.run import two_view
+
+    seq = _scene(3, 0.5).sequence
+    threaded = two_view.fit_pairs(seq, 1, 150, offset=True, extra_noise=extra_noise, seed=4)
+    assert len(threaded) >= two_view.THREADED_PAIRS
+    monkeypatch.setattr(two_view, "THREADED_PAIRS", 10**9)
+    alone = two_view.fit_pairs(seq, 1, 150, offset=True, extra_noise=extra_noise, seed=4)
+    assert len(threaded) == len(alone)
+    for a, b in zip(threaded, alone):
+        assert a.step == b.step and a.beta == b.beta and a.beta_variance == b.beta_variance
+        np.testing.assert_array_equal(a.b_T_a, b.b_T_a)
+        np.testing.assert_array_equal(a.residuals, b.residuals)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_noise_alone_is_not_taken_for_an_offset(seed):
     """0.5 px and 1 px pixel noise, no offset: the estimate stays within 3 standard errors of 0

@@ -289,16 +289,35 @@ LIKELIHOOD_FACTORS = 3.0 ** np.arange(0, 9)
 LINEAR_CAP_M_S, ANGULAR_CAP_RAD_S = 5.0, 0.5
 
 
+#: The search of (L2) over a noise's factors stops after this many candidates in a row below the best.
+LIKELIHOOD_PAST_PEAK = 2
+
+
+def _past_the_peak(scores: list) -> bool:
+    """Whether the last ``LIKELIHOOD_PAST_PEAK`` of ``scores`` all fall below the best before them
+    (the likelihood over a noise's factor rises to one peak and falls: the rest cannot win)."""
+    n = LIKELIHOOD_PAST_PEAK
+    return len(scores) > n and max(scores[-n:]) < max(scores[:-n])
+
+
+def _same_imu(a: Decisions, b: Decisions) -> bool:
+    return (np.array_equal(a.imu.linear_sigma, b.imu.linear_sigma)
+            and np.array_equal(a.imu.angular_sigma, b.imu.angular_sigma))
+
+
 def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> Decisions:
     """Where vision cannot measure the IMU (N3: too few tracks a step), the IMU sigmas that maximize
     the filter's own innovation likelihood (L2) over the first steps: first the linear sigma over
-    the white noise (N1) times 1, 3, 9, ..., then the angular one at that linear sigma; a configured
-    value is kept. The smallest candidate is the samples' own white noise: no floor by hand."""
+    the white noise (N1) times 1, 3, 9, ... until two in a row fall below the best, then the angular
+    one at that linear sigma (a candidate already run is not run again); a configured value is
+    kept. The smallest candidate is the samples' own white noise: no floor by hand."""
     from .likelihood import log_likelihood, with_imu
 
     imu = decisions.imu
     table: dict = {}
     best = decisions
+
+    scored: list = []  # (candidate, score) already run
 
     def search(kind: str, white: np.ndarray, cap: float) -> Decisions:
         base = np.maximum(white, 1e-4 if kind == "linear" else 1e-5)
@@ -306,10 +325,13 @@ def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> D
         for f in LIKELIHOOD_FACTORS:
             sigma = np.minimum(base * f, cap)
             candidate = with_imu(best, **{f"{kind}_sigma": sigma})
-            score, _ = log_likelihood(seq, candidate, config)
+            score = next((s for c, s in scored if _same_imu(c, candidate)), None)
+            if score is None:
+                score, _ = log_likelihood(seq, candidate, config)
+                scored.append((candidate, score))
             table[f"{kind} x{f:g}"] = score
             scores.append((score, candidate))
-            if sigma.max() >= cap:
+            if sigma.max() >= cap or _past_the_peak([s for s, _ in scores]):
                 break
         return max(scores, key=lambda x: x[0])[1]
 

@@ -21,6 +21,7 @@ and the IMU's error against vision (``noise``: the fitted motion as an IMU-frame
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,10 @@ ROW_PX = 2.0
 TRIM_PX = 3.0
 #: A point enters a fit only with a disparity above this (px) in both frames.
 MIN_DISPARITY = 1.0
+#: Threads that fit step pairs (the compiled fit releases the GIL); fewer pairs than
+#: ``THREADED_PAIRS`` are fitted in the calling thread.
+FIT_THREADS = 2
+THREADED_PAIRS = 32
 
 
 @dataclass
@@ -213,6 +218,11 @@ def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
     Jg[2, 6] = Jg[6, 6] = -1.0
 
 
+#: The rows of (D2) whose Jacobian in the motion and beta is not zero (uR at k: beta only; the four
+#: pixels at k+h), in the order of the rows: the sums below skip only exact zeros.
+_MOTION_ROWS = (2, 4, 5, 6, 7)
+
+
 @jit
 def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, huber):
     """The Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement), in one
@@ -261,7 +271,7 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                     Hpp[a, b] = s + (1e-9 if a == b else 0.0)
                 for b in range(g):
                     s = 0.0
-                    for j in range(8):
+                    for j in _MOTION_ROWS:
                         s += Jp[j, a] * w[j] * Jg[j, b]
                     Hpg[i, a, b] = s
                 s = 0.0
@@ -269,13 +279,15 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                     s += Jp[j, a] * w[j] * r[j]
                 bp[i, a] = s
             for a in range(g):
-                for b in range(g):
+                for b in range(a, g):
                     s = 0.0
-                    for j in range(8):
+                    for j in _MOTION_ROWS:
                         s += Jg[j, a] * Jg[j, b] * w[j]
                     S[a, b] += s
+                    if b != a:
+                        S[b, a] += s
                 s = 0.0
-                for j in range(8):
+                for j in _MOTION_ROWS:
                     s += Jg[j, a] * w[j] * r[j]
                 rhs[a] += s
             if not _inverse3(Hpp, Hinv[i]):
@@ -422,15 +434,23 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
     K = seq.K
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     rng = np.random.default_rng(seed) if extra_noise > 0 else None
-    fits = []
+    pairs = []
     for k in pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps:
-        za, zb = matched_pixels(seq, int(k), int(k) + gap, rng, extra_noise)
-        if za.shape[0] < min_points:
-            continue
-        fit = fit_pair(za, zb, cam, offset, min_points, int(k), gap)
-        if fit is not None:
-            fits.append(fit)
-    return fits
+        za, zb = matched_pixels(seq, int(k), int(k) + gap, rng, extra_noise)  # the noise drawn in step order
+        if za.shape[0] >= min_points:
+            pairs.append((int(k), za, zb))
+
+    def fit(pair):
+        return fit_pair(pair[1], pair[2], cam, offset, min_points, pair[0], gap)
+
+    if len(pairs) < THREADED_PAIRS:
+        return [f for f in map(fit, pairs) if f is not None]
+    # the compiled fit releases the GIL: two threads fit the pairs, in their order, each as alone
+    pool = ThreadPoolExecutor(FIT_THREADS)
+    try:
+        return [f for f in pool.map(fit, pairs) if f is not None]
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # a stop does not wait for the pairs not begun
 
 
 @warms_up
