@@ -371,7 +371,8 @@ def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_poin
              step: int = 0, gap: int = 1, initial: np.ndarray | None = None) -> TwoViewFit | None:
     """The fit (D2) of one step pair's matched pixels ``za``, ``zb`` (n,4), or None: the pairs whose
     rows agree, then again from the start on the points whose eight residuals all stay within
-    ``TRIM_PX`` (gross mismatches removed, not only down-weighted); None when fewer than
+    ``TRIM_PX`` (gross mismatches removed, not only down-weighted; where none was, the first fit is
+    that fit); None when fewer than
     ``min_points`` remain, a third of them is trimmed, or the fit is degenerate.
     ``cam`` = (fx, fy, cx, cy, baseline); ``initial``: the motion to start from (default: none, for
     the small motions of consecutive steps)."""
@@ -385,7 +386,10 @@ def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_poin
     keep = np.abs(first[3]).max(axis=1) <= TRIM_PX
     if keep.sum() < max(min_points, 2 * za.shape[0] / 3):
         return None
-    second = _bundle_adjust(za[keep], zb[keep], cam, offset, initial=None if initial is None else first[0])
+    if keep.all() and initial is None:
+        second = first  # the same points from the same start: the same fit
+    else:
+        second = _bundle_adjust(za[keep], zb[keep], cam, offset, initial=None if initial is None else first[0])
     if second is None or np.abs(second[3]).max() > TRIM_PX:
         return None
     T, beta, S_inv, r, dof, sigma2 = second
