@@ -14,9 +14,10 @@ run's timing. Kernels only a real IMU's run calls are registered as ``only="iner
 warmed up only for such a run: a velocity run does not compile them.
 
 When nothing is cached yet (the first run after an install or a change), a helper process
-compiles modules beside this one, both going down one list (the largest sources first) and
-each claiming the next module not yet claimed (a file created exclusively; no lock to leak);
-the caches it writes are then loaded here. numba compiles in one thread, so on
+compiles modules beside this one, the helper going down one list from the largest source and
+this process up it from the smallest (compiling grows a process's memory, and the run's holds its
+data too), each claiming the next module not yet claimed (a file created exclusively; no lock to
+leak); the caches it writes are then loaded here. numba compiles in one thread, so on
 2 cores this nearly halves the wait: ece276a_0027's first run 29.5 -> 19 s (BENCHMARKS.md). A stop
 (Ctrl-C, SIGTERM) ends the helper with the run.
 """
@@ -213,14 +214,15 @@ def _compile_in_helper(modules: list[str], claims: str, inertial: bool) -> None:
 
 def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool) -> None:
     """Compile the modules of ``todo`` here and in one helper process, each claiming the next module of
-    one list; the helper's modules are left for the caller, whose warm-ups then load its caches."""
+    one list (the helper from its largest, this process from its smallest); the helper's modules are
+    left for the caller, whose warm-ups then load its caches."""
     modules = _by_size(todo)
     claims = tempfile.mkdtemp(prefix="vislam-compile-")
     helper = multiprocessing.get_context("spawn").Process(
         target=_compile_in_helper, args=(modules, claims, inertial), name="vislam-compile", daemon=True)
     try:
         helper.start()
-        for name in modules:
+        for name in reversed(modules):  # the helper takes the largest first, this process the smallest
             if _claim(claims, name):
                 for function in todo:
                     if function.__module__ == name:
