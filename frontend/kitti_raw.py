@@ -42,11 +42,14 @@ __all__ = [
 #: The 30 numbers of an OXTS line, in order (the devkit's dataformat.txt): position (deg, deg, m),
 #: attitude (rad), velocities (m/s: north, east, forward, left, up), accelerations (m/s^2:
 #: x, y, z, forward, left, up), angular rates (rad/s: x, y, z, forward, left, up), accuracies (m,
-#: m/s) and status codes.
+#: m/s) and status codes. x, y, z are the IMU's own axes (front, left, top of the vehicle); forward,
+#: left and up are those of the level frame (forward and left "parallel to earth-surface", up
+#: "perpendicular to earth-surface"), which turns with the heading only.
 OXTS_FIELDS = ("lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu", "ax", "ay", "az",
                "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu", "pos_accuracy", "vel_accuracy",
                "navstat", "numsats", "posmode", "velmode", "orimode")
-_VF, _AF, _WF = OXTS_FIELDS.index("vf"), OXTS_FIELDS.index("af"), OXTS_FIELDS.index("wf")
+_ROLL, _PITCH = OXTS_FIELDS.index("roll"), OXTS_FIELDS.index("pitch")
+_VF, _AX, _WX = OXTS_FIELDS.index("vf"), OXTS_FIELDS.index("ax"), OXTS_FIELDS.index("wx")
 
 #: Equatorial radius (m) of the devkit's Mercator conversion (WGS84).
 EARTH_RADIUS = 6378137.0
@@ -243,16 +246,26 @@ def read_oxts(folder, stems: list[str]) -> np.ndarray:
 
 
 def oxts_velocities(oxts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(linear (n,3) m/s, angular (n,3) rad/s) in the IMU frame: ``vf vl vu`` and ``wf wl wu``
-    (forward, left, up = the OXTS/IMU x, y, z axes)."""
-    return (np.ascontiguousarray(oxts[:, _VF:_VF + 3]), np.ascontiguousarray(oxts[:, _WF:_WF + 3]))
+    """(linear (n,3) m/s, angular (n,3) rad/s) in the IMU frame. The records give no velocity in the
+    IMU's axes: ``vf vl vu`` are the level frame's (:data:`OXTS_FIELDS`), turned into the IMU frame by
+    the record's roll and pitch,
+
+        v_imu = (Ry(pitch) Rx(roll))^T [vf, vl, vu]                                           (K1)
+
+    (the attitude of :func:`oxts_world_T_imu` is Rz(yaw) Ry(pitch) Rx(roll), the level frame Rz(yaw));
+    the rates are ``wx wy wz``, the IMU's own. Held as given, ``vf vl vu`` put the vehicle's pitch
+    into its vertical motion: v |sin(pitch)|, 0.4 m/s at 22 m/s and 1 deg."""
+    tilt = _rotations(oxts[:, _ROLL], oxts[:, _PITCH], np.zeros(len(oxts)))
+    linear = np.einsum("kji,kj->ki", tilt, oxts[:, _VF:_VF + 3])
+    return np.ascontiguousarray(linear), np.ascontiguousarray(oxts[:, _WX:_WX + 3])
 
 
 def oxts_inertial(oxts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(specific force (n,3) m/s^2, angular rate (n,3) rad/s) in the IMU frame: ``af al au`` and
-    ``wf wl wu``, a real IMU's samples (the accelerometer reads about +9.81 up at rest; the inertial
-    run's initialization tests that and refuses otherwise)."""
-    return (np.ascontiguousarray(oxts[:, _AF:_AF + 3]), np.ascontiguousarray(oxts[:, _WF:_WF + 3]))
+    """(specific force (n,3) m/s^2, angular rate (n,3) rad/s) in the IMU frame: ``ax ay az`` and
+    ``wx wy wz``, a real IMU's samples (the accelerometer reads about +9.81 up at rest; the inertial
+    run's initialization tests that and refuses otherwise). ``af al au`` and ``wf wl wu`` are the
+    level frame's (:data:`OXTS_FIELDS`): gravity stays on ``au`` whatever the tilt."""
+    return (np.ascontiguousarray(oxts[:, _AX:_AX + 3]), np.ascontiguousarray(oxts[:, _WX:_WX + 3]))
 
 
 def mercator_scale(lat0_deg: float) -> float:

@@ -1,9 +1,10 @@
 """A KITTI raw ``_sync`` drive as one input: its stereo frames, IMU velocities and ground truth.
 
-The OXTS records carry both IMU inputs: the velocities ``vf vl vu`` with the rates ``wf wl wu``
-(the default, the velocity model) and the specific force ``af al au`` with the same rates, one
-sample a frame, as a real IMU's samples for the inertial state (``--imu-input inertial``); the
-ground truth of an inertial run is the OXTS poses in a gravity-aligned world (z up).
+The OXTS records carry both IMU inputs: the velocities ``vf vl vu`` (the level frame's, turned into
+the IMU's axes by the record's roll and pitch, K1 of :mod:`~vislam.frontend.kitti_raw`) with the
+rates ``wx wy wz`` (the default, the velocity model), and the specific force ``ax ay az`` with the
+same rates, one sample a frame, as a real IMU's samples for the inertial state (``--imu-input
+inertial``); the ground truth of an inertial run is the OXTS poses in a gravity-aligned world (z up).
 
 ``DATE/DATE_drive_NNNN_sync/`` (the drive) holds ``image_00/data/*.png`` and ``image_01/data/*.png``
 (rectified grey, left and right), ``image_00/timestamps.txt`` and ``oxts/data/*.txt``; ``DATE/``
@@ -52,12 +53,12 @@ class RawDrive:
     oxts: np.ndarray  # (n,30) the records, columns kitti_raw.OXTS_FIELDS
 
     def inertial_samples(self) -> ImuSamples:
-        """``af al au`` and ``wf wl wu`` at the frames' stamps as a real IMU's samples (no noise
-        densities: the run measures them); InputError when they cannot be (a gap over
-        ``MAX_IMU_STEP`` between frames)."""
+        """``ax ay az`` and ``wx wy wz`` (the IMU's axes) at the frames' stamps as a real IMU's
+        samples (no noise densities: the run measures them); InputError when they cannot be (a gap
+        over ``MAX_IMU_STEP`` between frames)."""
         specific_force, rate = oxts_inertial(self.oxts)
         return check_imu_samples(self.ground_truth_source, self.imu.time_stamps, specific_force, rate,
-                                 keys=("image_00/timestamps.txt", "af al au", "wf wl wu"))
+                                 keys=("image_00/timestamps.txt", "ax ay az", "wx wy wz"))
 
     @property
     def ground_truth_source(self) -> str:

@@ -30,7 +30,8 @@ from vislam.backend.errors import InputError
 from vislam.backend.evaluation.metrics import trajectory_errors
 from vislam.backend.geometry import se3
 from vislam.frontend.kitti_raw import (
-    EARTH_RADIUS, OXTS_FIELDS, cam_rect_T_imu, mercator_scale, oxts_inertial, oxts_world_T_imu, parse_timestamp,
+    EARTH_RADIUS, OXTS_FIELDS, cam_rect_T_imu, mercator_scale, oxts_inertial, oxts_velocities, oxts_world_T_imu,
+    parse_timestamp,
     read_drive_calibration, read_oxts, read_timestamps,
 )
 from vislam.frontend.raw_drive import is_raw_drive, open_images, open_raw_drive
@@ -90,15 +91,23 @@ def oxts_from_poses(world_T_imu: np.ndarray, rpy0=RPY0) -> np.ndarray:
     return np.column_stack([lat, lon, z, roll, pitch, yaw])
 
 
+def level_from_imu(pose6: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """(n,3) vectors of the IMU frame (n,3) in the level frame of records ``pose6`` (roll, pitch at
+    columns 3, 4): Ry(pitch) Rx(roll) x, as the OXTS unit writes vf vl vu, af al au, wf wl wu."""
+    return np.array([rot("y", p) @ rot("x", r) @ x for r, p, x in zip(pose6[:, 3], pose6[:, 4], np.asarray(body))])
+
+
 def oxts_records(pose6: np.ndarray, linear: np.ndarray, angular: np.ndarray, specific_force=None) -> np.ndarray:
-    """(n,30) OXTS records: the given position/attitude, body velocities, rates and (optional)
-    specific force (ax ay az = af al au)."""
+    """(n,30) OXTS records as the unit writes them: the given position/attitude; body velocities
+    (n,3) as vf vl vu of the level frame; rates as wx wy wz and, levelled, wf wl wu; (optional)
+    specific force as ax ay az and, levelled, af al au."""
     n = len(pose6)
     rec = np.zeros((n, len(OXTS_FIELDS)))
     rec[:, :6] = pose6
-    rec[:, 8:11], rec[:, 20:23], rec[:, 17:20] = linear, angular, angular
+    rec[:, 8:11] = level_from_imu(rec, linear)
+    rec[:, 17:20], rec[:, 20:23] = angular, level_from_imu(rec, angular)
     if specific_force is not None:
-        rec[:, 11:14] = rec[:, 14:17] = specific_force
+        rec[:, 11:14], rec[:, 14:17] = specific_force, level_from_imu(rec, specific_force)
     rec[:, 23:] = [0.05, 0.02, 4, 11, 5, 5, 6]
     return rec
 
@@ -198,7 +207,9 @@ def test_reader_gives_back_the_course_file(real_drive, course):
     np.testing.assert_allclose(drive.imu.imu_T_cam, np.linalg.inv(c["cam_T_imu"]), rtol=0, atol=1e-6)
     assert np.abs(drive.imu.imu_T_cam[:3, :3].T @ drive.imu.imu_T_cam[:3, :3] - np.eye(3)).max() < 1e-14
     printed = np.vectorize(lambda x: float("%.14g" % x))
-    np.testing.assert_array_equal(drive.imu.linear_velocity, printed(c["v"]))
+    # the records hold the velocities levelled by the poses' roll and pitch (K1) to 14 digits: read back
+    # into the IMU frame they are the course file's to that precision
+    np.testing.assert_allclose(drive.imu.linear_velocity, c["v"], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(drive.imu.angular_velocity, printed(c["w"]))
     assert np.abs(drive.imu.time_stamps - c["t"]).max() < 5e-7 and np.all(np.diff(drive.imu.time_stamps) > 0)
     np.testing.assert_array_equal(stereo.times, drive.imu.time_stamps)
@@ -407,14 +418,39 @@ def test_imu_T_cam_file_replaces_the_calibrated_extrinsic(tmp_path):
 # ---------------------------------------------------------------------------------------------- (4) inertial
 
 
+def test_oxts_velocities_are_turned_from_the_level_frame_by_hand():
+    """K1: vf vl vu are the level frame's (the devkit: forward and left parallel to the earth's
+    surface, up perpendicular to it). A vehicle pitched 0.1 rad front down and driving straight ahead
+    at 10 m/s records vf = 10 cos 0.1, vu = -10 sin 0.1; read back it moves along its own x alone. The
+    rates are wx wy wz (the IMU's), not wf wl wu; roll and pitch together invert the writer's turn."""
+    rec = np.zeros((3, len(OXTS_FIELDS)))
+    rec[0, OXTS_FIELDS.index("pitch")] = 0.1
+    rec[0, OXTS_FIELDS.index("vf"):OXTS_FIELDS.index("vu") + 1] = [10 * math.cos(0.1), 0.0, -10 * math.sin(0.1)]
+    rec[:, OXTS_FIELDS.index("wx"):OXTS_FIELDS.index("wz") + 1] = [0.01, -0.02, 0.3]
+    rec[:, OXTS_FIELDS.index("wf"):OXTS_FIELDS.index("wu") + 1] = 99.0  # not these
+    rec[1, 3:5] = [0.05, -0.08]  # left side up, front up
+    body = np.array([12.0, 0.3, -0.2])
+    rec[1, 8:11] = level_from_imu(rec[1:2], body[None])[0]
+    linear, angular = oxts_velocities(rec)
+    np.testing.assert_allclose(linear[0], [10.0, 0.0, 0.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(linear[1], body, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(linear[2], [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(angular, np.tile([0.01, -0.02, 0.3], (3, 1)))
+    # the level vertical speed is the world's: a record's pose moves up by vu dt on a slope
+    R = oxts_world_T_imu(rec[:1], level=True)[0, :3, :3]  # z up
+    np.testing.assert_allclose((R @ linear[0])[2], rec[0, OXTS_FIELDS.index("vu")], rtol=0, atol=1e-12)
+
+
 def test_oxts_inertial_columns_and_level_poses_by_hand():
-    """af al au and wf wl wu are the IMU's samples; the level world has z up and x along the first
-    heading: the first pose keeps its roll and pitch, a flat record turned by 0.4 rad is Rz(0.4), and
-    a step east shows in the first heading's axes."""
+    """ax ay az and wx wy wz (the IMU's axes) are the IMU's samples, not the level frame's af al au,
+    wf wl wu; the level world has z up and x along the first heading: the first pose keeps its roll
+    and pitch, a flat record turned by 0.4 rad is Rz(0.4), and a step east shows in the first
+    heading's axes."""
     rec = np.zeros((2, len(OXTS_FIELDS)))
-    rec[:, OXTS_FIELDS.index("af"):OXTS_FIELDS.index("au") + 1] = [[0.1, 0.2, 9.8], [0.3, -0.1, 9.7]]
-    rec[:, OXTS_FIELDS.index("wf"):OXTS_FIELDS.index("wu") + 1] = [[0.01, 0.02, 0.03], [0.0, 0.0, 0.2]]
-    rec[:, OXTS_FIELDS.index("ax"):OXTS_FIELDS.index("az") + 1] = 99.0  # not these
+    rec[:, OXTS_FIELDS.index("ax"):OXTS_FIELDS.index("az") + 1] = [[0.1, 0.2, 9.8], [0.3, -0.1, 9.7]]
+    rec[:, OXTS_FIELDS.index("wx"):OXTS_FIELDS.index("wz") + 1] = [[0.01, 0.02, 0.03], [0.0, 0.0, 0.2]]
+    rec[:, OXTS_FIELDS.index("af"):OXTS_FIELDS.index("au") + 1] = 99.0  # not these
+    rec[:, OXTS_FIELDS.index("wf"):OXTS_FIELDS.index("wu") + 1] = 99.0
     acc, gyr = oxts_inertial(rec)
     np.testing.assert_array_equal(acc, [[0.1, 0.2, 9.8], [0.3, -0.1, 9.7]])
     np.testing.assert_array_equal(gyr, [[0.01, 0.02, 0.03], [0.0, 0.0, 0.2]])
@@ -428,12 +464,12 @@ def test_oxts_inertial_columns_and_level_poses_by_hand():
 
 
 def test_inertial_samples_of_a_drive_and_a_gap_refused(tmp_path):
-    """The drive's IMU samples are its records' af al au, wf wl wu at the frames' stamps; a gap of
+    """The drive's IMU samples are its records' ax ay az, wx wy wz at the frames' stamps; a gap of
     over a second between frames refuses the inertial input (naming the records), not the drive."""
     root = small_drive(tmp_path, 5)
     for k, path in enumerate(sorted((root / "oxts" / "data").iterdir())):
         values = path.read_text().split()
-        values[14:17] = ["0.5", str(-0.1 * k), "9.81"]
+        values[11:14] = ["0.5", str(-0.1 * k), "9.81"]
         path.write_text(" ".join(values) + "\n")
     drive = open_raw_drive(root)
     samples = drive.inertial_samples()
@@ -576,7 +612,9 @@ def test_unusable_drives_are_refused_naming_the_file(tmp_path):
 
     root = small_drive(tmp_path / "d")
     path = root / "oxts" / "data" / "0000000001.txt"
-    path.write_text(path.read_text().replace(" 10 ", " nan ", 1))
+    values = path.read_text().split()
+    values[OXTS_FIELDS.index("vf")] = "nan"
+    path.write_text(" ".join(values) + "\n")
     _refused(root, "non-finite value 'nan'", path)
 
     root = small_drive(tmp_path / "e")

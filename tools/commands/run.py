@@ -27,9 +27,9 @@ def add_parser(sub) -> None:
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="with an image directory: 4x4 text imu_T_cam")
     p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
                    help="which IMU input to use: a feature file with both (velocities and a real IMU's samples) needs "
-                        "one; a KITTI raw drive runs on its OXTS velocities vf vl vu (auto, velocity) or on its "
-                        "accelerations af al au with the rates wf wl wu as a real IMU (inertial). Default: auto, the "
-                        "one input the data has")
+                        "one; a KITTI raw drive runs on its OXTS velocities vf vl vu in the IMU frame (by the record's "
+                        "roll and pitch) with the rates wx wy wz (auto, velocity) or on its accelerations ax ay az "
+                        "with the rates wx wy wz as a real IMU (inertial). Default: auto, the one input the data has")
     p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG "
                                                  "(left image on top with track tails, right image below with the stereo matches)")
     p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
@@ -267,7 +267,7 @@ def _run_raw_inertial(args: argparse.Namespace, config: Config, tracker, gt, say
                                                            f"gravity-aligned world ({GROUND_TRUTH})")
     _check_ground_truth(gt, drive.imu.time_stamps)
     say(f"vislam run {args.data}: KITTI raw drive, {len(drive.stereo)} stereo pairs, the OXTS accelerations "
-        "af al au and rates wf wl wu as the IMU's samples (one a frame)")
+        "ax ay az and rates wx wy wz as the IMU's samples (one a frame)")
     for note in notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config, tracker))

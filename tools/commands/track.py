@@ -20,8 +20,9 @@ def add_parser(sub) -> None:
                                  "needed with the odometry layout (a raw drive has its oxts/)")
     p.add_argument("--imu-T-cam", dest="imu_T_cam", metavar="FILE", help="4x4 text imu_T_cam (needed with a CSV)")
     p.add_argument("--imu-input", dest="imu_input", choices=["auto", "velocity", "inertial"], default="auto",
-                   help="a KITTI raw drive: write its OXTS velocities vf vl vu (auto, velocity: the course layout) or "
-                        "its accelerations af al au with the rates wf wl wu as a real IMU's samples (inertial: the "
+                   help="a KITTI raw drive: write its OXTS velocities vf vl vu turned into the IMU frame by the record's "
+                        "roll and pitch, with the rates wx wy wz (auto, velocity: the course layout), or its "
+                        "accelerations ax ay az with the rates wx wy wz as a real IMU's samples (inertial: the "
                         "inertial layout). Default: auto")
     p.add_argument("--out", required=True, help="output .npz (refused if it exists, unless --force)")
     p.add_argument("--force", action="store_true",
