@@ -101,6 +101,25 @@ def test_motion_prior_measures_its_own_error():
     assert sharp.predict(dt) is None
 
 
+def test_motion_prior_is_never_exact_where_the_imu_noise_takes_up_its_differences():
+    """(T2) An IMU whose configured sigma (0.1) exceeds the differences it shows to the prior (white
+    0.05, the velocity constant): the excess is negative, and the prior's variance is then the
+    standard error of the squared differences' mean, not zero: sigma / tau between 0.1 and 1 times
+    0.05 on every axis, so a frozen step cannot pin an axis as exactly known."""
+    rng = np.random.default_rng(3)
+    prior = MotionPrior(np.full(6, 0.1))
+    dt = 0.1
+    u = rng.normal(0, 0.5, 6)
+    for _ in range(200):
+        prior.add(np.eye(4), se3.exp_se3(dt * u), dt, u + rng.normal(0, 0.05, 6), frozen=False)
+    twist, sigma = prior.predict(dt)
+    np.testing.assert_allclose(twist, dt * u, atol=1e-12)
+    sq = 0.05**2
+    se = np.sqrt(2) * sq / np.sqrt(199)  # the standard error of a mean of 199 squares of N(0, 0.05^2)
+    assert np.all(sigma / dt > 0.5 * np.sqrt(se)) and np.all(sigma / dt < 2 * np.sqrt(se))
+    assert np.all(sigma / dt > 0.1 * 0.05) and np.all(sigma / dt < 0.05)
+
+
 @pytest.fixture(scope="module")
 def repeats():
     return make_scene(SceneConfig(steps=300, seed=7, track_errors=TrackErrors(pixel_sigma=0.5, repeat_interval=12.0)))

@@ -100,14 +100,17 @@ class MotionPrior:
 
     def predict(self, dt: float) -> tuple[np.ndarray, np.ndarray] | None:
         """(twist tau u (6,), its sigmas (6,)) for a frozen step of ``dt`` s, or None without enough
-        history or where the prior is no better than the IMU."""
+        history or where the prior is no better than the IMU. Per axis, the prior's error variance is
+        what the squared differences to the IMU hold beyond the IMU's own, and at least the standard
+        error of their mean: where the IMU's noise takes up all of them, the data cannot tell the
+        prior's error from zero, and the prior is not taken as exact."""
         if self._last is None or len(self._squares) < self.MIN_STEPS:
             return None
         sq = np.array(self._squares)
-        var = sq.mean(axis=0) - self._imu_var + sq.std(axis=0) / np.sqrt(sq.shape[0])
+        var = np.maximum(sq.mean(axis=0) - self._imu_var, 0.0) + sq.std(axis=0) / np.sqrt(sq.shape[0])
         if np.any(var >= self._imu_var):
             return None
-        return dt * self._last, dt * np.sqrt(np.maximum(var, 1e-18))
+        return dt * self._last, dt * np.sqrt(var)
 
 
 def repeated_steps(seq: Sequence) -> np.ndarray:
