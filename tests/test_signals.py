@@ -163,3 +163,29 @@ def test_finalizers_of_interrupted_work_stay_quiet_and_others_do_not(monkeypatch
         Broken()
         assert reported == ["seek of closed file"]
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler before is back
+
+
+def test_a_stop_another_thread_receives_waits_for_the_held_block():
+    """Blocking reaches the main thread only: a SIGTERM sent to the process while the main thread is
+    in a held block (numba loading a kernel) goes to another thread that does not block it (the
+    compile notice's timer), and Python runs the handler in the main thread at once. The handler
+    leaves it to the block, which finishes its work and raises it on the way out: exit as a stop,
+    never a KeyboardInterrupt inside numba (a crash later)."""
+    import os
+    import threading
+
+    from vislam.backend import signals
+    from vislam.tools import console
+
+    other = threading.Thread(target=time.sleep, args=(3.0,), daemon=True)  # its mask: nothing blocked
+    other.start()
+    done = []
+    with console.interrupt_handler():
+        with pytest.raises(KeyboardInterrupt):
+            with signals.held():
+                os.kill(os.getpid(), signal.SIGTERM)  # the process: the kernel picks the other thread
+                for _ in range(50):  # bytecode boundaries, where the main thread runs the handler
+                    time.sleep(0.01)
+                done.append("the held work")
+        assert console.interrupted_text() == "interrupted (SIGTERM)"
+    assert done == ["the held work"]

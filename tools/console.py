@@ -29,6 +29,8 @@ _received: list[int] = []  # the stop signals received while the handler was in 
 
 
 def _on_signal(signum, frame) -> None:
+    if signals.deferred(signum):  # inside work a stop must not cut (numba): raised again after it
+        return
     _received.append(signum)
     _interrupted.set()
     raise KeyboardInterrupt
