@@ -105,6 +105,14 @@ def _compiling_everything() -> bool:
                                                             else CACHE_NOTES.parent, os.W_OK)
 
 
+def warmed_before() -> bool:
+    """Whether a whole warm-up wrote the kernels' caches since the sources last changed (or numba
+    caches elsewhere): a process then only loads them. A command that starts a pool of workers
+    warms up first where this is False, so the workers load what it compiled (with its helper)
+    rather than each compiling everything."""
+    return not _compiling_everything()
+
+
 def _note_warmed() -> None:
     """Say that a whole warm-up (every kernel but a real IMU's run's) has written its caches."""
     if all(f in _done for f in _registered if _serves(f, False)) and not (CACHE_NOTES / WARMED).exists():
@@ -160,7 +168,8 @@ def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False) ->
             timer.start()
         t0 = time.perf_counter()
         try:
-            if _cores() > 1 and len({f.__module__ for f in todo}) > 1 and _compiling_everything():
+            if (_cores() > 1 and len({f.__module__ for f in todo}) > 1 and _compiling_everything()
+                    and not multiprocessing.current_process().daemon):  # a pool's worker may not start one
                 _compile_with_a_helper(todo, inertial)
             for function in todo:
                 if function not in _done:

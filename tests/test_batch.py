@@ -170,3 +170,19 @@ def test_health_warnings_are_listed_on_stderr_naming_the_run(inputs, tmp_path, c
     assert row["health_warnings"] >= 1
     assert len(err) == row["health_warnings"]
     assert all(line.startswith("warning: s1.npz, defaults: step ") for line in err)
+
+
+@pytest.mark.parametrize("warmed", [False, True])
+def test_a_pool_command_compiles_the_kernels_before_its_workers_start(inputs, tmp_path, monkeypatch, warmed):
+    """On the first run after an install, ``batch`` and ``mc`` warm the kernels up in the command's own
+    process (with its compile helper) before a local pool starts, so the workers load them; once a
+    whole warm-up wrote the caches they leave it to the workers (loading only)."""
+    from vislam.backend import compiled
+
+    calls = []
+    monkeypatch.setattr(compiled, "warmed_before", lambda: warmed)
+    monkeypatch.setattr(compiled, "warm_up", lambda notice=None, inertial=False: calls.append(inertial) or 0.0)
+    assert main(["batch", str(inputs / "s0.npz"), "--out", str(tmp_path / "b"), "--workers", "2", "--no-progress",
+                 "--quiet"]) == 0
+    assert main(["mc", "--runs", "2", "--steps", "30", "--workers", "2", "--quiet", "--out", str(tmp_path / "m")]) == 0
+    assert calls == ([] if warmed else [False, False])

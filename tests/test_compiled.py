@@ -133,3 +133,42 @@ def test_a_helper_is_used_until_a_whole_warm_up_wrote_its_caches(tmp_path, monke
     (tmp_path / "a.py").write_text("x = 10\n")
     drop_stale_caches(tmp_path)
     assert compiled._compiling_everything()
+
+
+def _warm_up_in_a_daemonic_worker(conn) -> None:
+    from vislam.backend import compiled
+
+    try:
+        compiled.warm_up()
+        conn.send(("ok", sorted(f.__name__ for f in compiled._done)))
+    except Exception as exc:  # noqa: BLE001 (reported to the test)
+        conn.send(("failed", repr(exc)))
+
+
+def test_a_pool_worker_compiling_first_does_not_start_a_helper(monkeypatch):
+    """A pool's worker (``vislam mc`` / ``batch`` on a fresh install) is a daemonic process, which may
+    not start children: with nothing cached it compiles its kernels itself instead of failing with
+    "daemonic processes are not allowed to have children"."""
+    import multiprocessing
+
+    from vislam.backend import compiled
+
+    def one():
+        pass
+
+    def two():
+        pass
+
+    one.__module__, two.__module__ = "vislam.backend.compiled", "vislam.backend.signals"  # two modules
+    monkeypatch.setattr(compiled, "_registered", [one, two])
+    monkeypatch.setattr(compiled, "_done", set())
+    monkeypatch.setattr(compiled, "_compiling_everything", lambda: True)
+    monkeypatch.setattr(compiled, "_cores", lambda: 2)
+    ctx = multiprocessing.get_context("fork")  # the worker inherits the patched state
+    parent, child = ctx.Pipe()
+    worker = ctx.Process(target=_warm_up_in_a_daemonic_worker, args=(child,), daemon=True)
+    worker.start()
+    status, detail = parent.recv()
+    worker.join(10)
+    assert status == "ok", detail
+    assert detail == ["one", "two"]

@@ -23,7 +23,7 @@ from typing import Iterator, Optional
 
 from ..backend.errors import ConfigError
 
-__all__ = ["executor", "ProcessPool", "RayExecutor"]
+__all__ = ["executor", "compile_for_workers", "ProcessPool", "RayExecutor"]
 
 
 class RayExecutor:
@@ -77,6 +77,18 @@ class RayExecutor:
             self.stop()
         if self._own and self._ray.is_initialized():
             self._ray.shutdown()
+
+
+def compile_for_workers(say, inertial: bool = False) -> None:
+    """On the first run after an install (or a change of the sources): compile the kernels here, with
+    the compile helper, before a local pool starts, so that its workers load them. A worker may not
+    start a helper of its own (a daemonic process) and would compile every kernel itself, each of
+    them at once. ``say``: where the compile notice goes."""
+    from ..backend import compiled
+    from ..backend.run.runner import COMPILING
+
+    if not compiled.warmed_before():
+        compiled.warm_up(notice=lambda: say(COMPILING), inertial=inertial)
 
 
 def _start_worker(parent: int) -> None:

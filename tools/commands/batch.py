@@ -117,7 +117,7 @@ def run_one(path: str, config, gt_path: str | None) -> BatchRun:
 
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
-    from ..pool import executor
+    from ..pool import compile_for_workers, executor
     from ..report import path_labels, print_warnings
 
     configs = configurations(args)
@@ -139,6 +139,8 @@ def main(args: argparse.Namespace) -> int:
     jobs = [(p, label, config) for p in inputs for label, config in configs]
     labels = path_labels(inputs)
     with output_directory(args.out, args.force) as staging:  # checked before any work
+        if not args.ray:
+            compile_for_workers(console.sayer(args.quiet))  # an inertial input's workers compile its few more
         rows = [None] * len(jobs)
         health: list[list[str]] = [[] for _ in jobs]
         with executor(args.workers, args.ray, len(jobs)) as pool, \

@@ -144,7 +144,7 @@ def _monte_carlo(args: argparse.Namespace, factory, config):
     from contextlib import nullcontext
 
     from ...backend.evaluation.consistency import monte_carlo
-    from ..pool import executor
+    from ..pool import compile_for_workers, executor
 
     workers = args.workers or os.cpu_count() or 1
     where = f"Ray at {args.ray}" if args.ray else f"{workers} worker(s)"
@@ -153,6 +153,8 @@ def _monte_carlo(args: argparse.Namespace, factory, config):
         + (f"{args.duration:g} s, a real IMU" if args.imu == "inertial" else f"{args.steps} steps") + "), "
         f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {where}\n" + console.configuration_text(args.verbose, config))
     one_thread = workers == 1 and not args.ray  # one worker: no process start-up
+    if not one_thread and not args.ray:
+        compile_for_workers(console.sayer(args.quiet), inertial=args.imu == "inertial")
     pool = nullcontext(ThreadPoolExecutor(max_workers=1)) if one_thread else executor(args.workers, args.ray, args.runs)
     with pool as runner, console.progress_bar(args.runs, "monte carlo", "run", console.progress_off(args)) as progress:
         done = [0]
