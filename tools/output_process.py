@@ -29,7 +29,8 @@ def _serve(conn) -> None:
     for name in ("SIGINT", "SIGHUP"):
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), signal.SIG_IGN)
-    from . import outputs, plots, report  # noqa: F401 (the modules of the functions it is sent, imported now)
+    from . import outputs, plots  # noqa: F401 (the modules of the functions it is sent, imported now; not the
+    # filter's: numba and scipy would cost it 0.6 s of CPU beside the run)
 
     outputs.import_open3d()
     import matplotlib.figure  # noqa: F401 (imported now, while the run computes)

@@ -20,7 +20,7 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from ..backend.data.files import atomic_write
-from ..backend.evaluation.metrics import Alignment, alignment
+from ..backend.evaluation.metrics import Alignment, alignment, ate_per_pose
 
 __all__ = [
     "COLORS",
@@ -28,6 +28,7 @@ __all__ = [
     "trajectory_figure",
     "plot_trajectories_topdown",
     "plot_errors_over_time",
+    "write_error_plot",
     "plot_xyz_over_time",
     "within_span",
     "plot_rpy_over_time",
@@ -357,6 +358,20 @@ def plot_errors_over_time(
     fig.tight_layout()
     _save(fig, path)
     return fig
+
+
+def write_error_plot(path: str | os.PathLike, estimates: dict, gt_t: np.ndarray, gt_poses: np.ndarray,
+                     sim3: bool = False, max_diff: float = 0.01, origin: bool = False,
+                     xlabel: str = "time [s]") -> None:
+    """Position error over time of each named estimate (``{name: (stamps (N,), poses (N,4,4))}``), each
+    aligned to the ground truth (poses matched within ``max_diff`` s; ``origin``: first poses on each other)."""
+    series = {name: ate_per_pose(t, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, origin=origin,
+                                 return_stamps=True)
+              for name, (t, poses) in estimates.items()}
+    how = "first-pose" if origin else "Sim(3)" if sim3 else "SE(3)"
+    title = f"position error after {how} alignment"
+    plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""),
+                          xlabel=xlabel)
 
 
 def _three_panels(path, curves: Mapping[str, tuple[Any, Any]], values, axis_labels: tuple[str, str, str],

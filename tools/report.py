@@ -28,7 +28,7 @@ from ..backend.data.covariance import POSE_COVARIANCE_FILE, TRAJECTORY_FILE, wri
 from ..backend.data.files import atomic_write
 from ..backend.data.tum import write_tum
 from ..backend.evaluation.consistency import trajectory_nees
-from ..backend.evaluation.metrics import ate_per_pose, trajectory_errors
+from ..backend.evaluation.metrics import trajectory_errors
 from ..backend.run.online import RunResult
 from . import clock, outputs, plots
 
@@ -116,7 +116,7 @@ def write_run_outputs(
             (plots.plot_trajectories_topdown, (out_dir / "trajectory.png", curves, gt, result.map_positions),
              {"title": f"{Path(source).name}: {result.config.estimator.mode}"})]
     if gt is not None:
-        slow.append((write_error_plot, (out_dir / "ate_over_time.png", curves, *gt), {}))
+        slow.append((plots.write_error_plot, (out_dir / "ate_over_time.png", curves, *gt), {}))
     if helper is not None:
         for function, args, kwargs in slow:
             helper.submit(function, *args, **kwargs)
@@ -164,19 +164,6 @@ def real_time_text(factor: float) -> str:
     if not math.isfinite(factor):
         return "n/a"
     return f"{factor:.0f}x" if factor >= 10 else f"{factor:.1f}x" if factor >= 1 else f"{factor:.2f}x"
-
-
-def write_error_plot(path: Path, estimates: dict, gt_t: np.ndarray, gt_poses: np.ndarray, sim3: bool = False,
-                     max_diff: float = 0.01, origin: bool = False, xlabel: str = "time [s]") -> None:
-    """Position error over time of each named estimate (``{name: (stamps (N,), poses (N,4,4))}``), each
-    aligned to the ground truth (poses matched within ``max_diff`` s; ``origin``: first poses on each other)."""
-    series = {name: ate_per_pose(t, poses, gt_t, gt_poses, sim3=sim3, max_diff=max_diff, origin=origin,
-                                 return_stamps=True)
-              for name, (t, poses) in estimates.items()}
-    how = "first-pose" if origin else "Sim(3)" if sim3 else "SE(3)"
-    title = f"position error after {how} alignment"
-    plots.plot_errors_over_time(path, series, title + (" (each curve on its own)" if len(series) > 1 else ""),
-                                xlabel=xlabel)
 
 
 def nees_text(summary: dict, what: str) -> str:

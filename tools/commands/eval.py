@@ -292,7 +292,7 @@ def _write_outputs(args: argparse.Namespace, estimates: list[Estimate], gt, numb
     from ...backend.evaluation.metrics import evo_results
     from ..plots import (plot_nees_over_time, plot_rpy_over_time, plot_trajectories_topdown, plot_xyz_over_time,
                          within_span)
-    from ..report import write_error_plot
+    from ..plots import write_error_plot
 
     how = dict(sim3=args.sim3, origin=args.align_origin, max_diff=args.t_max_diff)
     gt_name = Path(args.ground_truth).name
