@@ -300,11 +300,6 @@ def _past_the_peak(scores: list) -> bool:
     return len(scores) > n and max(scores[-n:]) < max(scores[:-n])
 
 
-def _same_imu(a: Decisions, b: Decisions) -> bool:
-    return (np.array_equal(a.imu.linear_sigma, b.imu.linear_sigma)
-            and np.array_equal(a.imu.angular_sigma, b.imu.angular_sigma))
-
-
 def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> Decisions:
     """Where vision cannot measure the IMU (N3: too few tracks a step), the IMU sigmas that maximize
     the filter's own innovation likelihood (L2) over the first steps: first the linear sigma over
@@ -316,8 +311,7 @@ def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> D
     imu = decisions.imu
     table: dict = {}
     best = decisions
-
-    scored: list = []  # (candidate, score) already run
+    scored: dict = {}  # the score of each pair of sigmas already run
 
     def search(kind: str, white: np.ndarray, cap: float) -> Decisions:
         base = np.maximum(white, 1e-4 if kind == "linear" else 1e-5)
@@ -325,11 +319,10 @@ def _imu_by_likelihood(seq: Sequence, decisions: Decisions, config: Config) -> D
         for f in LIKELIHOOD_FACTORS:
             sigma = np.minimum(base * f, cap)
             candidate = with_imu(best, **{f"{kind}_sigma": sigma})
-            score = next((s for c, s in scored if _same_imu(c, candidate)), None)
-            if score is None:
-                score, _ = log_likelihood(seq, candidate, config)
-                scored.append((candidate, score))
-            table[f"{kind} x{f:g}"] = score
+            key = (candidate.imu.linear_sigma.tobytes(), candidate.imu.angular_sigma.tobytes())
+            if key not in scored:
+                scored[key] = log_likelihood(seq, candidate, config)[0]
+            score = table[f"{kind} x{f:g}"] = scored[key]
             scores.append((score, candidate))
             if sigma.max() >= cap or _past_the_peak([s for s, _ in scores]):
                 break
