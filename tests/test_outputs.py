@@ -418,8 +418,33 @@ def test_the_output_helper_writes_what_the_run_would(tmp_path):
         assert helper is not None
         write_run_outputs(result, there, "scene.npz", gt, helper=helper)
     assert listing(here) == listing(there) and "map.ply" in listing(here) and "ate_over_time.png" in listing(here)
-    for name in ("map.ply", "trajectory.png", "ate_over_time.png", "trajectory.txt"):
+    for name in ("map.ply", "trajectory.ply", "trajectory.png", "ate_over_time.png", "trajectory.txt"):
         assert (here / name).read_bytes() == (there / name).read_bytes(), name
+
+
+def test_with_a_helper_the_run_imports_neither_matplotlib_nor_open3d(tmp_path):
+    """The point of the helper: the run's own process never pays for matplotlib's and open3d's
+    imports (checked in a fresh interpreter: this one has them from other tests)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = f"""
+import sys
+from pathlib import Path
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from test_outputs import _small_run
+from vislam.tools.output_process import output_process
+from vislam.tools.report import write_run_outputs
+result, gt = _small_run()
+with output_process() as helper:
+    write_run_outputs(result, Path({str(tmp_path)!r}), "scene.npz", gt, helper=helper)
+print(sorted(m for m in ("matplotlib", "open3d") if m in sys.modules))
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert {"map.ply", "trajectory.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(tmp_path))
 
 
 def test_a_helper_that_is_gone_leaves_its_outputs_to_the_run(tmp_path):
@@ -435,7 +460,7 @@ def test_a_helper_that_is_gone_leaves_its_outputs_to_the_run(tmp_path):
         helper._process.kill()
         helper._process.join()
         write_run_outputs(result, tmp_path, "scene.npz", gt, helper=helper)
-    assert {"map.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(tmp_path))
+    assert {"map.ply", "trajectory.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(tmp_path))
     with pytest.raises(KeyboardInterrupt):
         with output_process() as helper:
             helper.submit(write_map_ply, tmp_path / "other.ply", *make_map()[1:3])

@@ -117,6 +117,7 @@ def write_run_outputs(
              {"title": f"{Path(source).name}: {result.config.estimator.mode}"})]
     if gt is not None:
         slow.append((plots.write_error_plot, (out_dir / "ate_over_time.png", curves, *gt), {}))
+    slow.append((outputs.write_trajectory_ply, (out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps), {}))
     if helper is not None:
         for function, args, kwargs in slow:
             helper.submit(function, *args, **kwargs)
@@ -131,7 +132,6 @@ def write_run_outputs(
         outputs.write_imu_states(out_dir / "imu_states.txt", result.time_stamps, result.velocity, result.gyro_biases,
                                  result.accel_biases)
     outputs.write_map_npz(out_dir / "map.npz", result.map_ids, result.map_positions, result.map_covariances)
-    outputs.write_trajectory_ply(out_dir / "trajectory.ply", result.world_T_imu, result.time_stamps)
     written = helper.results() if helper is not None else [f(*args, **kwargs) for f, args, kwargs in slow]
     if not written[0]:  # write_map_ply's answer
         notes.append("no landmark was mapped: map.ply not written (map.npz is empty)")
