@@ -169,6 +169,18 @@ def test_version(capsys):
         assert done.returncode == 0 and done.stdout.strip() == f"vislam {vislam.__version__}"
 
 
+def test_every_command_that_writes_takes_o_for_out():
+    """``-o DIR`` is ``--out DIR`` in every command that has it (as in most command lines)."""
+    from vislam.tools.cli import build_parser
+
+    parser = build_parser()
+    commands = parser._subparsers._group_actions[0].choices
+    with_out = [name for name, sub in commands.items() if "--out" in sub._option_string_actions]
+    assert {"run", "synth", "track", "mc", "batch", "demo", "eval"} <= set(with_out)
+    for name in with_out:
+        assert commands[name]._option_string_actions["-o"].dest == "out", name
+
+
 def test_real_time_factor_keeps_its_decimals_below_ten():
     from vislam.tools.report import real_time_text
 
@@ -239,9 +251,9 @@ def test_run_writes_kitti_pose_files(tmp_path):
     from vislam.backend.data.tum import read_tum
     from vislam.backend.geometry import se3
 
-    assert main(["synth", "--steps", "40", "--out", str(tmp_path / "s")]) == 0
+    assert main(["synth", "--steps", "40", "-o", str(tmp_path / "s")]) == 0
     out = tmp_path / "run"
-    assert main(["run", str(tmp_path / "s" / "data.npz"), "--out", str(out), "--format", "kitti", "--quiet"]) == 0
+    assert main(["run", str(tmp_path / "s" / "data.npz"), "-o", str(out), "--format", "kitti", "--quiet"]) == 0
     imu_T_cam = json.loads((out / "summary.json").read_text())["decisions"]["conventions"]["imu_T_cam_used"]
     _, world_T_imu = read_tum(out / "trajectory.txt")
     world_T_cam = world_T_imu @ np.array(imu_T_cam)

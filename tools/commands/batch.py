@@ -54,7 +54,7 @@ def add_parser(sub) -> None:
     p.add_argument("--gt", metavar="PATTERN", help="ground truth TUM file per input; {stem} is the input's name without .npz")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: every core)")
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
-    p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
+    p.add_argument("-o", "--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     options.add_config_options(p)
     console.add_verbosity_options(p)

@@ -15,7 +15,7 @@ from .. import console, outputs
 
 def add_parser(sub) -> None:
     p = sub.add_parser("demo", help="synthetic street scene -> SLAM -> evaluation, every output (the README's first command)")
-    p.add_argument("--out", default="vislam-demo", help="output directory (default ./vislam-demo)")
+    p.add_argument("-o", "--out", default="vislam-demo", help="output directory (default ./vislam-demo)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene and its noise (default: 0)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory (a previous demo's)")
     p.set_defaults(func=main)

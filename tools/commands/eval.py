@@ -57,7 +57,7 @@ def add_parser(sub) -> None:
     p.add_argument("--json", help="write the numbers as JSON (one estimate: its numbers, with alignment_scale: 1 "
                                   "unless Sim(3), and nees with a covariance; several: ground_truth and a list "
                                   "estimates of those)")
-    p.add_argument("--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
+    p.add_argument("-o", "--out", help="directory for eval.json, trajectories.png (aligned, ground truth over the "
                    "estimates' time span), xyz_over_time.png, rpy_over_time.png, ate_over_time.png, with a "
                    "covariance nees_over_time.png, and per estimate ape_NAME.zip and rpe_NAME.zip (evo's result "
                    "files: evo_res DIR/ape_*.zip compares them)")

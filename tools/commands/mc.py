@@ -42,7 +42,7 @@ def add_parser(sub) -> None:
     p.add_argument("--ray", metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://host:port', or 'local')")
     p.add_argument("--true-noise", dest="true_noise", action="store_true",
                    help="tell the filter the scene's pixel and velocity noise (default: identified from each run's data)")
-    p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
+    p.add_argument("-o", "--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     options.add_config_options(p)
     console.add_verbosity_options(p)

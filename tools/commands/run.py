@@ -32,7 +32,7 @@ def add_parser(sub) -> None:
                         "with the rates wx wy wz as a real IMU (inertial). Default: auto, the one input the data has")
     p.add_argument("--draw", metavar="DIR", help="with an image directory: write each frame's tracks as PNG "
                                                  "(left image on top with track tails, right image below with the stereo matches)")
-    p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
+    p.add_argument("-o", "--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--gt", help="ground truth TUM file (world_T_imu, the data's stamps) for ATE/RPE "
                                 "(a KITTI raw drive's default: its OXTS poses)")
     p.add_argument("--force", action="store_true",

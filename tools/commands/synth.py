@@ -30,7 +30,7 @@ def add_parser(sub) -> None:
                         "(200 Hz ADIS16448-like, random-walk biases, 2 s at rest at the start; 20 Hz tracks at 0.5 px, "
                         "2 %% outliers) in the inertial layout (default: velocity)")
     p.add_argument("--duration", type=float, default=60.0, help="seconds of an inertial scene (default: 60)")
-    p.add_argument("--out", required=True, help="output directory (refused if non-empty, unless --force)")
+    p.add_argument("-o", "--out", required=True, help="output directory (refused if non-empty, unless --force)")
     p.add_argument("--force", action="store_true", help="write into a non-empty output directory")
     p.add_argument("--render", action="store_true", help="also render rectified stereo images of the street: the KITTI "
                                                          "odometry layout; with --imu inertial an EuRoC ASL folder mav0/ "

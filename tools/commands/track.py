@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
                         "roll and pitch, with the rates wx wy wz (auto, velocity: the course layout), or its "
                         "accelerations ax ay az with the rates wx wy wz as a real IMU's samples (inertial: the "
                         "inertial layout). Default: auto")
-    p.add_argument("--out", required=True, help="output .npz (refused if it exists, unless --force)")
+    p.add_argument("-o", "--out", required=True, help="output .npz (refused if it exists, unless --force)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing --out file and write into a --draw directory holding files")
     p.add_argument("--draw", metavar="DIR", help="write each frame's tracks as PNG (left image on top with track "
