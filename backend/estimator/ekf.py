@@ -43,6 +43,7 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import StateHelper
 from .tracks import admit_landmarks, plan_update
+from .window import CloneTransition, WindowStep, WindowUpdater
 
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
 
@@ -225,6 +226,11 @@ class VisualInertialEKF:
         self.track_likelihood = False  # fill StepStats.log_likelihood (L1): for identification runs
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
         self._blas_limit = _blas_controller().limit(limits=config.execution.blas_threads, user_api="blas")
+        self.window = None  # the sliding window of pose clones (W1-W7), a real IMU's SLAM run only
+        if self.inertial and self.estimate_pose and est.window:
+            self.window = WindowUpdater(est.window, camera, self.model.cam_T_imu, self._pixel_var,
+                                        config.update.gate_probability, self.map)
+            self.state.clones = np.zeros((0, 4, 4))
 
     # ------------------------------------------------------------------ public state
     @property
@@ -263,6 +269,9 @@ class VisualInertialEKF:
             raise TypeError("propagate() needs the inertial state: VisualInertialEKF(..., inertial=InertialStart(...))")
         self.step_index += 1
         transition = self.model.propagate(self.state, imu, t0, t1)
+        if self.window is not None:  # clones after the core, not landmarks (W2)
+            StateHelper.propagate(self.state, CloneTransition(transition.prop))
+            return
         StateHelper.propagate(self.state, transition, self._landmark_walk * (t1 - t0))
 
     @property
@@ -312,6 +321,8 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self.use_vision:
             return stats
+        if self.window is not None:
+            return self._window_step(self.window.step(self.state, ids, pixels, self.model.correct), stats)
         t0 = time.perf_counter()
         st = self.state
         # where each observation goes; ended tracks and expired landmarks (re-anchoring) leave
@@ -331,6 +342,16 @@ class VisualInertialEKF:
             self._initialize(ids[new], pixels[new], stats, restart[new] if stats.reanchored else None)
         self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
         stats.active = st.num_landmarks
+        if stats.used or stats.gated:
+            self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)
+        if self.step_index % 100 == 0:
+            self._check_covariance()
+        return stats
+
+    def _window_step(self, step: WindowStep, stats: StepStats) -> StepStats:
+        """A window's frame (W1-W7) in the step's counts and the health."""
+        stats.used, stats.gated, stats.nis_sum = step.used, step.gated, step.nis_sum
+        stats.marginalized, stats.active = step.mapped, step.active
         if stats.used or stats.gated:
             self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)
         if self.step_index % 100 == 0:
@@ -414,7 +435,11 @@ class VisualInertialEKF:
         return StateHelper.marginalize(self.state, mask, ended)
 
     def finish(self) -> None:
-        """Marginalize every active landmark into the map (end of the sequence)."""
+        """Marginalize every active landmark into the map (end of the sequence); a window uses the
+        tracks left in it."""
+        if self.window is not None:
+            self._window_step(self.window.flush(self.state, self.model.correct), StepStats())
+            return
         if self.state.num_landmarks:
             self._remove(np.ones(self.state.num_landmarks, dtype=bool), to_map=True)
 

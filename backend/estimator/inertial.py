@@ -214,21 +214,38 @@ def integrate_kernel(R, v, p, bg, ba, times, acc, gyr, gravity, qc, gl_x, gl_w, 
     return R, v, p, Phi, Q
 
 
+def _at(t: np.ndarray, x: np.ndarray, when: float) -> np.ndarray:
+    """The samples x (L,3) stamped t (L,) linearly interpolated at ``when`` (held at the record's ends)."""
+    j = int(np.searchsorted(t, when))
+    if j <= 0:
+        return x[0]
+    if j >= t.size:
+        return x[-1]
+    a = (when - t[j - 1]) / (t[j] - t[j - 1])
+    return (1.0 - a) * x[j - 1] + a * x[j]
+
+
+_LAST_KNOTS: list = [None, None]  # the last call's (key, knots): a run's filter and dead reckoning ask for the same
+
+
 def interval_knots(imu: ImuSamples, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The knots of one frame interval [t0, t1]: t0, every sample stamped strictly inside, t1, with the
     samples linearly interpolated at t0 and t1 (held at the record's ends). Returns times (n,),
     specific force (n,3), rate (n,3)."""
+    last = _LAST_KNOTS[0]
+    if last is not None and last[0] is imu and last[1] == t0 and last[2] == t1:
+        return _LAST_KNOTS[1]
     t = imu.time_stamps
-    inside = np.flatnonzero((t > t0) & (t < t1))
-    times = np.concatenate([[t0], t[inside], [t1]])
-
-    def at(x: np.ndarray) -> np.ndarray:
-        cols = [np.interp(times, t, x[:, i]) for i in range(3)]
-        out = np.stack(cols, axis=1)
-        out[1:-1] = x[inside]
-        return out
-
-    return times, at(imu.linear_acceleration), at(imu.angular_velocity)
+    lo, hi = int(np.searchsorted(t, t0, side="right")), int(np.searchsorted(t, t1, side="left"))
+    times = np.empty(hi - lo + 2)
+    times[0], times[1:-1], times[-1] = t0, t[lo:hi], t1
+    out = []
+    for x in (imu.linear_acceleration, imu.angular_velocity):
+        knots = np.empty((times.size, 3))
+        knots[0], knots[1:-1], knots[-1] = _at(t, x, t0), x[lo:hi], _at(t, x, t1)
+        out.append(knots)
+    _LAST_KNOTS[0], _LAST_KNOTS[1] = (imu, t0, t1), (times, out[0], out[1])
+    return times, out[0], out[1]
 
 
 def continuous_variances(noise: ImuNoiseDensities) -> np.ndarray:

@@ -115,3 +115,23 @@ def _warm_up() -> None:
     solve_lower_inplace(np.eye(3), A.copy())
     downdate_lower(P.copy(), A)
     add_product_lower(P.copy(), A.T.copy(), A.T.copy())
+    inverse3(np.eye(3), np.empty((3, 3)))
+
+
+@jit
+def inverse3(H, out):
+    """out = H^-1 of a 3x3 (adjugate); False when singular."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    g, h, i = H[2, 0], H[2, 1], H[2, 2]
+    A = e * i - f * h
+    B = -(d * i - f * g)
+    C = d * h - e * g
+    det = a * A + b * B + c * C
+    if det == 0.0 or not np.isfinite(det):
+        return False
+    inv = 1.0 / det
+    out[0, 0], out[0, 1], out[0, 2] = A * inv, -(b * i - c * h) * inv, (b * f - c * e) * inv
+    out[1, 0], out[1, 1], out[1, 2] = B * inv, (a * i - c * g) * inv, -(a * f - c * d) * inv
+    out[2, 0], out[2, 1], out[2, 2] = C * inv, -(a * h - b * g) * inv, (a * e - b * d) * inv
+    return True

@@ -7,7 +7,8 @@ the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, t
 it was not used, the observations since it was anchored and how many it may have (R1 of
 ``backend.estimator.tracks``), and the steps in a row the RANSAC rejected its track; and, where
 the error model reads them, ``theta_first`` (the first estimates, for FEJ) and ``anchors``
-(inverse depth). Adding and removing landmarks keeps all of them in the same slot order; only
+(inverse depth). Adding and removing landmarks keeps all of them in the same slot order. A state
+with a sliding window holds pose clones after the core instead of landmarks (``clones``). Only
 ``backend.estimator.state_helper.StateHelper`` changes P.
 """
 
@@ -42,6 +43,9 @@ class FilterState:
     core: int = CORE
     velocity: np.ndarray | None = None  # (3,) world frame, the inertial state only
     accel_bias: np.ndarray | None = None  # (3,) the inertial state only
+    #: (w,4,4) world_T_imu of the pose clones of a sliding window (``backend.estimator.window``), oldest
+    #: first, P's rows core + 6 j .. + 5 for clone j (such a state holds no landmark); None: no window
+    clones: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.P.shape[0] < self.core:

@@ -10,6 +10,8 @@ Every change of ``FilterState.P`` is one of these operations, each one function 
 - ``augment``: new landmarks from their stereo pixels (A1).
 - ``marginalize``: landmarks leave the state (A2).
 - ``repair``: eigenvalues clipped when P lost positive definiteness (H2).
+- ``clone``, ``update_window``, ``drop_oldest_clone``: a sliding window's pose clones join (W1),
+  update (W6) and leave (W7) (``backend.estimator.window``).
 
 The error models say what a prediction does to P (a :class:`Transition`, derived beside its
 model) and what a new landmark's Jacobians are (:class:`NewLandmarks`); they never write P.
@@ -22,8 +24,11 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from scipy.linalg.lapack import dgesv
 
+from ..errors import FilterError
 from .covariance import augment, gather_landmarks, repair_if_indefinite
+from .layout import POSE
 from .state import FilterState
 from .tracks import plan_removal
 from .update import Innovation, select_and_update_inplace
@@ -137,6 +142,58 @@ class StateHelper:
         state.P = gather_landmarks(state.P, keep, state.core)  # C-ordered, one pass
         state.keep_landmarks(keep)
         return remap
+
+    @staticmethod
+    def clone(state: FilterState) -> None:
+        """(W1) the pose joins the window as its newest clone: P's pose rows and columns copied after
+        the last clone, the clone's covariance with the pose equal to the pose's own."""
+        P = state.P
+        D = P.shape[0]
+        out = np.empty((D + 6, D + 6))
+        out[:D, :D] = P
+        out[D:, :D] = P[POSE, :]  # E P, E = [I_6 0]: the pose rows
+        out[:D, D:] = out[D:, :D].T
+        out[D:, D:] = P[POSE, POSE]
+        state.P = out
+        pose = state.mu[None].copy()
+        state.clones = pose if state.clones is None else np.concatenate([state.clones, pose])
+
+    @staticmethod
+    def drop_oldest_clone(state: FilterState) -> None:
+        """(W7) the oldest clone leaves the window: its rows and columns of P are dropped."""
+        c, P = state.core, state.P
+        D = P.shape[0] - 6
+        out = np.empty((D, D))
+        out[:c, :c], out[:c, c:] = P[:c, :c], P[:c, c + 6:]
+        out[c:, :c], out[c:, c:] = P[c + 6:, :c], P[c + 6:, c + 6:]
+        state.P = out
+        state.clones = state.clones[1:]
+
+    @staticmethod
+    def update_window(state: FilterState, Hr: np.ndarray, pixel_var: float) -> np.ndarray:
+        """(W6) the update by rows r = H xi_w + n over the clones' columns, ``Hr`` = [H r] (m,6w+1), n
+        white of variance ``pixel_var``, in the clones' dimension whatever m: with Lambda = H^T H and
+        the push-through identity H^T (sigma^2 I + H P H^T)^-1 = (sigma^2 I + Lambda P_ww)^-1 H^T,
+
+            K_w = (sigma^2 I + Lambda P_ww)^-1 [Lambda, H^T r],   dx = P_:,w K_w[:, -1],
+            P <- P - P_:,w K_w[:, :6w] P_w,:
+
+        (the Kalman update P - K S K^T with its m x m inverse never formed). Returns dx (D,)."""
+        c = state.core
+        w6 = Hr.shape[1] - 1
+        P = state.P
+        Pw = P[c:c + w6, :]  # (6w, D): H touches the clone rows only
+        lam_g = (Hr.T @ Hr)[:w6]  # [Lambda, H^T r]
+        T = lam_g[:, :w6] @ P[c:c + w6, c:c + w6]
+        T[np.diag_indices_from(T)] += pixel_var
+        _, _, K, info = dgesv(np.asfortranarray(T), np.asfortranarray(lam_g), overwrite_a=1, overwrite_b=1)
+        if info:
+            raise FilterError(f"the window's update: sigma^2 I + Lambda P_ww is singular (getrf info {info})")
+        dx = Pw.T @ K[:, w6]
+        KP = K[:, :w6].T @ Pw  # K_w's first block is symmetric (push-through); its transpose is C-ordered
+        P -= Pw.T @ KP
+        state.P = 0.5 * (P + P.T)
+        return dx
 
     @staticmethod
     def repair(state: FilterState, estimated: np.ndarray) -> float | None:

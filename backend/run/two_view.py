@@ -28,6 +28,7 @@ import numpy as np
 
 from ..compiled import jit, warms_up
 from ..data.sequence import Sequence
+from ..estimator.linalg import inverse3
 from ..geometry import se3
 
 __all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps", "pooled_mean_square"]
@@ -143,25 +144,6 @@ def _solve_small(A, b):
             s -= M[c, k] * x[k]
         x[c] = s / M[c, c]
     return x, True
-
-
-@jit
-def _inverse3(H, out):
-    """out = H^-1 of a 3x3 (adjugate); False when singular."""
-    a, b, c = H[0, 0], H[0, 1], H[0, 2]
-    d, e, f = H[1, 0], H[1, 1], H[1, 2]
-    g, h, i = H[2, 0], H[2, 1], H[2, 2]
-    A = e * i - f * h
-    B = -(d * i - f * g)
-    C = d * h - e * g
-    det = a * A + b * B + c * C
-    if det == 0.0 or not np.isfinite(det):
-        return False
-    inv = 1.0 / det
-    out[0, 0], out[0, 1], out[0, 2] = A * inv, -(b * i - c * h) * inv, (b * f - c * e) * inv
-    out[1, 0], out[1, 1], out[1, 2] = B * inv, (a * i - c * g) * inv, -(a * f - c * d) * inv
-    out[2, 0], out[2, 1], out[2, 2] = C * inv, -(a * h - b * g) * inv, (a * e - b * d) * inv
-    return True
 
 
 @jit
@@ -290,7 +272,7 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                 for j in _MOTION_ROWS:
                     s += Jg[j, a] * w[j] * r[j]
                 rhs[a] += s
-            if not _inverse3(Hpp, Hinv[i]):
+            if not inverse3(Hpp, Hinv[i]):
                 return False, T, beta, S, np.zeros((n, 8))
             # S -= Hgp Hpp^-1 Hpg, rhs -= Hgp Hpp^-1 bp
             for a in range(g):
