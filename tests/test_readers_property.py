@@ -1077,6 +1077,8 @@ RULE_KEYS = {("estimator", "error_model"): "estimator.error_model",
 #: keys the per-table check() limits beyond "> 0" / ">= 0" / ">= 1"
 VALID_FLOATS = {("update", "gate_probability"): st.floats(0.501, 0.9999),
                 ("health", "nis_warn_factor"): st.floats(1.001, 1e6)}
+#: integer options whose valid values are not 1 .. 10^6
+VALID_INTS = {("estimator", "window"): st.just(0) | st.integers(2, 10**6)}  # 0: off, else at least 2 clones
 
 
 def _is_enum(kind):
@@ -1091,7 +1093,7 @@ def valid_value(table, key):
     elif _is_enum(kind):
         s = st.sampled_from([m.value for m in kind])
     elif kind is int:
-        s = st.integers(1, 10**6)
+        s = VALID_INTS.get((table, key), st.integers(1, 10**6))
     else:
         s = VALID_FLOATS.get((table, key), st.floats(1e-9, 1e9) | st.integers(1, 1000))
     return s | st.just("none") if optional else s
@@ -1464,7 +1466,7 @@ def _option_text(tk, draw):
     if _is_enum(kind):
         return draw(st.sampled_from([m.value for m in kind])) + draw(st.sampled_from(["", " "]))
     if kind is int:
-        return str(draw(st.integers(1, 10**6)))
+        return str(draw(VALID_INTS.get(tk, st.integers(1, 10**6))))
     x = draw(VALID_FLOATS.get(tk, st.floats(1e-6, 1e6)))
     return draw(st.sampled_from([repr, lambda x: f" {x:.6e}", lambda x: f"{x:.17g}"]))(x)
 

@@ -156,7 +156,8 @@ class VisualInertialEKF:
     inertial : InertialStart, optional
         A real IMU instead of velocities: the inertial state (attitude, velocity, position, gyro and
         accelerometer biases; ``backend.estimator.inertial``) starts from it, and
-        ``propagate(imu, t0, t1)`` replaces ``predict``.
+        ``propagate(imu, t0, t1)`` replaces ``predict``. With ``estimator.window`` set (SLAM mode) the
+        state holds that many pose clones instead of landmarks (``backend.estimator.window``).
 
     Use: ``predict(dt, v, w)`` (or ``propagate(imu, t0, t1)``) then ``update(ids, pixels)`` once per
     time step, ``finish()`` at the end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
