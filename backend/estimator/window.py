@@ -119,6 +119,16 @@ def _rows_inplace(R, t, p, fx, fy, baseline, pred, M):
 
 
 @jit
+def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M):
+    """The squared error (px^2) of the pixels z (4,) of the world point p seen from cam_T_world = [R t]
+    over the four rows of (U1), the off row's included; inf behind the camera."""
+    if _rows_inplace(R, t, p, fx, fy, baseline, pred, M) < MIN_DEPTH:
+        return np.inf
+    return ((z[0] - cx - pred[0]) ** 2 + ((z[1] + z[3]) * SQRT_HALF - 2.0 * SQRT_HALF * cy - pred[1]) ** 2
+            + (z[2] - cx - pred[2]) ** 2 + 0.5 * (z[1] - z[3]) ** 2)
+
+
+@jit
 def _householder_inplace(A, col, v, s):
     """Reflect rows col.. of A so that column ``col`` is zero below row col (one Householder step);
     ``v`` (rows,) and ``s`` (columns,) are work space. Row by row: A is C-ordered."""
@@ -216,12 +226,8 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
         for k in range(n):
             o = obs[k]
             s = slot[o]
-            if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, M) < MIN_DEPTH:
-                continue
-            e = ((pixels[o, 0] - cx - pred[0]) ** 2
-                 + ((pixels[o, 1] + pixels[o, 3]) * SQRT_HALF - sq2cy - pred[1]) ** 2
-                 + (pixels[o, 2] - cx - pred[2]) ** 2 + 0.5 * (pixels[o, 1] - pixels[o, 3]) ** 2)
-            if e <= SCREEN * obs_gate * pixel_var:
+            if _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M) <= (
+                    SCREEN * obs_gate * pixel_var):
                 obs[kept] = o
                 kept += 1
         n = kept
@@ -258,11 +264,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
             for k in range(n):
                 o = obs[k]
                 s = slot[o]
-                if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, M) < MIN_DEPTH:
-                    continue
-                e = ((pixels[o, 0] - cx - pred[0]) ** 2
-                     + ((pixels[o, 1] + pixels[o, 3]) * SQRT_HALF - sq2cy - pred[1]) ** 2
-                     + (pixels[o, 2] - cx - pred[2]) ** 2 + 0.5 * (pixels[o, 1] - pixels[o, 3]) ** 2)
+                e = _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M)
                 if e > worst_e:
                     worst, worst_e = k, e
             if worst < 0:
