@@ -119,13 +119,22 @@ def _rows_inplace(R, t, p, fx, fy, baseline, pred, M):
 
 
 @jit
-def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M):
+def _residual_inplace(z, cx, cy, pred, res):
+    """The 3-row residual (U1) of the pixels z (4,) against the prediction ``pred`` of
+    :func:`_rows_inplace` into ``res`` (3,)."""
+    res[0] = z[0] - cx - pred[0]
+    res[1] = (z[1] + z[3]) * SQRT_HALF - 2.0 * SQRT_HALF * cy - pred[1]
+    res[2] = z[2] - cx - pred[2]
+
+
+@jit
+def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M, res):
     """The squared error (px^2) of the pixels z (4,) of the world point p seen from cam_T_world = [R t]
     over the four rows of (U1), the off row's included; inf behind the camera."""
     if _rows_inplace(R, t, p, fx, fy, baseline, pred, M) < MIN_DEPTH:
         return np.inf
-    return ((z[0] - cx - pred[0]) ** 2 + ((z[1] + z[3]) * SQRT_HALF - 2.0 * SQRT_HALF * cy - pred[1]) ** 2
-            + (z[2] - cx - pred[2]) ** 2 + 0.5 * (z[1] - z[3]) ** 2)
+    _residual_inplace(z, cx, cy, pred, res)
+    return res[0] ** 2 + res[1] ** 2 + res[2] ** 2 + 0.5 * (z[1] - z[3]) ** 2
 
 
 @jit
@@ -196,7 +205,6 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
     M = np.empty((3, 3))
     inv = np.empty((3, 3))
     res = np.empty(3)
-    sq2cy = 2.0 * SQRT_HALF * cy
     obs = np.empty(count.max() if F else 0, dtype=np.int64)  # the feature's observations in use
     for f in range(F):
         n = count[f]
@@ -226,7 +234,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
         for k in range(n):
             o = obs[k]
             s = slot[o]
-            if _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M) <= (
+            if _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M, res) <= (
                     SCREEN * obs_gate * pixel_var):
                 obs[kept] = o
                 kept += 1
@@ -244,9 +252,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
                     if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, M) < MIN_DEPTH:
                         good = False
                         break
-                    res[0] = pixels[o, 0] - cx - pred[0]
-                    res[1] = (pixels[o, 1] + pixels[o, 3]) * SQRT_HALF - sq2cy - pred[1]
-                    res[2] = pixels[o, 2] - cx - pred[2]
+                    _residual_inplace(pixels[o], cx, cy, pred, res)
                     for a in range(3):
                         for b in range(3):
                             JtJ[a, b] += M[0, a] * M[0, b] + M[1, a] * M[1, b] + M[2, a] * M[2, b]
@@ -264,7 +270,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
             for k in range(n):
                 o = obs[k]
                 s = slot[o]
-                e = _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M)
+                e = _squared_error(Rcw[s], tcw[s], p, pixels[o], fx, fy, cx, cy, baseline, pred, M, res)
                 if e > worst_e:
                     worst, worst_e = k, e
             if worst < 0:
@@ -294,9 +300,9 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
                 for b in range(3):
                     A[3 * k + a, b] = M[a, b]
                     A[3 * k + a, base + b] = -M[a, b]
-            A[3 * k, 3 + ncol] = pixels[o, 0] - cx - pred[0]
-            A[3 * k + 1, 3 + ncol] = (pixels[o, 1] + pixels[o, 3]) * SQRT_HALF - sq2cy - pred[1]
-            A[3 * k + 2, 3 + ncol] = pixels[o, 2] - cx - pred[2]
+            _residual_inplace(pixels[o], cx, cy, pred, res)
+            for a in range(3):
+                A[3 * k + a, 3 + ncol] = res[a]
             d = (pixels[o, 1] - pixels[o, 3]) * SQRT_HALF
             off += d * d
         if not good:
