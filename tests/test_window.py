@@ -205,3 +205,16 @@ def test_room_flight_with_a_window_is_accurate_and_consistent():
     assert np.mean((flying >= lo) & (flying <= hi)) >= 0.9, np.mean((flying >= lo) & (flying <= hi))
     assert np.all(avg[:60] <= hi)
     assert max(ates) < 0.02, ates
+
+
+def test_a_run_says_what_it_does_with_the_window():
+    """The window is a real IMU's SLAM run's: such a run says it holds the clones; a velocity run and
+    a mapping run say they keep their landmarks; off, nothing is said."""
+    from vislam.backend.estimator.window import window_text
+
+    on = Config().with_assignments(["estimator.window=13"])
+    assert "13 pose clones" in window_text(on, inertial=True)
+    assert "a velocity run keeps its landmarks" in window_text(on, inertial=False)
+    mapping = on.with_assignments(["estimator.mode=mapping"])
+    assert "a mapping run keeps its landmarks" in window_text(mapping, inertial=True)
+    assert window_text(Config(), inertial=True) is None and window_text(Config(), inertial=False) is None

@@ -54,13 +54,14 @@ import numpy as np
 from scipy.special import chdtri
 
 from ..compiled import jit, warms_up
+from ..config import Mode
 from ..geometry import se3
 from .inertial import CORE_INERTIAL, Propagation
 from .layout import SQRT_HALF
 from .linalg import inverse3
 from .state_helper import StateHelper
 
-__all__ = ["CloneTransition", "WindowStep", "WindowUpdater", "feature_rows", "retract_clones",
+__all__ = ["CloneTransition", "WindowStep", "WindowUpdater", "feature_rows", "retract_clones", "window_text",
            "WINDOW_ITERATIONS"]
 
 #: Gauss-Newton iterations of a feature's triangulation (W3)
@@ -351,6 +352,19 @@ def retract_clones(clones, dx):
         out[c, :3, :3] = E @ np.ascontiguousarray(clones[c, :3, :3])
         out[c, :3, 3] = E @ clones[c, :3, 3].copy() + J @ dx[6 * c:6 * c + 3].copy()
     return out
+
+
+def window_text(config, inertial: bool) -> str | None:
+    """What a run does with ``estimator.window`` (one line), None when it is off: a real IMU's SLAM
+    run holds that many clones; any other run keeps landmarks in the state, and says so."""
+    size, mode = config.estimator.window, Mode(config.estimator.mode)
+    if not size:
+        return None
+    if inertial and mode == Mode.SLAM:
+        return (f"state: a sliding window of {size} pose clones, no landmark in the state (estimator.window; "
+                f"the tracks' points are projected out, W1-W7)")
+    what = "a velocity run" if not inertial else f"a {mode.value} run"
+    return f"note: estimator.window = {size} serves a real IMU's SLAM run; {what} keeps its landmarks in the state"
 
 
 @dataclass

@@ -40,6 +40,7 @@ from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
 from ..estimator.inertial import STANDARD_GRAVITY, InertialStart, propagate
+from ..estimator.window import window_text
 from ..geometry.camera import StereoCamera
 from .initialization import (Initialization, RestOptions, initialize_at_rest, initialize_in_motion, rest_test,
                              vision_motion)
@@ -222,6 +223,8 @@ def run_inertial(seq: Sequence, config: Config | None = None, *, decisions: Iner
             decisions = decide_inertial(seq, config)
         setup = time.perf_counter() - t0
         say(decisions.describe())
+        if window_text(config, inertial=True):
+            say(window_text(config, inertial=True))
         run = InertialRun(StereoCamera(seq.K, seq.baseline), decisions, config, seq.imu,
                           expected_landmarks=seq.num_features, observer=observer)
         for k in range(seq.num_steps):

@@ -27,6 +27,7 @@ from ..config import Config, Mode
 from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
+from ..estimator.window import window_text
 from ..geometry.camera import StereoCamera
 from .conventions import decide_conventions
 from .decisions import Decisions, decide
@@ -158,6 +159,8 @@ def run_stream(
             steps = itertools.chain(read, steps)
             say(f"decided from the first {len(read)} steps:")
         say(decisions.describe(decisions.config_for(config)))
+        if window_text(config, inertial=False):
+            say(window_text(config, inertial=False))
         run = OnlineRun(camera, decisions, config, expected_landmarks=expected_landmarks, observer=observer)
         for k, step in enumerate(steps):
             run.step(*step)
