@@ -218,3 +218,21 @@ def test_a_run_says_what_it_does_with_the_window():
     mapping = on.with_assignments(["estimator.mode=mapping"])
     assert "a mapping run keeps its landmarks" in window_text(mapping, inertial=True)
     assert window_text(Config(), inertial=True) is None and window_text(Config(), inertial=False) is None
+
+
+def test_plan_use_picks_ended_long_and_oldest_tracks_by_track_oldest_first():
+    """(W7) track 1 ended (at the last frame, not this one); track 2 reached its segment's length
+    (size - id mod stagger = 5 - 2 % 2 = 5 observations); track 3 was seen in the oldest clone of a
+    full window; track 4 goes on, short and younger: left. Rows by track, each oldest first."""
+    from vislam.backend.estimator.window import plan_use
+
+    ids = np.array([2, 1, 3, 2, 1, 4, 2, 2, 4, 2, 4], dtype=np.int64)
+    slots = np.array([0, 0, 0, 1, 1, 1, 2, 3, 3, 4, 4], dtype=np.int64)
+    last = np.array([1, 2, 4], dtype=np.int64)
+    current = np.array([2, 4], dtype=np.int64)
+    rows, start, count, left = plan_use(ids, slots, last, current, True, 5, 2)
+    assert ids[rows].tolist() == [1, 1, 2, 2, 2, 2, 2, 3]
+    assert slots[rows].tolist() == [0, 1, 0, 1, 2, 3, 4, 0]
+    assert start.tolist() == [0, 2, 7] and count.tolist() == [2, 5, 1] and left == 1
+    rows, start, count, left = plan_use(ids, slots, last, current, False, 6, 2)  # not full, longer segments
+    assert ids[rows].tolist() == [1, 1] and left == 3

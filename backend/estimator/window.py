@@ -61,8 +61,8 @@ from .layout import SQRT_HALF
 from .linalg import inverse3
 from .state_helper import StateHelper
 
-__all__ = ["CloneTransition", "WindowStep", "WindowUpdater", "feature_rows", "retract_clones", "window_text",
-           "WINDOW_ITERATIONS"]
+__all__ = ["CloneTransition", "WindowStep", "WindowUpdater", "feature_rows", "plan_use", "retract_clones",
+           "window_text", "WINDOW_ITERATIONS"]
 
 #: Gauss-Newton iterations of a feature's triangulation (W3)
 WINDOW_ITERATIONS = 6
@@ -367,6 +367,44 @@ def window_text(config, inertial: bool) -> str | None:
     return f"note: estimator.window = {size} serves a real IMU's SLAM run; {what} keeps its landmarks in the state"
 
 
+@jit
+def plan_use(ids, slots, last, current, full, size, stagger):
+    """(W7) which tracks of the window's observations (``ids``, ``slots`` (O,), in frame order) a
+    frame uses: those of the last frame's ``last`` not in this one's ``current`` (ended), those whose
+    observations reach ``size`` - (id mod ``stagger``), and with the window ``full`` those seen in
+    clone 0. Returns (rows (R,): the used observations, by track and then oldest first; start (F,),
+    count (F,): each used track's run in ``rows``; the tracks left in the window)."""
+    order = np.argsort(ids, kind="mergesort")  # stable: each track's observations stay oldest first
+    cur = np.sort(current)
+    lst = np.sort(last)
+    rows = np.empty(ids.size, dtype=np.int64)
+    start = np.empty(ids.size, dtype=np.int64)
+    count = np.empty(ids.size, dtype=np.int64)
+    n_rows = n_used = left = 0
+    g0 = 0
+    while g0 < ids.size:
+        track = ids[order[g0]]
+        g1 = g0 + 1
+        while g1 < ids.size and ids[order[g1]] == track:
+            g1 += 1
+        use = g1 - g0 >= size - track % stagger or (full and slots[order[g0]] == 0)
+        if not use:
+            i = np.searchsorted(lst, track)
+            j = np.searchsorted(cur, track)
+            use = (i < lst.size and lst[i] == track) and not (j < cur.size and cur[j] == track)
+        if use:
+            start[n_used] = n_rows
+            count[n_used] = g1 - g0
+            n_used += 1
+            for k in range(g0, g1):
+                rows[n_rows] = order[k]
+                n_rows += 1
+        else:
+            left += 1
+        g0 = g1
+    return rows[:n_rows], start[:n_used], count[:n_used], left
+
+
 @dataclass
 class WindowStep:
     """What one frame of the window did: the observations of the features used and left out (W5),
@@ -402,66 +440,48 @@ class WindowUpdater:
         self._pixels = np.zeros((0, 4))  # ... pixels
         self._last = np.zeros(0, dtype=np.int64)  # the track ids of the last frame
 
-    @property
-    def active(self) -> int:
-        """Tracks with observations in the window."""
-        return int(np.unique(self._ids).size)
-
     def step(self, state, ids: np.ndarray, pixels: np.ndarray, correct) -> WindowStep:
         """(W1) the pose joins as the newest clone with this frame's observations; (W3-W6) the tracks
         that ended (seen at the last frame, not at this one), those at their segment's length and,
         with the window full, those seen in its oldest clone are used, each by its observations in
         the window (this frame's included: a track that goes on starts a new segment at the next
-        frame, no pixel used twice); (W7) the oldest clone leaves. ``correct(state, dx)``: the error
-        model's correction of the core (J7) by its rows of the update."""
+        frame, no pixel used twice) (:func:`plan_use`); (W7) the oldest clone leaves.
+        ``correct(state, dx)``: the error model's correction of the core (J7) by its rows of the update."""
         ids = np.asarray(ids, dtype=np.int64)
         StateHelper.clone(state)
         newest = state.clones.shape[0] - 1
         self._ids = np.concatenate([self._ids, ids])
         self._slots = np.concatenate([self._slots, np.full(ids.size, newest, dtype=np.int64)])
         self._pixels = np.concatenate([self._pixels, np.asarray(pixels, dtype=float).reshape(-1, 4)])
-        use = np.setdiff1d(self._last, ids, assume_unique=True)  # tracks that ended
-        self._last = ids
         full = newest >= self.size
-        if full:
-            use = np.union1d(use, self._ids[self._slots == 0])
-        tracks, seen = np.unique(self._ids, return_counts=True)  # segments at their length (staggered by track)
-        use = np.union1d(use, tracks[seen >= self.size - tracks % self._stagger])
-        out = self._use(state, use, correct)
+        rows, start, count, left = plan_use(self._ids, self._slots, self._last, ids, full, self.size, self._stagger)
+        self._last = ids
+        out = self._use(state, rows, start, count, correct)
         if full:
             StateHelper.drop_oldest_clone(state)
             self._slots -= 1  # none is left in slot 0: its tracks were used
-        out.active = tracks.size - int(np.isin(tracks, use, assume_unique=True).sum())  # a used track leaves whole
+        out.active = left
         return out
 
     def flush(self, state, correct) -> WindowStep:
         """Use every track left in the window (the end of the run): its features' map points."""
-        out = self._use(state, np.unique(self._ids), correct)
-        out.active = self.active
-        return out
+        rows, start, count, _ = plan_use(self._ids, self._slots, self._ids, self._ids[:0], False, 1, 1)
+        return self._use(state, rows, start, count, correct)
 
-    def _use(self, state, use: np.ndarray, correct) -> WindowStep:
-        """(W3-W6) the features of tracks ``use`` (each seen at least twice), then their observations
-        leave the window; the core corrected by ``correct``, the clones by (W6)."""
-        if not use.size:
+    def _use(self, state, rows: np.ndarray, start: np.ndarray, count: np.ndarray, correct) -> WindowStep:
+        """(W3-W6) the features of the observations ``rows`` (``start``, ``count`` per track, see
+        :func:`plan_use`; a track seen once says nothing: neither used nor gated), then those
+        observations leave the window; the core corrected by ``correct``, the clones by (W6)."""
+        if not rows.size:
             return WindowStep(0, 0, 0.0, 0, 0)
-        use = np.sort(use)
-        pick = use[np.minimum(np.searchsorted(use, self._ids), use.size - 1)] == self._ids  # np.isin, 2x faster here
-        if not pick.any():  # tracks used already (at their segment's length) that ended since
-            return WindowStep(0, 0, 0.0, 0, 0)
-        order = np.flatnonzero(pick)
-        order = order[np.argsort(self._ids[order], kind="stable")]  # by track, each oldest first (frame order)
-        ids, slots, pixels = self._ids[order], self._slots[order], self._pixels[order]
-        keep = ~pick
+        ids, slots, pixels = self._ids[rows], self._slots[rows], self._pixels[rows]
+        keep = np.ones(self._ids.size, dtype=bool)
+        keep[rows] = False
         self._ids, self._slots, self._pixels = self._ids[keep], self._slots[keep], self._pixels[keep]
-        new_track = np.empty(ids.size, dtype=bool)
-        new_track[0], new_track[1:] = True, ids[1:] != ids[:-1]
-        first = np.flatnonzero(new_track)
-        count = np.diff(first, append=ids.size)
-        two = count >= 2  # a track seen once says nothing (neither used nor gated)
+        two = count >= 2
         if not two.any():
             return WindowStep(0, 0, 0.0, 0, 0)
-        start, count = first[two], count[two]
+        start, count = start[two], count[two]
         cam, c = self.camera, state.core
         w6 = 6 * state.clones.shape[0]
         points, covs, ok, nis, used, Hr = feature_rows(
@@ -486,4 +506,7 @@ def _warm_up() -> None:
     feature_rows(clones, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, np.zeros(1, dtype=np.int64),
                  np.full(1, 2, dtype=np.int64), np.arange(2, dtype=np.int64), pixels, np.eye(12), 1.0,
                  np.full(4, 10.0), 18.5, WINDOW_ITERATIONS)
+    ids = np.arange(3, dtype=np.int64)
+    plan_use(ids, np.zeros(3, dtype=np.int64), ids, ids[:1], True, 13, 6)
+    plan_use(ids, np.zeros(3, dtype=np.int64), ids, ids[:0], False, 1, 1)
 
