@@ -220,3 +220,24 @@ def test_propagation_follows_the_synthetic_generator():
     assert np.linalg.norm(X1.velocity - frames.velocity[i1]) < 1e-4
     rot = Rotation.from_matrix(X1.world_T_imu[:3, :3].T @ frames.world_T_imu[i1][:3, :3]).magnitude()
     assert rot < 1e-5
+
+
+def test_interval_knots_interpolate_the_ends_and_serve_only_their_samples():
+    """The knots of [t0, t1]: t0, the samples strictly inside, t1, the ends interpolated linearly
+    (np.interp, held beyond the record); asked again for the same samples and interval the same
+    knots come back, and other samples with the same stamps get their own."""
+    interval_knots = ine.interval_knots
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.004, 0.006, 50))
+    a, w = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    imu = ImuSamples(t, a, w, None)
+    for t0, t1 in ((t[3] + 0.001, t[9] - 0.0005), (t[5], t[11]), (t[0] - 0.01, t[2] + 0.001), (t[47], t[-1] + 0.02)):
+        times, acc, gyr = interval_knots(imu, t0, t1)
+        inside = (t > t0) & (t < t1)
+        np.testing.assert_array_equal(times, np.r_[t0, t[inside], t1])
+        for x, got in ((a, acc), (w, gyr)):
+            expected = np.stack([np.interp(times, t, x[:, i]) for i in range(3)], axis=1)
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+        assert interval_knots(imu, t0, t1)[1] is acc
+        other = ImuSamples(t, a + 1.0, w, None)
+        np.testing.assert_allclose(interval_knots(other, t0, t1)[1], acc + 1.0, rtol=0, atol=1e-12)

@@ -61,6 +61,7 @@ Correction: X <- exp(dx) X_hat by (J1) with the update dx; biases added.        
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -225,7 +226,9 @@ def _at(t: np.ndarray, x: np.ndarray, when: float) -> np.ndarray:
     return (1.0 - a) * x[j - 1] + a * x[j]
 
 
-_LAST_KNOTS: list = [None, None]  # the last call's (key, knots): a run's filter and dead reckoning ask for the same
+#: The last call's (a weak reference to its samples, t0, t1, its knots), set in one assignment: a
+#: run's filter and its dead reckoning ask for the same interval, one after the other
+_LAST_KNOTS: list = [None]
 
 
 def interval_knots(imu: ImuSamples, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -233,8 +236,8 @@ def interval_knots(imu: ImuSamples, t0: float, t1: float) -> tuple[np.ndarray, n
     samples linearly interpolated at t0 and t1 (held at the record's ends). Returns times (n,),
     specific force (n,3), rate (n,3)."""
     last = _LAST_KNOTS[0]
-    if last is not None and last[0] is imu and last[1] == t0 and last[2] == t1:
-        return _LAST_KNOTS[1]
+    if last is not None and last[0]() is imu and last[1] == t0 and last[2] == t1:
+        return last[3]
     t = imu.time_stamps
     lo, hi = int(np.searchsorted(t, t0, side="right")), int(np.searchsorted(t, t1, side="left"))
     times = np.empty(hi - lo + 2)
@@ -244,7 +247,7 @@ def interval_knots(imu: ImuSamples, t0: float, t1: float) -> tuple[np.ndarray, n
         knots = np.empty((times.size, 3))
         knots[0], knots[1:-1], knots[-1] = _at(t, x, t0), x[lo:hi], _at(t, x, t1)
         out.append(knots)
-    _LAST_KNOTS[0], _LAST_KNOTS[1] = (imu, t0, t1), (times, out[0], out[1])
+    _LAST_KNOTS[0] = (weakref.ref(imu), t0, t1, (times, out[0], out[1]))
     return times, out[0], out[1]
 
 
