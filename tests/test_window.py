@@ -12,10 +12,10 @@ import pytest
 from vislam.backend.config import Config
 from vislam.backend.evaluation.consistency import average_band, trajectory_nees
 from vislam.backend.evaluation.metrics import trajectory_errors
-from vislam.backend.estimator.inertial import CORE_INERTIAL, Propagation
+from vislam.backend.estimator.inertial import CORE_INERTIAL
 from vislam.backend.estimator.state import FilterState
-from vislam.backend.estimator.state_helper import StateHelper
-from vislam.backend.estimator.window import CloneTransition, feature_rows, retract_clones
+from vislam.backend.estimator.state_helper import CoreTransition, StateHelper
+from vislam.backend.estimator.window import feature_rows, retract_clones
 from vislam.backend.geometry import se3
 from vislam.backend.run.inertial import run_inertial
 from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
@@ -112,7 +112,7 @@ def _state_with_clones(rng, w):
     for _ in range(w):
         StateHelper.clone(state)
         B = rng.normal(size=(CORE_INERTIAL, CORE_INERTIAL)) * 0.1
-        CloneTransition(Propagation(np.eye(CORE_INERTIAL) + B, 0.01 * np.eye(CORE_INERTIAL))).apply(state.P)
+        state.P = CoreTransition(np.eye(CORE_INERTIAL) + B, 0.01 * np.eye(CORE_INERTIAL)).apply(state.P)
     return state
 
 
@@ -147,7 +147,7 @@ def test_clone_transition_moves_only_the_core():
     G = np.zeros((D, D))
     G[:CORE_INERTIAL, :CORE_INERTIAL] = Q
     expected = F @ state.P @ F.T + G
-    out = CloneTransition(Propagation(Phi, Q)).apply(state.P.copy())
+    out = CoreTransition(Phi, Q).apply(state.P.copy())
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(out, out.T)
 

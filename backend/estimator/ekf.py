@@ -41,9 +41,9 @@ from .layout import BIAS, CORE, POSE, state_dimension
 from .model import ErrorModel
 from .propagation import ImuNoise
 from .state import FilterState
-from .state_helper import StateHelper
+from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
-from .window import CloneTransition, WindowStep, WindowUpdater
+from .window import WindowStep, WindowUpdater
 
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
 
@@ -271,7 +271,7 @@ class VisualInertialEKF:
         self.step_index += 1
         transition = self.model.propagate(self.state, imu, t0, t1)
         if self.window is not None:  # clones after the core, not landmarks (W2)
-            StateHelper.propagate(self.state, CloneTransition(transition.prop))
+            StateHelper.propagate(self.state, CoreTransition(transition.prop.Phi, transition.prop.Q))
             return
         StateHelper.propagate(self.state, transition, self._landmark_walk * (t1 - t0))
 

@@ -4,7 +4,7 @@ Every change of ``FilterState.P`` is one of these operations, each one function 
 :class:`StateHelper`:
 
 - ``set_prior``: the core's covariance before the first step.
-- ``propagate``: P <- F P F^T + G Q G^T by the error model's :class:`Transition` (I2, I8, B1, J6),
+- ``propagate``: P <- F P F^T + G Q G^T by the error model's :class:`Transition` (I2, I8, B1, J6, W2),
   then the landmarks' random walk (P_mm += q I).
 - ``update``: the joint update with the gate, RANSAC and rescue (U2-U5).
 - ``augment``: new landmarks from their stereo pixels (A1).
@@ -27,7 +27,7 @@ import numpy as np
 from scipy.linalg.lapack import dgesv
 
 from ..errors import FilterError
-from .covariance import augment, gather_landmarks, repair_if_indefinite
+from .covariance import augment, gather_landmarks, gather_symmetric, repair_if_indefinite
 from .layout import POSE
 from .state import FilterState
 from .tracks import plan_removal
@@ -47,11 +47,12 @@ class Transition(Protocol):
 
 @dataclass
 class CoreTransition:
-    """A transition that moves only the core (pose, bias): F = blockdiag(Phi, I) and Q on the core,
+    """A transition that moves only the core (pose, bias; the inertial core): F = blockdiag(Phi, I)
+    and Q on the core, the rows after it static (landmarks of the body model, a window's clones),
 
-        P_cc <- Phi P_cc Phi^T + diag(q_var),   P_c,l <- Phi P_c,l                  (B1)
+        P_cc <- Phi P_cc Phi^T + Q,   P_c,l <- Phi P_c,l                  (B1, W2)
 
-    ``Phi`` (c,c), ``q_var`` (c,) for a core of c rows."""
+    ``Phi`` (c,c) for a core of c rows; ``q_var`` its noise: (c,) variances (Q diagonal) or (c,c)."""
 
     Phi: np.ndarray
     q_var: np.ndarray
@@ -61,8 +62,11 @@ class CoreTransition:
         P[:c, :] = self.Phi @ P[:c, :]
         P[:, :c] = P[:, :c] @ self.Phi.T
         P[c:, :c] = P[:c, c:].T  # exact symmetry of the cross blocks
+        if self.q_var.ndim == 2:
+            P[:c, :c] += self.q_var
         P[:c, :c] = 0.5 * (P[:c, :c] + P[:c, :c].T)
-        P[np.arange(c), np.arange(c)] += self.q_var
+        if self.q_var.ndim == 1:
+            P[np.arange(c), np.arange(c)] += self.q_var
         return P
 
 
@@ -161,12 +165,8 @@ class StateHelper:
     @staticmethod
     def drop_oldest_clone(state: FilterState) -> None:
         """(W7) the oldest clone leaves the window: its rows and columns of P are dropped."""
-        c, P = state.core, state.P
-        D = P.shape[0] - 6
-        out = np.empty((D, D))
-        out[:c, :c], out[:c, c:] = P[:c, :c], P[:c, c + 6:]
-        out[c:, :c], out[c:, c:] = P[c + 6:, :c], P[c + 6:, c + 6:]
-        state.P = out
+        c = state.core
+        state.P = gather_symmetric(state.P, np.r_[0:c, c + 6:state.P.shape[0]])
         state.clones = state.clones[1:]
 
     @staticmethod

@@ -12,7 +12,8 @@ frames, 6 rows each, in the order they were taken (``FilterState.clones``); no l
       P <- [[P, P E^T], [E P, E P E^T]],   E = [I_6 0]  (the pose rows)
 
 - Propagation (W2). A clone is static and so is its estimate: its error does not move. Only the
-  core's (J5) does:  P_cc <- Phi P_cc Phi^T + Q,  P_c,w <- Phi P_c,w,  P_ww unchanged.
+  core's (J5) does:  P_cc <- Phi P_cc Phi^T + Q,  P_c,w <- Phi P_c,w,  P_ww unchanged (the
+  state helper's ``CoreTransition`` with the interval's Phi and Q).
 - A feature (W3). A track seen in clones c_1 .. c_n (n >= 2) is triangulated: the world point p
   minimizing the stereo reprojection errors of its n observations (3 rows each, U1), by
   Gauss-Newton from the median, axis by axis, of its observations' own stereo triangulations.
@@ -56,12 +57,11 @@ from scipy.special import chdtri
 from ..compiled import jit, warms_up
 from ..config import Mode
 from ..geometry import se3
-from .inertial import CORE_INERTIAL, Propagation
 from .layout import SQRT_HALF
 from .linalg import inverse3
 from .state_helper import StateHelper
 
-__all__ = ["CloneTransition", "WindowStep", "WindowUpdater", "feature_rows", "plan_use", "retract_clones",
+__all__ = ["WindowStep", "WindowUpdater", "feature_rows", "plan_use", "retract_clones",
            "window_text", "WINDOW_ITERATIONS"]
 
 #: Gauss-Newton iterations of a feature's triangulation (W3)
@@ -74,23 +74,6 @@ ATTEMPTS = 3
 SCREEN = 9.0
 #: A feature is not used when a point it was seen at lies nearer the camera than this (m)
 MIN_DEPTH = 0.1
-
-
-@dataclass
-class CloneTransition:
-    """(W2) one frame interval's prediction of a state of the core and clones: the core by (J5)."""
-
-    prop: Propagation
-
-    def apply(self, P: np.ndarray) -> np.ndarray:
-        """P changed in place (the clones' block untouched) and returned."""
-        c = CORE_INERTIAL
-        Phi, Q = self.prop.Phi, self.prop.Q
-        core = Phi @ P[:c, :c] @ Phi.T + Q
-        P[:c, c:] = Phi @ P[:c, c:]
-        P[c:, :c] = P[:c, c:].T
-        P[:c, :c] = 0.5 * (core + core.T)
-        return P
 
 
 @jit
@@ -126,6 +109,20 @@ def _residual_inplace(z, cx, cy, pred, res):
     res[0] = z[0] - cx - pred[0]
     res[1] = (z[1] + z[3]) * SQRT_HALF - 2.0 * SQRT_HALF * cy - pred[1]
     res[2] = z[2] - cx - pred[2]
+
+
+@jit
+def _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+    """The 3-row residuals (U1) ``rs[k]`` and Jacobians on the world point ``Ms[k]`` of the first n
+    observations ``obs`` of a feature at the point p (clone ``slot[o]``'s cam_T_world = [Rcw tcw]);
+    False when p lies behind one of the cameras."""
+    for k in range(n):
+        o = obs[k]
+        s = slot[o]
+        if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, Ms[k]) < MIN_DEPTH:
+            return False
+        _residual_inplace(pixels[o], cx, cy, pred, rs[k])
+    return True
 
 
 @jit
@@ -207,6 +204,8 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
     inv = np.empty((3, 3))
     res = np.empty(3)
     obs = np.empty(count.max() if F else 0, dtype=np.int64)  # the feature's observations in use
+    Ms = np.empty((obs.size, 3, 3))  # ... their Jacobians on the point and residuals (_linearize_inplace)
+    rs = np.empty((obs.size, 3))
     for f in range(F):
         n = count[f]
         for k in range(n):
@@ -245,20 +244,18 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
         good = True
         for attempt in range(ATTEMPTS):  # fits again without the worst observation while it is a gross error
             for it in range(iterations):
+                if not _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+                    good = False
+                    break
                 JtJ = np.zeros((3, 3))
                 Jtr = np.zeros(3)
                 for k in range(n):
-                    o = obs[k]
-                    s = slot[o]
-                    if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, M) < MIN_DEPTH:
-                        good = False
-                        break
-                    _residual_inplace(pixels[o], cx, cy, pred, res)
+                    Mk, rk = Ms[k], rs[k]
                     for a in range(3):
                         for b in range(3):
-                            JtJ[a, b] += M[0, a] * M[0, b] + M[1, a] * M[1, b] + M[2, a] * M[2, b]
-                        Jtr[a] += M[0, a] * res[0] + M[1, a] * res[1] + M[2, a] * res[2]
-                if not good or not inverse3(JtJ, inv):
+                            JtJ[a, b] += Mk[0, a] * Mk[0, b] + Mk[1, a] * Mk[1, b] + Mk[2, a] * Mk[2, b]
+                        Jtr[a] += Mk[0, a] * rk[0] + Mk[1, a] * rk[1] + Mk[2, a] * rk[2]
+                if not inverse3(JtJ, inv):
                     good = False
                     break
                 step = inv @ Jtr
@@ -284,30 +281,25 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
         lo, hi = slot[obs[0]], slot[obs[n - 1]] + 1  # the clones it spans (observations oldest first)
         ncol = 6 * (hi - lo)
         # the rows at p (W4): A = [H_p | H_x over the clones lo..hi-1 | r]
+        if not _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+            continue
         A = np.zeros((3 * n, 3 + ncol + 1))
         off = 0.0
         for k in range(n):
             o = obs[k]
-            s = slot[o]
-            if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, M) < MIN_DEPTH:
-                good = False
-                break
-            base = 3 + 6 * (s - lo)
+            base = 3 + 6 * (slot[o] - lo)
+            Mk = Ms[k]
             for a in range(3):
                 # row a of M p^ (p^ the cross-product matrix of p)
-                A[3 * k + a, base + 3] = M[a, 1] * p[2] - M[a, 2] * p[1]
-                A[3 * k + a, base + 4] = M[a, 2] * p[0] - M[a, 0] * p[2]
-                A[3 * k + a, base + 5] = M[a, 0] * p[1] - M[a, 1] * p[0]
+                A[3 * k + a, base + 3] = Mk[a, 1] * p[2] - Mk[a, 2] * p[1]
+                A[3 * k + a, base + 4] = Mk[a, 2] * p[0] - Mk[a, 0] * p[2]
+                A[3 * k + a, base + 5] = Mk[a, 0] * p[1] - Mk[a, 1] * p[0]
                 for b in range(3):
-                    A[3 * k + a, b] = M[a, b]
-                    A[3 * k + a, base + b] = -M[a, b]
-            _residual_inplace(pixels[o], cx, cy, pred, res)
-            for a in range(3):
-                A[3 * k + a, 3 + ncol] = res[a]
+                    A[3 * k + a, b] = Mk[a, b]
+                    A[3 * k + a, base + b] = -Mk[a, b]
+                A[3 * k + a, 3 + ncol] = rs[k, a]
             d = (pixels[o, 1] - pixels[o, 3]) * SQRT_HALF
             off += d * d
-        if not good:
-            continue
         Hp = np.ascontiguousarray(A[:, :3])
         if not inverse3(Hp.T @ Hp, inv):
             continue

@@ -223,8 +223,8 @@ def run_inertial(seq: Sequence, config: Config | None = None, *, decisions: Iner
             decisions = decide_inertial(seq, config)
         setup = time.perf_counter() - t0
         say(decisions.describe())
-        if window_text(config, inertial=True):
-            say(window_text(config, inertial=True))
+        if text := window_text(config, inertial=True):
+            say(text)
         run = InertialRun(StereoCamera(seq.K, seq.baseline), decisions, config, seq.imu,
                           expected_landmarks=seq.num_features, observer=observer)
         for k in range(seq.num_steps):

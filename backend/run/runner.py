@@ -159,8 +159,8 @@ def run_stream(
             steps = itertools.chain(read, steps)
             say(f"decided from the first {len(read)} steps:")
         say(decisions.describe(decisions.config_for(config)))
-        if window_text(config, inertial=False):
-            say(window_text(config, inertial=False))
+        if text := window_text(config, inertial=False):
+            say(text)
         run = OnlineRun(camera, decisions, config, expected_landmarks=expected_landmarks, observer=observer)
         for k, step in enumerate(steps):
             run.step(*step)
