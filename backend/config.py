@@ -142,6 +142,7 @@ class UpdateOptions(OptionTable):
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     persistent_outlier_steps: int = 10  # a track RANSAC rejects this many steps in a row is no longer rescued (0: always)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    zero_velocity: bool = True  # a real IMU's SLAM run: at frames where the IMU, the tracks and the filter's velocity say the rig stands still, v = 0 is measured before the frame's observations (backend.estimator.zero_velocity, Z6-Z9)
 
     def check(self) -> None:
         self.require("gate_probability", 0.5 < self.gate_probability < 1.0, "must lie in (0.5, 1)")

@@ -60,6 +60,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
             "gated_share": stats.gated_share,
             "dropped_by_loader": stats.observations_dropped_input,
             "repeated_frames": stats.repeated_frames,
+            "still_frames": stats.still_frames,
         },
         "landmarks": {
             "initialized": stats.landmarks_initialized,
@@ -218,6 +219,9 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
         f"landmarks mapped {lm['mapped']} (active mean {lm['active_mean']:.1f}, max {lm['active_max']})",
         _timing_text(t) + "; mean NIS per observation " + _nis_text(summary['mean_nis_per_observation']),
     ]
+    if obs.get("still_frames"):
+        lines.append(f"standing still at {obs['still_frames']} of {summary['steps']} frames (the tracks, the IMU and the "
+                     "filter's velocity agreed): v = 0 measured there (update.zero_velocity)")
     if t.get("kernel_seconds", 0.0) >= 2.0:
         where = "counted above as kernels" if "process_seconds" in t else "not in the wall time above"
         lines.append(f"compiled the filter's kernels in {t['kernel_seconds']:.1f} s first (once after an install; "

@@ -43,7 +43,8 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
-from .window import WindowStep, WindowUpdater
+from .window import WindowStep, WindowUpdater, retract_clones
+from .zero_velocity import ZeroVelocityUpdater
 
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
 
@@ -68,6 +69,7 @@ class StepStats:
     log_likelihood: float = 0.0  # sum over observations in front of the camera of their Student-t log-likelihood (L1)
     tested: int = 0  # observations in that sum
     active: int = 0  # landmarks in the state after the step
+    still: bool = False  # the rig stood still (Z6-Z8): v = 0 measured before the observations (Z9)
 
 
 def check_full_state_size(num_landmarks: int, max_state_mib: float) -> None:
@@ -232,6 +234,10 @@ class VisualInertialEKF:
             self.window = WindowUpdater(est.window, camera, self.model.cam_T_imu, self._pixel_var,
                                         config.update.gate_probability, self.map)
             self.state.clones = np.zeros((0, 4, 4))
+        self.zero_velocity = None  # zero-velocity updates (Z6-Z9), a real IMU's SLAM run only
+        if self.inertial and self.estimate_pose and config.update.zero_velocity:
+            self.zero_velocity = ZeroVelocityUpdater(inertial.noise, inertial.gravity, camera, self.model.cam_T_imu,
+                                                     self._pixel_var, config.update.gate_probability)
 
     # ------------------------------------------------------------------ public state
     @property
@@ -270,6 +276,8 @@ class VisualInertialEKF:
             raise TypeError("propagate() needs the inertial state: VisualInertialEKF(..., inertial=InertialStart(...))")
         self.step_index += 1
         transition = self.model.propagate(self.state, imu, t0, t1)
+        if self.zero_velocity is not None:
+            self.zero_velocity.interval(imu, t0, t1)
         if self.window is not None:  # clones after the core, not landmarks (W2)
             StateHelper.propagate(self.state, CoreTransition(transition.prop.Phi, transition.prop.Q))
             return
@@ -322,6 +330,8 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self.use_vision:
             return stats
+        if self.zero_velocity is not None:  # (Z6-Z9) standing still: v = 0 measured, then the frame's vision as always
+            stats.still = self.zero_velocity.step(self.state, ids, pixels, self._correct)
         if self.window is not None:
             return self._window_step(self.window.step(self.state, ids, pixels, self.model.correct), stats)
         t0 = time.perf_counter()
@@ -348,6 +358,17 @@ class VisualInertialEKF:
         if self.step_index % 100 == 0:
             self._check_covariance()
         return stats
+
+    def _correct(self, state, dx: np.ndarray) -> None:
+        """The mean corrected by the update ``dx`` (D,): the error model's retraction (J7) of the core
+        and the landmarks, a window's clones by theirs (W6)."""
+        if self.window is None:
+            self.model.correct(state, dx)
+            return
+        c = state.core
+        self.model.correct(state, dx[:c])
+        if state.clones.shape[0]:
+            state.clones = retract_clones(state.clones, dx[c:])
 
     def _window_step(self, step: WindowStep, stats: StepStats) -> StepStats:
         """A window's frame (W1-W7) in the step's counts and the health."""

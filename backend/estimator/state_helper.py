@@ -12,6 +12,7 @@ Every change of ``FilterState.P`` is one of these operations, each one function 
 - ``repair``: eigenvalues clipped when P lost positive definiteness (H2).
 - ``clone``, ``update_window``, ``drop_oldest_clone``: a sliding window's pose clones join (W1),
   update (W6) and leave (W7) (``backend.estimator.window``).
+- ``update_dense``: a few rows on the core (a zero velocity, Z9 of ``backend.estimator.zero_velocity``).
 
 The error models say what a prediction does to P (a :class:`Transition`, derived beside its
 model) and what a new landmark's Jacobians are (:class:`NewLandmarks`); they never write P.
@@ -192,6 +193,24 @@ class StateHelper:
         dx = Pw.T @ K[:, w6]
         KP = K[:, :w6].T @ Pw  # K_w's first block is symmetric (push-through); its transpose is C-ordered
         P -= Pw.T @ KP
+        state.P = 0.5 * (P + P.T)
+        return dx
+
+    @staticmethod
+    def update_dense(state: FilterState, H_core: np.ndarray, residual: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The Kalman update by m rows r = H dx + n whose Jacobian ``H_core`` (m,k) touches the first k
+        rows of the state only, with ``S`` (m,m) = H P H^T + R the prior covariance of ``residual`` (m,):
+
+            dx = P H^T S^-1 r,   P <- P - (P H^T) S^-1 (P H^T)^T   (symmetrized)
+
+        (the Joseph form's equal for the optimal gain, O(D^2 m)). Returns dx (D,)."""
+        k = H_core.shape[1]
+        PHt = state.P[:, :k] @ H_core.T  # (D, m)
+        L = np.linalg.cholesky(S)
+        A = np.linalg.solve(L, PHt.T)  # L^-1 H P  (m, D)
+        dx = A.T @ np.linalg.solve(L, residual)
+        P = state.P
+        P -= A.T @ A
         state.P = 0.5 * (P + P.T)
         return dx
 

@@ -44,6 +44,7 @@ class RunStats:
     landmarks_dropped: int = 0  # removed after repeated gating
     landmarks_reanchored: int = 0  # re-triangulated after reanchor_observations (tracker drift)
     frozen_steps: int = 0  # repeated frames carried through with their landmarks (repeated_frames = freeze)
+    still_frames: int = 0  # a real IMU's frames at which the rig stood still: v = 0 measured (Z9)
     landmarks_mapped: int = 0
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
@@ -104,6 +105,7 @@ class RunBook:
         stats.landmarks_initialized += step_stats.initialized
         stats.landmarks_dropped += step_stats.dropped
         stats.landmarks_reanchored += step_stats.reanchored
+        stats.still_frames += step_stats.still
         stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
         self._active_sum += step_stats.active
         self._nis_sum += step_stats.nis_sum
