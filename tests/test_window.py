@@ -13,6 +13,7 @@ from vislam.backend.config import Config
 from vislam.backend.evaluation.consistency import average_band, trajectory_nees
 from vislam.backend.evaluation.metrics import trajectory_errors
 from vislam.backend.estimator.inertial import CORE_INERTIAL
+from vislam.backend.estimator.invariant import body_pose_covariance
 from vislam.backend.estimator.state import FilterState
 from vislam.backend.estimator.state_helper import CoreTransition, StateHelper
 from vislam.backend.estimator.window import feature_rows, retract_clones
@@ -205,6 +206,37 @@ def test_room_flight_with_a_window_is_accurate_and_consistent():
     assert np.mean((flying >= lo) & (flying <= hi)) >= 0.9, np.mean((flying >= lo) & (flying <= hi))
     assert np.all(avg[:60] <= hi)
     assert max(ates) < 0.02, ates
+
+
+def test_a_window_run_writes_each_frame_as_its_clone_left():
+    """(W8) a window run's trajectory holds each frame once, as its clone left the window: no less
+    certain than the filter was at the frame (the filtered covariance minus the settled one, both of
+    the filter's own left perturbation, is positive semidefinite: later updates only add
+    information), and closer to the truth over the flight than the filter's pose at each frame's own
+    update."""
+    scene = make_inertial_scene(InertialSceneConfig(duration=6.0, seed=4), noise_seed=11)
+    filtered, covs, filters = [], [], []
+
+    def observe(k, ekf, stats):
+        filtered.append(ekf.world_T_imu.copy())
+        covs.append(ekf.pose_covariance)
+        filters.append(ekf)
+
+    res = run_inertial(scene.sequence, Config().with_assignments(["estimator.window=13"]), observer=observe)
+    settled = filters[-1].window.settled
+    assert sorted(f for f, _, _ in settled) == list(range(scene.sequence.num_steps))
+    for frame, pose, block in settled:
+        assert np.array_equal(res.world_T_imu[frame], pose)
+        np.testing.assert_allclose(res.pose_covariance[frame], body_pose_covariance(pose, block), rtol=1e-10, atol=1e-18)
+    for k in range(1, len(covs)):  # in the filter's own coordinates, the left perturbation of each pose (I7 undone)
+        A, B = se3.adjoint(filtered[k]), se3.adjoint(res.world_T_imu[k])
+        gain = A @ covs[k] @ A.T - B @ res.pose_covariance[k] @ B.T
+        assert np.linalg.eigvalsh(gain).min() > -1e-9 * np.abs(covs[k]).max(), k
+    assert not np.allclose(res.world_T_imu, np.array(filtered))
+    t, truth = scene.sequence.time_stamps, scene.world_T_imu_true
+    settled_ate = trajectory_errors(t, res.world_T_imu, t, truth).ate_rmse
+    filtered_ate = trajectory_errors(t, np.array(filtered), t, truth).ate_rmse
+    assert settled_ate < filtered_ate, (settled_ate, filtered_ate)
 
 
 def test_a_run_says_what_it_does_with_the_window():

@@ -54,6 +54,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import bdtri, chdtri
 
+from ..compiled import jit, warms_up
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..geometry import se3
 from .inertial import BA, BG, NU, PHI
@@ -137,13 +138,36 @@ def flow_rest_statistic(last_ids: np.ndarray, last_pixels: np.ndarray, ids: np.n
                         pixel_var: float) -> tuple[float, np.ndarray]:
     """(Z6) (the median of d_i, the rows of ``ids`` (n,) whose tracks the last frame saw too) of this
     frame's ``pixels`` (n,4) against the last one's; the median nan below ``MIN_TRACKS`` tracks."""
-    common, a, b = np.intersect1d(last_ids, ids, assume_unique=True, return_indices=True)
-    k = int(common.size)
-    if k < MIN_TRACKS:
-        return float("nan"), b
-    d = np.sum((pixels[b] - last_pixels[a]) ** 2, axis=1) / (2.0 * pixel_var)
+    median, rows = _flow_median(np.ascontiguousarray(last_ids, dtype=np.int64), np.ascontiguousarray(last_pixels),
+                                np.ascontiguousarray(ids, dtype=np.int64), np.ascontiguousarray(pixels),
+                                float(pixel_var), MIN_TRACKS)
+    return median, rows
+
+
+@jit
+def _flow_median(last_ids, last_pixels, ids, pixels, pixel_var, min_tracks):
+    """(Z6) :func:`flow_rest_statistic`'s work: the tracks matched by id (a sorted copy of the last
+    frame's ids searched), d_i, and the ceil(k/2)-th smallest of them."""
+    order = np.argsort(last_ids)
+    sorted_ids = last_ids[order]
+    rows = np.empty(ids.size, dtype=np.int64)
+    d = np.empty(ids.size)
+    k = 0
+    for i in range(ids.size):
+        j = np.searchsorted(sorted_ids, ids[i])
+        if j < sorted_ids.size and sorted_ids[j] == ids[i]:
+            a = order[j]
+            s = 0.0
+            for c in range(4):
+                e = pixels[i, c] - last_pixels[a, c]
+                s += e * e
+            d[k] = s / (2.0 * pixel_var)
+            rows[k] = i
+            k += 1
+    if k < min_tracks:
+        return np.nan, rows[:k]
     m = (k + 1) // 2 - 1  # the ceil(k/2)-th smallest: the median the threshold is made for
-    return float(np.partition(d, m)[m]), b
+    return np.partition(d[:k], m)[m], rows[:k]
 
 
 def translation_covariance(pixels: np.ndarray, fx: float, fy: float, cx: float, cy: float, baseline: float,
@@ -229,3 +253,9 @@ class ZeroVelocityUpdater:
         S = H @ state.P[:c, :c] @ H.T + R_wc @ C_t @ R_wc.T / (t1 - t0) ** 2
         v = state.velocity
         return RestTest(*flow, *imu_test, float(v @ np.linalg.solve(S, v)), self._velocity_gate), (H, S)
+
+
+@warms_up(only="inertial")
+def _warm_up() -> None:
+    pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * 6)
+    _flow_median(np.arange(6, dtype=np.int64), pixels, np.arange(6, dtype=np.int64), pixels, 0.25, MIN_TRACKS)

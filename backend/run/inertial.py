@@ -21,7 +21,9 @@
 inertial state frame by frame (every IMU sample between two frames, then the frame's
 observations), keeps the IMU-only propagation alongside as dead reckoning, and returns the same
 :class:`~vislam.backend.run.online.RunResult` as a velocity run, with the velocity and the biases
-of every frame. :func:`run_inertial` is that over a whole sequence.
+of every frame (each as the filter had it at the frame). With a sliding window of clones, the
+trajectory and its covariances are each frame's as the window settled it (W8 of
+``backend.estimator.window``). :func:`run_inertial` is that over a whole sequence.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
 from ..estimator.inertial import STANDARD_GRAVITY, InertialStart, propagate
-from ..estimator.window import window_text
+from ..estimator.window import settled_trajectory, window_text
 from ..geometry.camera import StereoCamera
 from .initialization import (Initialization, RestOptions, initialize_at_rest, initialize_in_motion, rest_test,
                              vision_motion)
@@ -189,7 +191,8 @@ class InertialRun:
             self.observer(k, self.ekf, step_stats)
         ekf, rows = self.ekf, self._rows
         rows["pose"].append(ekf.world_T_imu.copy())
-        rows["cov"].append(ekf.pose_covariance)
+        if ekf.window is None:  # a window's covariances are the settled ones (W8), read at the end
+            rows["cov"].append(ekf.pose_covariance)
         rows["dr"].append(self._dr.world_T_imu.copy())
         rows["v"].append(ekf.velocity.copy())
         rows["bg"].append(ekf.gyro_bias.copy())
@@ -202,6 +205,8 @@ class InertialRun:
         map_ids, map_pos, map_cov, step_seconds = self.book.close(self.config.estimator.mode, setup_seconds,
                                                                   load_seconds, 0.0)
         rows = {k: np.array(v) for k, v in self._rows.items()}
+        if self.ekf.window is not None:  # (W8) each frame's pose as the window settled it
+            rows["pose"], rows["cov"] = settled_trajectory(self.ekf.window.settled, len(self._t))
         return RunResult(
             time_stamps=np.array(self._t), world_T_imu=rows["pose"], pose_covariance=rows["cov"],
             dead_reckoning=rows["dr"], map_ids=map_ids, map_positions=map_pos, map_covariances=map_cov,
