@@ -208,7 +208,6 @@ class ZeroVelocityUpdater:
         self._velocity_gate = float(chdtri(3, 1.0 - probability))
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._interval: tuple[ImuSamples, float, float] | None = None
-        self.tests: list[RestTest] = []  # every frame's test (not the first frame's)
 
     def interval(self, imu: ImuSamples, t0: float, t1: float) -> None:
         """The IMU samples of the interval the state was just propagated over."""
@@ -222,7 +221,6 @@ class ZeroVelocityUpdater:
         if last is None or interval is None:
             return False
         test, rows = self.test(state, interval, last, ids, pixels)
-        self.tests.append(test)
         if not test.still:
             return False
         H, S = rows
