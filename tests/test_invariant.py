@@ -255,6 +255,13 @@ def test_body_pose_covariance_is_the_adjoint_map():
     ekf = _filter(mu)
     ekf.state.P[POSE, POSE] = P
     np.testing.assert_allclose(ekf.pose_covariance, invariant.body_pose_covariance(mu, P), rtol=1e-14, atol=0)
+    # N poses at once: each the one pose's
+    mus = np.array([mu, random_pose(rng), random_pose(rng)])
+    Ps = np.array([P, random_spd(rng, 6, 1e-3), random_spd(rng, 6, 1e-2)])
+    batch = invariant.body_pose_covariance(mus, Ps)
+    for k in range(3):
+        A = se3.adjoint(se3.inverse(mus[k]))
+        np.testing.assert_allclose(batch[k], A @ Ps[k] @ A.T, rtol=1e-12, atol=1e-18)
 
 
 def test_correction_is_the_group_exponential():

@@ -349,10 +349,16 @@ def world_covariances(P, slots, points, core=CORE):
 
 
 def body_pose_covariance(world_T_imu: np.ndarray, P_pose: np.ndarray) -> np.ndarray:
-    """(I7): the 6x6 covariance of the right perturbation world_T_imu = mu exp(xi^)."""
-    A = se3.adjoint(se3.inverse(world_T_imu))
-    out = A @ P_pose @ A.T
-    return 0.5 * (out + out.T)
+    """(I7): the covariance (..., 6, 6) of the right perturbation world_T_imu = mu exp(xi^) from that
+    of the left one ``P_pose`` (..., 6, 6), ``world_T_imu`` (..., 4, 4) (one pose or N):
+    Ad(mu^-1) P Ad(mu^-1)^T, Ad(mu^-1) = [[R^T, (-R^T p)^ R^T], [0, R^T]]."""
+    R_inv = np.swapaxes(world_T_imu[..., :3, :3], -1, -2)
+    p_inv = -np.einsum("...ij,...j->...i", R_inv, world_T_imu[..., :3, 3])
+    A = np.zeros(world_T_imu.shape[:-2] + (6, 6))
+    A[..., :3, :3] = A[..., 3:, 3:] = R_inv
+    A[..., :3, 3:] = se3.hat3(p_inv) @ R_inv
+    out = A @ P_pose @ np.swapaxes(A, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
 # ---------------------------------------------------------------- the model

@@ -64,6 +64,7 @@ from scipy.special import chdtri
 from ..compiled import jit, warms_up
 from ..config import Mode
 from ..geometry import se3
+from .invariant import body_pose_covariance
 from .layout import SQRT_HALF
 from .linalg import inverse3
 from .state_helper import StateHelper
@@ -485,7 +486,6 @@ class WindowUpdater:
             self.settled.append((self._frames[k], state.clones[k].copy(), state.P[rows, rows].copy()))
         del self._frames[:n]
 
-
     def _use(self, state, rows: np.ndarray, start: np.ndarray, count: np.ndarray, correct) -> WindowStep:
         """(W3-W6) the features of the observations ``rows`` (``start``, ``count`` per track, see
         :func:`plan_use`; a track seen once says nothing: neither used nor gated), then those
@@ -523,14 +523,7 @@ def settled_trajectory(settled: list, frames: int) -> tuple[np.ndarray, np.ndarr
     if [settled[i][0] for i in order] != list(range(frames)):
         raise ValueError(f"the window settled {len(settled)} clones for {frames} frames")
     poses = np.array([settled[i][1] for i in order])
-    blocks = np.array([settled[i][2] for i in order])
-    R_inv = poses[:, :3, :3].transpose(0, 2, 1)
-    p_inv = -np.einsum("nij,nj->ni", R_inv, poses[:, :3, 3])
-    A = np.zeros((frames, 6, 6))  # Ad(T^-1) = [[R^T, (-R^T p)^ R^T], [0, R^T]]
-    A[:, :3, :3] = A[:, 3:, 3:] = R_inv
-    A[:, :3, 3:] = se3.hat3(p_inv) @ R_inv
-    covs = A @ blocks @ A.transpose(0, 2, 1)
-    return poses, 0.5 * (covs + covs.transpose(0, 2, 1))
+    return poses, body_pose_covariance(poses, np.array([settled[i][2] for i in order]))
 
 
 @warms_up(only="inertial")
