@@ -1,6 +1,6 @@
-"""The sliding window of pose clones (``backend.estimator.window``, W1-W7): the feature rows against
+"""The sliding window of pose clones (``backend.estimator.window``, W1-W8): the feature rows against
 perturbed clones, the update against the Kalman update of the stacked rows, the clone operations,
-gross errors, and a Monte Carlo run of the room flight."""
+gross errors, the settled trajectory, and a Monte Carlo run of the room flight."""
 
 from __future__ import annotations
 

@@ -362,7 +362,7 @@ def window_text(config, inertial: bool) -> str | None:
         return None
     if inertial and mode == Mode.SLAM:
         return (f"state: a sliding window of {size} pose clones, no landmark in the state (estimator.window; "
-                f"the tracks' points are projected out, W1-W7)")
+                f"the tracks' points are projected out, W1-W7; each frame's pose is written as its clone leaves, W8)")
     what = "a velocity run" if not inertial else f"a {mode.value} run"
     return f"note: estimator.window = {size} serves a real IMU's SLAM run; {what} keeps its landmarks in the state"
 
