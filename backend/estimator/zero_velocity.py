@@ -3,7 +3,8 @@
 Standing still is the one motion the IMU and the camera can each confirm on their own, and one a
 sliding window of clones (``backend.estimator.window``) does not hold by itself: its tracks tie the
 clones to one another, so at rest the pose wanders by the pixels' and the IMU's noise (EuRoC
-V1_01's 40 pairs before take-off: a path of 1.8 cm where its ground truth moves 6.5 mm). Where
+V1_01's 40 pairs before take-off, this update off: the filter's poses make a path of 1.8 cm where
+its ground truth moves 6.5 mm). Where
 both sensors say "still" and the filter's velocity allows it, the velocity is measured to be zero,
 before the frame's observations are used as at any other frame.
 
