@@ -73,7 +73,8 @@ def _samples_at_rest(rng, mean: InertialMean, seconds: float, rate: float, noise
 def test_the_imu_statistic_is_chi2_at_rest_and_large_when_accelerating():
     """(Z7) from the true state, the statistic of 200 Hz samples at rest over 0.05 s intervals is
     chi2 with 6n degrees of freedom (mean 6n within 3 %, 1 % beyond the 0.99 quantile within 1 point);
-    an acceleration of 0.3 m/s^2 (6x the mean's noise) is beyond it in every interval."""
+    an acceleration of 0.3 m/s^2 (6x the mean's noise) is beyond it in every interval; a density of zero
+    leaves nothing to test against (no degrees of freedom: not still)."""
     from scipy.special import chdtri
 
     rng = np.random.default_rng(1)
@@ -90,6 +91,9 @@ def test_the_imu_statistic_is_chi2_at_rest_and_large_when_accelerating():
     assert np.all(dofs == 60)
     assert abs(stats.mean() / 60 - 1) < 0.03
     assert abs(np.mean(stats > chdtri(60, 0.01)) - 0.01) < 0.01
+    silent = ImuNoiseDensities(0.0, 0.0, 1e-3, 0.0)  # no accelerometer noise to test against: not tested
+    assert imu_rest_statistic(imu, 0.0, 0.05, mean.world_T_imu[:3, :3], mean.gyro_bias, mean.accel_bias, P, silent,
+                              GRAVITY)[1] == 0
     moving = _samples_at_rest(rng, mean, 2.0, 200.0, NOISE, accel=np.array([0.3, 0.0, 0.0]))
     for t0 in np.arange(0.0, 1.9, 0.05):
         s, dof = imu_rest_statistic(moving, t0 - 1e-9, t0 + 0.05 - 1e-9, mean.world_T_imu[:3, :3], mean.gyro_bias,

@@ -108,12 +108,13 @@ def velocity_jacobian(velocity: np.ndarray, core: int) -> np.ndarray:
 def imu_rest_statistic(samples: ImuSamples, t0: float, t1: float, world_R_imu: np.ndarray, gyro_bias: np.ndarray,
                        accel_bias: np.ndarray, P_core: np.ndarray, noise: ImuNoiseDensities,
                        gravity: np.ndarray) -> tuple[float, int]:
-    """(Z7) (s_imu, its degrees of freedom 6n) of the samples in (t0, t1]; (nan, 0) without a sample.
-    ``world_R_imu`` (3,3), the biases (3,), ``P_core`` (15,15) the core's covariance at t1."""
+    """(Z7) (s_imu, its degrees of freedom 6n) of the samples in (t0, t1]; (nan, 0) without a sample or
+    with a density of zero (no noise to test against). ``world_R_imu`` (3,3), the biases (3,),
+    ``P_core`` (15,15) the core's covariance at t1."""
     t = samples.time_stamps
     i0, i1 = int(np.searchsorted(t, t0, side="right")), int(np.searchsorted(t, t1, side="right"))
     n = i1 - i0
-    if n < 1:
+    if n < 1 or not (noise.gyroscope_noise_density > 0 and noise.accelerometer_noise_density > 0):
         return float("nan"), 0
     T = float(t1 - t0)
     r = np.empty((n, 6))
