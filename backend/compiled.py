@@ -136,7 +136,10 @@ _lock = threading.Lock()
 
 def warms_up(function: Callable[[], None] | None = None, *, only: str | None = None):
     """Decorator: register ``function`` (no arguments; calls a module's kernels once) for
-    :func:`warm_up`; ``@warms_up(only="inertial")``: for a real IMU's runs only."""
+    :func:`warm_up`; ``@warms_up(only="inertial")``: for a real IMU's runs only; ``only="window"``:
+    for those with a sliding window of clones (``estimator.window``) only."""
+    if only not in (None, "inertial", "window"):
+        raise ValueError(f"warms_up: only must be 'inertial' or 'window', got {only!r}")
 
     def register(f: Callable[[], None]) -> Callable[[], None]:
         _registered.append(f)
@@ -147,19 +150,21 @@ def warms_up(function: Callable[[], None] | None = None, *, only: str | None = N
     return register if function is None else register(function)
 
 
-def _serves(function: Callable[[], None], inertial: bool) -> bool:
-    """Whether the registered warm-up ``function`` serves a run (a real IMU's with ``inertial``)."""
-    return inertial or _only.get(function) != "inertial"
+def _serves(function: Callable[[], None], inertial: bool, window: bool = False) -> bool:
+    """Whether the registered warm-up ``function`` serves a run (a real IMU's with ``inertial``, with a
+    sliding window of clones with ``window`` too)."""
+    only = _only.get(function)
+    return only is None or (only == "inertial" and inertial) or (only == "window" and inertial and window)
 
 
-def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False) -> float:
+def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False, window: bool = False) -> float:
     """Compile or load every registered kernel not warmed up yet in this process (those registered
-    ``only="inertial"`` with ``inertial`` only); returns the seconds spent (0 when there was nothing
-    left). ``notice()`` is called from a timer thread when it takes longer than :data:`NOTICE_AFTER`
+    ``only="inertial"`` with ``inertial`` only, ``only="window"`` with ``inertial`` and ``window``:
+    a run compiles what it uses); returns the seconds spent (0 when there was nothing left). ``notice()`` is called from a timer thread when it takes longer than :data:`NOTICE_AFTER`
     seconds (compiling after an install or an update)."""
     global _seconds
     with _lock:
-        todo = [f for f in _registered if f not in _done and _serves(f, inertial)]
+        todo = [f for f in _registered if f not in _done and _serves(f, inertial, window)]
         if not todo:
             return 0.0
         timer = threading.Timer(NOTICE_AFTER, notice) if notice is not None else None
@@ -170,7 +175,7 @@ def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False) ->
         try:
             if (_cores() > 1 and len({f.__module__ for f in todo}) > 1 and _compiling_everything()
                     and not multiprocessing.current_process().daemon):  # a pool's worker may not start one
-                _compile_with_a_helper(todo, inertial)
+                _compile_with_a_helper(todo, inertial, window)
             for function in todo:
                 if function not in _done:
                     with signals.held():  # numba cut in the middle crashes later; a stop waits for this module
@@ -210,25 +215,25 @@ def _claim(directory: str, name: str) -> bool:
     return True
 
 
-def _compile_in_helper(modules: list[str], claims: str, inertial: bool) -> None:
+def _compile_in_helper(modules: list[str], claims: str, inertial: bool, window: bool = False) -> None:
     """The helper process: warm up each of ``modules`` it claims in ``claims`` (:func:`_claim`); numba
     caches what it compiles for the process that started it."""
     for name in modules:
         if _claim(claims, name):
             importlib.import_module(name)  # registers its warm-ups here
             for f in _registered:
-                if f.__module__ == name and _serves(f, inertial):
+                if f.__module__ == name and _serves(f, inertial, window):
                     f()
 
 
-def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool) -> None:
+def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool, window: bool = False) -> None:
     """Compile the modules of ``todo`` here and in one helper process, each claiming the next module of
     one list (the helper from its largest, this process from its smallest); the helper's modules are
     left for the caller, whose warm-ups then load its caches."""
     modules = _by_size(todo)
     claims = tempfile.mkdtemp(prefix="vislam-compile-")
     helper = multiprocessing.get_context("spawn").Process(
-        target=_compile_in_helper, args=(modules, claims, inertial), name="vislam-compile", daemon=True)
+        target=_compile_in_helper, args=(modules, claims, inertial, window), name="vislam-compile", daemon=True)
     try:
         helper.start()
         for name in reversed(modules):  # the helper takes the largest first, this process the smallest

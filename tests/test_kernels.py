@@ -506,7 +506,7 @@ runs = [run_sequence(to_sequence(make_drive(40, seed=1)), config)
                        Config.from_values({"estimator.error_model": "body"}))]
 reported = [r.stats.kernel_seconds == compiled.warm_up_seconds() > 0 for r in runs]
 before, registered, done = at_setup[0]
-inertial_only = [f for f in compiled._registered if compiled._only.get(f) == "inertial"]
+inertial_only = [f for f in compiled._registered if compiled._only.get(f) in ("inertial", "window")]
 print(json.dumps([before, counts(), reported, registered, done, len(at_setup), len(inertial_only),
                   any(f in compiled._done for f in inertial_only)]))
 """
@@ -573,6 +573,47 @@ def test_warm_up_compiles_what_an_inertial_run_calls():
     assert out.returncode == 0, out.stderr
     before, after = json.loads(out.stdout.strip().splitlines()[-1])
     assert before["vislam.backend.estimator.inertial.integrate_kernel"] >= 1
+    assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
+
+
+_WINDOW_KERNELS = r"""
+import json, warnings
+warnings.simplefilter("ignore")
+from vislam.backend import compiled
+from vislam.backend.config import Config
+from vislam.backend.estimator import window
+from vislam.backend.run.inertial import run_inertial
+from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
+
+def counts():
+    return {n: len(f.signatures) for n, f in vars(window).items()
+            if hasattr(f, "signatures") and f.py_func.__module__ == window.__name__}
+
+windowed = [f for f in compiled._registered if compiled._only.get(f) == "window"]
+compiled.warm_up(inertial=True)
+landmarks_only = any(f in compiled._done for f in windowed)
+compiled.warm_up(inertial=True, window=True)
+before = counts()
+run_inertial(make_inertial_scene(InertialSceneConfig(duration=4.0)).sequence, Config().with_assignments(["estimator.window=13"]))
+print(json.dumps([len(windowed), landmarks_only, all(f in compiled._done for f in windowed), before, counts()]))
+"""
+
+
+def test_the_window_kernels_are_warmed_up_for_a_window_run_only():
+    """A real IMU's run with landmarks does not compile the sliding window's kernels (registered
+    ``only="window"``); a window run's warm-up does, and the run then compiles none mid-way (in a
+    fresh process)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", _WINDOW_KERNELS], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=False)
+    assert out.returncode == 0, out.stderr
+    registered, landmarks_only, warmed, before, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert registered >= 1 and not landmarks_only and warmed
+    assert before["feature_rows"] >= 1
     assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
 
 

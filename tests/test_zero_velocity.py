@@ -60,6 +60,21 @@ def test_the_flow_statistic_pairs_the_tracks_by_id():
     assert np.isnan(few) and rows.size == 2  # tracks 13 and 11
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_median_of_the_flow_is_numpys(seed):
+    """(Z6) the compiled selection gives numpy's ceil(k/2)-th smallest, ties and odd or even k alike."""
+    rng = np.random.default_rng(seed)
+    for k in (5, 6, 17, 120):
+        ids = rng.permutation(400)[:k].astype(np.int64)
+        last = rng.normal(size=(k, 4))
+        moved = last + np.round(rng.normal(size=(k, 4)), 1)  # rounded: equal moves happen
+        order = rng.permutation(k)
+        median, rows = flow_rest_statistic(ids, last, ids[order], moved[order], 0.5)
+        d = np.sum((moved - last) ** 2, axis=1)
+        assert median == pytest.approx(np.sort(d)[(k + 1) // 2 - 1])
+        assert np.array_equal(np.sort(rows), np.arange(k))
+
+
 def _samples_at_rest(rng, mean: InertialMean, seconds: float, rate: float, noise: ImuNoiseDensities,
                      accel=np.zeros(3)) -> ImuSamples:
     t = np.arange(0.0, seconds, 1.0 / rate)

@@ -79,16 +79,17 @@ class RayExecutor:
             self._ray.shutdown()
 
 
-def compile_for_workers(say, inertial: bool = False) -> None:
+def compile_for_workers(say, inertial: bool = False, window: bool = False) -> None:
     """On the first run after an install (or a change of the sources): compile the kernels here, with
     the compile helper, before a local pool starts, so that its workers load them. A worker may not
     start a helper of its own (a daemonic process) and would compile every kernel itself, each of
-    them at once. ``say``: where the compile notice goes."""
+    them at once. ``say``: where the compile notice goes; ``inertial``, ``window``: the runs' kind
+    (:func:`~vislam.backend.compiled.warm_up`)."""
     from ..backend import compiled
     from ..backend.run.runner import COMPILING
 
     if not compiled.warmed_before():
-        compiled.warm_up(notice=lambda: say(COMPILING), inertial=inertial)
+        compiled.warm_up(notice=lambda: say(COMPILING), inertial=inertial, window=window)
 
 
 def _start_worker(parent: int) -> None:

@@ -179,7 +179,8 @@ class VisualInertialEKF:
         expected_landmarks: int | None = None,
         inertial: InertialStart | None = None,
     ) -> None:
-        warm_up(inertial=inertial is not None)  # compile or load the kernels now (once per process), not in the first step
+        window = inertial is not None and config.estimator.window > 0 and config.estimator.mode == Mode.SLAM
+        warm_up(inertial=inertial is not None, window=window)  # compile or load the kernels now (once per process), not in the first step
         self.kernel_seconds = warm_up_seconds()
         self.camera = camera
         self.config = config.validate()

@@ -526,7 +526,7 @@ def settled_trajectory(settled: list, frames: int) -> tuple[np.ndarray, np.ndarr
     return poses, body_pose_covariance(poses, np.array([settled[i][2] for i in order]))
 
 
-@warms_up(only="inertial")
+@warms_up(only="window")
 def _warm_up() -> None:
     clones = np.tile(np.eye(4), (2, 1, 1))
     clones[1, 0, 3] = 0.5
@@ -538,3 +538,4 @@ def _warm_up() -> None:
     plan_use(ids, np.zeros(3, dtype=np.int64), ids, ids[:1], True, 13, 6)
     plan_use(ids, np.zeros(3, dtype=np.int64), ids, ids[:0], False, 1, 1)
 
+    retract_clones(clones, np.zeros(12))

@@ -148,28 +148,51 @@ def flow_rest_statistic(last_ids: np.ndarray, last_pixels: np.ndarray, ids: np.n
 
 @jit
 def _flow_median(last_ids, last_pixels, ids, pixels, pixel_var, min_tracks):
-    """(Z6) :func:`flow_rest_statistic`'s work: the tracks matched by id (a sorted copy of the last
-    frame's ids searched), d_i, and the ceil(k/2)-th smallest of them."""
-    order = np.argsort(last_ids)
-    sorted_ids = last_ids[order]
+    """(Z6) :func:`flow_rest_statistic`'s work: the tracks matched by id, d_i, and the ceil(k/2)-th
+    smallest of them. Plain loops (a frame's few hundred tracks): numba compiles them in a fraction
+    of a second where its sort and search routines take seconds, once after every install."""
     rows = np.empty(ids.size, dtype=np.int64)
     d = np.empty(ids.size)
     k = 0
     for i in range(ids.size):
-        j = np.searchsorted(sorted_ids, ids[i])
-        if j < sorted_ids.size and sorted_ids[j] == ids[i]:
-            a = order[j]
-            s = 0.0
-            for c in range(4):
-                e = pixels[i, c] - last_pixels[a, c]
-                s += e * e
-            d[k] = s / (2.0 * pixel_var)
-            rows[k] = i
-            k += 1
+        for a in range(last_ids.size):
+            if last_ids[a] == ids[i]:
+                s = 0.0
+                for c in range(4):
+                    e = pixels[i, c] - last_pixels[a, c]
+                    s += e * e
+                d[k] = s / (2.0 * pixel_var)
+                rows[k] = i
+                k += 1
+                break
     if k < min_tracks:
         return np.nan, rows[:k]
-    m = (k + 1) // 2 - 1  # the ceil(k/2)-th smallest: the median the threshold is made for
-    return np.partition(d[:k], m)[m], rows[:k]
+    return _kth_smallest(d[:k], (k + 1) // 2 - 1), rows[:k]  # the median the threshold is made for
+
+
+@jit
+def _kth_smallest(x, m):
+    """The (m+1)-th smallest of ``x`` (n,), m < n (Hoare's selection; ``x`` is reordered)."""
+    lo, hi = 0, x.size - 1
+    while lo < hi:
+        pivot = x[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while x[i] < pivot:
+                i += 1
+            while x[j] > pivot:
+                j -= 1
+            if i <= j:
+                x[i], x[j] = x[j], x[i]
+                i += 1
+                j -= 1
+        if m <= j:
+            hi = j
+        elif m >= i:
+            lo = i
+        else:
+            break
+    return x[m]
 
 
 def translation_covariance(pixels: np.ndarray, fx: float, fy: float, cx: float, cy: float, baseline: float,

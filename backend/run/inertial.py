@@ -36,7 +36,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ..compiled import warm_up
-from ..config import Choice, Config
+from ..config import Choice, Config, Mode
 from ..data.inertial import ADIS16448, ImuNoiseDensities, ImuSamples
 from ..data.sequence import Sequence
 from ..errors import InputError
@@ -222,7 +222,7 @@ def run_inertial(seq: Sequence, config: Config | None = None, *, decisions: Iner
     :func:`decide_inertial` (unless ``decisions`` are given), then :class:`InertialRun` frame by frame."""
     config = (config if config is not None else Config()).validate()
     with threadpool_limits(limits=config.execution.blas_threads):
-        warm_up(inertial=True)
+        warm_up(inertial=True, window=config.estimator.window > 0 and config.estimator.mode == Mode.SLAM)
         t0 = time.perf_counter()
         if decisions is None:
             decisions = decide_inertial(seq, config)

@@ -15,6 +15,7 @@ import math
 import os
 
 from ...backend.data.files import output_directory
+from ...backend.config import Mode
 from ...backend.errors import ConfigError
 from .. import console, options, outputs
 
@@ -154,7 +155,8 @@ def _monte_carlo(args: argparse.Namespace, factory, config):
         f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {where}\n" + console.configuration_text(args.verbose, config))
     one_thread = workers == 1 and not args.ray  # one worker: no process start-up
     if not one_thread and not args.ray:
-        compile_for_workers(console.sayer(args.quiet), inertial=args.imu == "inertial")
+        compile_for_workers(console.sayer(args.quiet), inertial=args.imu == "inertial",
+                            window=config.estimator.window > 0 and config.estimator.mode == Mode.SLAM)
     pool = nullcontext(ThreadPoolExecutor(max_workers=1)) if one_thread else executor(args.workers, args.ray, args.runs)
     with pool as runner, console.progress_bar(args.runs, "monte carlo", "run", console.progress_off(args)) as progress:
         done = [0]
