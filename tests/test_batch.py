@@ -181,8 +181,9 @@ def test_a_pool_command_compiles_the_kernels_before_its_workers_start(inputs, tm
 
     calls = []
     monkeypatch.setattr(compiled, "warmed_before", lambda: warmed)
-    monkeypatch.setattr(compiled, "warm_up", lambda notice=None, inertial=False: calls.append(inertial) or 0.0)
+    monkeypatch.setattr(compiled, "warm_up",
+                        lambda notice=None, inertial=False, window=False: calls.append((inertial, window)) or 0.0)
     assert main(["batch", str(inputs / "s0.npz"), "--out", str(tmp_path / "b"), "--workers", "2", "--no-progress",
                  "--quiet"]) == 0
     assert main(["mc", "--runs", "2", "--steps", "30", "--workers", "2", "--quiet", "--out", str(tmp_path / "m")]) == 0
-    assert calls == ([] if warmed else [False, False])
+    assert calls == ([] if warmed else [(False, False), (False, False)])
