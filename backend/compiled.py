@@ -160,7 +160,8 @@ def _serves(function: Callable[[], None], inertial: bool, window: bool = False) 
 def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False, window: bool = False) -> float:
     """Compile or load every registered kernel not warmed up yet in this process (those registered
     ``only="inertial"`` with ``inertial`` only, ``only="window"`` with ``inertial`` and ``window``:
-    a run compiles what it uses); returns the seconds spent (0 when there was nothing left). ``notice()`` is called from a timer thread when it takes longer than :data:`NOTICE_AFTER`
+    a run compiles what it uses); returns the seconds spent (0 when there was nothing left).
+    ``notice()`` is called from a timer thread when it takes longer than :data:`NOTICE_AFTER`
     seconds (compiling after an install or an update)."""
     global _seconds
     with _lock:

@@ -151,13 +151,13 @@ def test_the_translation_covariance_is_the_inverse_information_of_the_stereo_pro
     for p in s:
         J = np.column_stack([(cam.project(p - e * 1e-6) - cam.project(p + e * 1e-6)) / 2e-6 for e in np.eye(3)])
         info += J.T @ J
-    C = translation_covariance(pixels, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline, 0.09)
+    C = translation_covariance(pixels, cam, 0.09)
     np.testing.assert_allclose(C, 2 * 0.09 * np.linalg.inv(info), rtol=1e-5)
     far = pixels.copy()
     far[:, 2] = far[:, 0]  # no disparity
-    assert translation_covariance(far, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline, 0.09) is None
+    assert translation_covariance(far, cam, 0.09) is None
     both = np.r_[pixels, far[:3]]
-    np.testing.assert_allclose(translation_covariance(both, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline, 0.09), C)
+    np.testing.assert_allclose(translation_covariance(both, cam, 0.09), C)
 
 
 def test_update_dense_is_the_joseph_update():

@@ -43,7 +43,7 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
-from .window import WindowStep, WindowUpdater, retract_clones
+from .window import WindowStep, WindowUpdater, retract_clones, window_in_use
 from .zero_velocity import ZeroVelocityUpdater
 
 __all__ = ["VisualInertialEKF", "StepStats", "ImuNoise", "check_full_state_size", "make_error_model"]
@@ -179,7 +179,7 @@ class VisualInertialEKF:
         expected_landmarks: int | None = None,
         inertial: InertialStart | None = None,
     ) -> None:
-        window = inertial is not None and config.estimator.window > 0 and config.estimator.mode == Mode.SLAM
+        window = window_in_use(config, inertial is not None)
         warm_up(inertial=inertial is not None, window=window)  # compile or load the kernels now (once per process), not in the first step
         self.kernel_seconds = warm_up_seconds()
         self.camera = camera
@@ -231,7 +231,7 @@ class VisualInertialEKF:
         self.seconds_bookkeeping = 0.0  # in update(): ended tracks to the map, new landmarks into the state
         self._blas_limit = _blas_controller().limit(limits=config.execution.blas_threads, user_api="blas")
         self.window = None  # the sliding window of pose clones (W1-W7), a real IMU's SLAM run only
-        if self.inertial and self.estimate_pose and est.window:
+        if window:
             self.window = WindowUpdater(est.window, camera, self.model.cam_T_imu, self._pixel_var,
                                         config.update.gate_probability, self.map)
             self.state.clones = np.zeros((0, 4, 4))
@@ -334,7 +334,7 @@ class VisualInertialEKF:
         if self.zero_velocity is not None:  # (Z6-Z9) standing still: v = 0 measured, then the frame's vision as always
             stats.still = self.zero_velocity.step(self.state, ids, pixels, self._correct)
         if self.window is not None:
-            return self._window_step(self.window.step(self.state, ids, pixels, self.model.correct), stats)
+            return self._window_step(self.window.step(self.state, ids, pixels, self._correct), stats)
         t0 = time.perf_counter()
         st = self.state
         # where each observation goes; ended tracks and expired landmarks (re-anchoring) leave
@@ -461,7 +461,7 @@ class VisualInertialEKF:
         """Marginalize every active landmark into the map (end of the sequence); a window uses the
         tracks left in it."""
         if self.window is not None:
-            self._window_step(self.window.flush(self.state, self.model.correct), StepStats())
+            self._window_step(self.window.flush(self.state, self._correct), StepStats())
             return
         if self.state.num_landmarks:
             self._remove(np.ones(self.state.num_landmarks, dtype=bool), to_map=True)

@@ -70,7 +70,7 @@ from .linalg import inverse3
 from .state_helper import StateHelper
 
 __all__ = ["WindowStep", "WindowUpdater", "feature_rows", "plan_use", "retract_clones", "settled_trajectory",
-           "window_text", "WINDOW_ITERATIONS"]
+           "window_in_use", "window_text", "WINDOW_ITERATIONS"]
 
 #: Gauss-Newton iterations of a feature's triangulation (W3)
 WINDOW_ITERATIONS = 6
@@ -354,13 +354,19 @@ def retract_clones(clones, dx):
     return out
 
 
+def window_in_use(config, inertial: bool) -> bool:
+    """Whether a run holds a sliding window of clones: a real IMU's (``inertial``) SLAM run with
+    ``estimator.window`` set; any other run keeps its landmarks in the state."""
+    return inertial and config.estimator.window > 0 and Mode(config.estimator.mode) == Mode.SLAM
+
+
 def window_text(config, inertial: bool) -> str | None:
     """What a run does with ``estimator.window`` (one line), None when it is off: a real IMU's SLAM
     run holds that many clones; any other run keeps landmarks in the state, and says so."""
     size, mode = config.estimator.window, Mode(config.estimator.mode)
     if not size:
         return None
-    if inertial and mode == Mode.SLAM:
+    if window_in_use(config, inertial):
         return (f"state: a sliding window of {size} pose clones, no landmark in the state (estimator.window; "
                 f"the tracks' points are projected out, W1-W7; each frame's pose is written as its clone leaves, W8)")
     what = "a velocity run" if not inertial else f"a {mode.value} run"
@@ -449,7 +455,8 @@ class WindowUpdater:
         with the window full, those seen in its oldest clone are used, each by its observations in
         the window (this frame's included: a track that goes on starts a new segment at the next
         frame, no pixel used twice) (:func:`plan_use`); (W7) the oldest clone leaves.
-        ``correct(state, dx)``: the error model's correction of the core (J7) by its rows of the update."""
+        ``correct(state, dx)``: the whole state's correction by the update dx (D,): the core's (J7)
+        and the clones' (W6)."""
         ids = np.asarray(ids, dtype=np.int64)
         StateHelper.clone(state)
         self._frames.append(self._frame)
@@ -489,7 +496,7 @@ class WindowUpdater:
     def _use(self, state, rows: np.ndarray, start: np.ndarray, count: np.ndarray, correct) -> WindowStep:
         """(W3-W6) the features of the observations ``rows`` (``start``, ``count`` per track, see
         :func:`plan_use`; a track seen once says nothing: neither used nor gated), then those
-        observations leave the window; the core corrected by ``correct``, the clones by (W6)."""
+        observations leave the window; the state corrected by ``correct`` (core J7, clones W6)."""
         if not rows.size:
             return WindowStep(0, 0, 0.0, 0, 0)
         ids, slots, pixels = self._ids[rows], self._slots[rows], self._pixels[rows]
@@ -509,8 +516,7 @@ class WindowUpdater:
         good = ok & (nis <= self._gate[used])
         if good.any():
             dx = StateHelper.update_window(state, Hr, self.pixel_var)
-            correct(state, dx[:c])
-            state.clones = retract_clones(state.clones, dx[c:])
+            correct(state, dx)
             self.map.add(ids[start[good]], points[good], covs[good])
         n_used = int(used[good].sum())
         return WindowStep(n_used, int(count.sum()) - n_used, float(nis[good].sum()), int(good.sum()), 0)

@@ -58,6 +58,7 @@ from scipy.special import bdtri, chdtri
 from ..compiled import jit, warms_up
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..geometry import se3
+from ..geometry.camera import StereoCamera, dpi_dq
 from .inertial import BA, BG, NU, PHI
 from .state import FilterState
 from .state_helper import StateHelper
@@ -195,24 +196,17 @@ def _kth_smallest(x, m):
     return x[m]
 
 
-def translation_covariance(pixels: np.ndarray, fx: float, fy: float, cx: float, cy: float, baseline: float,
-                           pixel_var: float) -> np.ndarray | None:
+def translation_covariance(pixels: np.ndarray, camera: StereoCamera, pixel_var: float) -> np.ndarray | None:
     """(Z8) C_t (3,3): the covariance of the camera's translation between two frames fitted from
     the stereo ``pixels`` (k,4) = [uL vL uR vR] of k tracks at zero motion, each frame's pixels with
-    variance ``pixel_var``; None when no track has a positive disparity."""
-    disparity = pixels[:, 0] - pixels[:, 2]
-    near = disparity > 0
+    variance ``pixel_var``: the tracks' stereo points s (S2) and J = dz/ds = Ks dpi/dq [I; 0] (S1);
+    None when no track has a positive disparity."""
+    near = pixels[:, 0] - pixels[:, 2] > 0
     if not near.any():
         return None
-    z = fx * baseline / disparity[near]  # the stereo points s = (x, y, z) of the camera frame
-    x = (pixels[near, 0] - cx) * z / fx
-    y = (0.5 * (pixels[near, 1] + pixels[near, 3]) - cy) * z / fy
-    J = np.zeros((z.size, 4, 3))  # dz/ds: uL = fx x/z + cx, vL = vR = fy y/z + cy, uR = fx (x - b)/z + cx
-    J[:, 0, 0] = J[:, 2, 0] = fx / z
-    J[:, 1, 1] = J[:, 3, 1] = fy / z
-    J[:, 0, 2] = -fx * x / z**2
-    J[:, 2, 2] = -fx * (x - baseline) / z**2
-    J[:, 1, 2] = J[:, 3, 2] = -fy * y / z**2
+    s = camera.triangulate(pixels[near])
+    q = np.concatenate([s, np.ones((s.shape[0], 1))], axis=1)
+    J = (camera.Ks @ dpi_dq(q))[:, :, :3]
     info = np.einsum("kij,kil->jl", J, J)
     try:
         return 2.0 * pixel_var * np.linalg.inv(info)
@@ -222,13 +216,13 @@ def translation_covariance(pixels: np.ndarray, fx: float, fy: float, cx: float, 
 
 class ZeroVelocityUpdater:
     """The test (Z6-Z8) and the update (Z9) at each frame of a real IMU's SLAM run; ``interval`` is
-    given by the propagation, the frame's tracks by :meth:`step`. ``camera`` (StereoCamera) and
-    ``cam_T_imu`` (4,4) give the velocity's noise (Z8)."""
+    given by the propagation, the frame's tracks by :meth:`step`. ``camera`` and ``cam_T_imu`` (4,4)
+    give the velocity's noise (Z8)."""
 
-    def __init__(self, noise: ImuNoiseDensities, gravity: np.ndarray, camera, cam_T_imu: np.ndarray, pixel_var: float,
-                 probability: float) -> None:
+    def __init__(self, noise: ImuNoiseDensities, gravity: np.ndarray, camera: StereoCamera, cam_T_imu: np.ndarray,
+                 pixel_var: float, probability: float) -> None:
         self.noise, self.gravity, self.pixel_var, self.probability = noise, np.asarray(gravity, float), pixel_var, probability
-        self.camera = (camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline)
+        self.camera = camera
         self.imu_R_cam = np.asarray(cam_T_imu, dtype=float)[:3, :3].T
         self._velocity_gate = float(chdtri(3, 1.0 - probability))
         self._last: tuple[np.ndarray, np.ndarray] | None = None
@@ -268,7 +262,7 @@ class ZeroVelocityUpdater:
         s, dof = imu_rest_statistic(imu, t0, t1, state.mu[:3, :3], state.gyro_bias, state.accel_bias,
                                     state.P[:c, :c], self.noise, self.gravity)
         imu_test = (s, float(chdtri(dof, 1.0 - self.probability)) if dof else float("nan"))
-        C_t = translation_covariance(pixels[rows], *self.camera, self.pixel_var) if s <= imu_test[1] else None
+        C_t = translation_covariance(pixels[rows], self.camera, self.pixel_var) if s <= imu_test[1] else None
         if C_t is None:
             return RestTest(*flow, *imu_test), None
         R_wc = state.mu[:3, :3] @ self.imu_R_cam

@@ -36,13 +36,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ..compiled import warm_up
-from ..config import Choice, Config, Mode
+from ..config import Choice, Config
 from ..data.inertial import ADIS16448, ImuNoiseDensities, ImuSamples
 from ..data.sequence import Sequence
 from ..errors import InputError
 from ..estimator.ekf import StepStats, VisualInertialEKF
 from ..estimator.inertial import STANDARD_GRAVITY, InertialStart, propagate
-from ..estimator.window import settled_trajectory, window_text
+from ..estimator.window import settled_trajectory, window_in_use, window_text
 from ..geometry.camera import StereoCamera
 from .initialization import (Initialization, RestOptions, initialize_at_rest, initialize_in_motion, rest_test,
                              vision_motion)
@@ -190,8 +190,8 @@ class InertialRun:
         if self.observer is not None:
             self.observer(k, self.ekf, step_stats)
         ekf, rows = self.ekf, self._rows
-        rows["pose"].append(ekf.world_T_imu.copy())
-        if ekf.window is None:  # a window's covariances are the settled ones (W8), read at the end
+        if ekf.window is None:  # a window's poses and covariances are the settled ones (W8), read at the end
+            rows["pose"].append(ekf.world_T_imu.copy())
             rows["cov"].append(ekf.pose_covariance)
         rows["dr"].append(self._dr.world_T_imu.copy())
         rows["v"].append(ekf.velocity.copy())
@@ -222,7 +222,7 @@ def run_inertial(seq: Sequence, config: Config | None = None, *, decisions: Iner
     :func:`decide_inertial` (unless ``decisions`` are given), then :class:`InertialRun` frame by frame."""
     config = (config if config is not None else Config()).validate()
     with threadpool_limits(limits=config.execution.blas_threads):
-        warm_up(inertial=True, window=config.estimator.window > 0 and config.estimator.mode == Mode.SLAM)
+        warm_up(inertial=True, window=window_in_use(config, inertial=True))
         t0 = time.perf_counter()
         if decisions is None:
             decisions = decide_inertial(seq, config)

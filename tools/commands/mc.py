@@ -15,7 +15,6 @@ import math
 import os
 
 from ...backend.data.files import output_directory
-from ...backend.config import Mode
 from ...backend.errors import ConfigError
 from .. import console, options, outputs
 
@@ -145,6 +144,7 @@ def _monte_carlo(args: argparse.Namespace, factory, config):
     from contextlib import nullcontext
 
     from ...backend.evaluation.consistency import monte_carlo
+    from ...backend.estimator.window import window_in_use
     from ..pool import compile_for_workers, executor
 
     workers = args.workers or os.cpu_count() or 1
@@ -155,8 +155,8 @@ def _monte_carlo(args: argparse.Namespace, factory, config):
         f"noise seeds {args.seed}..{args.seed + args.runs - 1}, {where}\n" + console.configuration_text(args.verbose, config))
     one_thread = workers == 1 and not args.ray  # one worker: no process start-up
     if not one_thread and not args.ray:
-        compile_for_workers(console.sayer(args.quiet), inertial=args.imu == "inertial",
-                            window=config.estimator.window > 0 and config.estimator.mode == Mode.SLAM)
+        inertial = args.imu == "inertial"
+        compile_for_workers(console.sayer(args.quiet), inertial=inertial, window=window_in_use(config, inertial))
     pool = nullcontext(ThreadPoolExecutor(max_workers=1)) if one_thread else executor(args.workers, args.ray, args.runs)
     with pool as runner, console.progress_bar(args.runs, "monte carlo", "run", console.progress_off(args)) as progress:
         done = [0]
