@@ -613,7 +613,7 @@ def test_the_window_kernels_are_warmed_up_for_a_window_run_only():
     assert out.returncode == 0, out.stderr
     registered, landmarks_only, warmed, before, after = json.loads(out.stdout.strip().splitlines()[-1])
     assert registered >= 1 and not landmarks_only and warmed
-    assert before["feature_rows"] >= 1
+    assert before["_feature_terms"] >= 1
     assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
 
 

@@ -1,12 +1,14 @@
-"""backend.estimator.linalg: BLAS/LAPACK called from compiled code, against plain numpy; and the
-block NIS of the landmark NEES (backend.evaluation.consistency) against per-block solves."""
+"""backend.estimator.linalg: BLAS/LAPACK called from compiled code, the small solver and the
+selection, against plain numpy; and the block NIS of the landmark NEES (backend.evaluation.consistency) against per-block solves."""
 
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from vislam.backend.estimator.linalg import (add_product_lower, cholesky_upper_inplace, downdate_lower,
-                                              solve_lower_inplace)
+from vislam.backend.estimator.linalg import (add_product_lower, cholesky_upper_inplace, downdate_lower, kth_smallest,
+                                              median_inplace, solve_lower_inplace, solve_small)
 from vislam.backend.evaluation.consistency import landmark_nees
 
 RNG = np.random.default_rng(7)
@@ -79,3 +81,26 @@ def test_add_product_lower():
     expected = P + Z @ X.T
     add_product_lower(P, Z, X)
     np.testing.assert_allclose(P, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.sampled_from([-2.5, -1.0, 0.0, 0.5, 0.5, 3.0]) | st.floats(-1e6, 1e6), min_size=1, max_size=40),
+       st.data())
+def test_selection_and_median_are_numpys(values, data):
+    """kth_smallest is the sorted array's element m, median_inplace numpy's median (the mean of the middle
+    two for an even count), ties and one element included."""
+    x = np.array(values)
+    m = data.draw(st.integers(0, x.size - 1))
+    assert kth_smallest(x.copy(), m) == np.sort(x)[m]
+    assert median_inplace(x.copy()) == np.median(x)
+
+
+def test_solve_small_against_numpy_and_singular():
+    """Gaussian elimination with partial pivoting solves a small system as numpy does; a singular one says so."""
+    A = RNG.normal(size=(7, 7))
+    b = RNG.normal(size=7)
+    x, ok = solve_small(A, b)
+    assert ok
+    np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
+    A[3] = 2.0 * A[1]
+    assert not solve_small(A, b)[1]

@@ -1,6 +1,7 @@
-"""The sliding window of pose clones (``backend.estimator.window``, W1-W8): the feature rows against
-perturbed clones, the update against the Kalman update of the stacked rows, the clone operations,
-gross errors, the settled trajectory, and a Monte Carlo run of the room flight."""
+"""The sliding window of pose clones (``backend.estimator.window``, W1-W8): a feature's information
+against rows built independently from perturbed clones, the update against the Kalman update of
+the stacked rows, the clone operations, gross errors, the settled trajectory, and a Monte Carlo run
+of the room flight."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from vislam.backend.estimator.inertial import CORE_INERTIAL
 from vislam.backend.estimator.invariant import body_pose_covariance
 from vislam.backend.estimator.state import FilterState
 from vislam.backend.estimator.state_helper import CoreTransition, StateHelper
-from vislam.backend.estimator.window import feature_rows, retract_clones
+from vislam.backend.estimator.window import feature_information, retract_clones
 from vislam.backend.geometry import se3
 from vislam.backend.run.inertial import run_inertial
 from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
@@ -39,54 +40,91 @@ def _pixels(world_T_imu: np.ndarray, p: np.ndarray) -> np.ndarray:
                      FY * q[1] / q[2] + CY])
 
 
-def _rows(clones, pixels, slots=None, obs_gate=NO_GATE):
+def _information(clones, pixels, slots=None, obs_gate=NO_GATE):
     n = pixels.shape[0]
     w = clones.shape[0]
     slots = np.arange(n, dtype=np.int64) if slots is None else slots
-    return feature_rows(clones, _cam_T_imu(), FX, FY, CX, CY, BASELINE, np.zeros(1, dtype=np.int64),
-                        np.full(1, n, dtype=np.int64), slots, np.ascontiguousarray(pixels), np.eye(6 * w) * 1e-4, 0.25,
-                        np.full(n + 2, NO_GATE), obs_gate, 8)
+    return feature_information(clones, _cam_T_imu(), FX, FY, CX, CY, BASELINE, np.zeros(1, dtype=np.int64),
+                               np.full(1, n, dtype=np.int64), slots, np.ascontiguousarray(pixels), np.eye(6 * w) * 1e-4,
+                               0.25, np.full(n + 2, NO_GATE), obs_gate, 8)
 
 
 def _clones(rng, w):
     return np.array([se3.exp_se3(np.r_[rng.normal(0, 0.3, 3), rng.normal(0, 0.1, 3)]) for _ in range(w)])
 
 
+def _stacked_rows(clones, p, pixels):
+    """The 3 rows (U1) of each observation c at the estimates and their Jacobians on the clones' left
+    perturbations (6w columns) and on the point, by central differences: r (3n,), H_x (3n,6w), H_p (3n,3)."""
+    w = clones.shape[0]
+    s = np.sqrt(0.5)
+
+    def rows(T, q):
+        z = _pixels(T, q)
+        return np.array([z[0] - CX, (z[1] + z[3]) * s - 2 * s * CY, z[2] - CX])
+
+    r = np.concatenate([[z[0] - CX, (z[1] + z[3]) * s - 2 * s * CY, z[2] - CX] - rows(clones[c], p)
+                        for c, z in enumerate(pixels)])
+    Hx, Hp, h = np.zeros((3 * w, 6 * w)), np.zeros((3 * w, 3)), 1e-6
+    for c in range(w):
+        for j in range(6):
+            e = np.zeros(6)
+            e[j] = h
+            Hx[3 * c:3 * c + 3, 6 * c + j] = (rows(se3.exp_se3(e) @ clones[c], p)
+                                              - rows(se3.exp_se3(-e) @ clones[c], p)) / (2 * h)
+        for j in range(3):
+            e = np.zeros(3)
+            e[j] = h
+            Hp[3 * c:3 * c + 3, j] = (rows(clones[c], p + e) - rows(clones[c], p - e)) / (2 * h)
+    return r, Hx, Hp
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_feature_rows_are_the_clone_jacobians_with_the_point_projected_out(seed):
-    """(W4) Pixels made by clones T_c = exp(xi_c^) T_hat_c (the true ones) of a point p: the rows at
-    the estimates T_hat_c are r = H_o xi + O(xi^2), whatever the point (it is fitted and projected
-    out: exact pixels of the estimates give r = 0), 3n - 3 of them."""
+def test_feature_information_is_that_of_the_clone_rows_with_the_point_projected_out(seed):
+    """(W4) Pixels made by clones T_c = exp(xi_c^) T_hat_c (the true ones) of a point p: exact pixels
+    of the estimates give the point and g = 0; for the moved clones, [Lambda g] equals H_o^T [H_o r_o]
+    built independently (the rows' Jacobians by central differences, N an orthonormal basis of the
+    left null space of H_p by SVD, H_o = N^T H_x, r_o = N^T r), and g = Lambda xi to first order."""
+    from scipy.linalg import null_space
+
     rng = np.random.default_rng(seed)
     w = 5
     clones = _clones(rng, w)
     p = np.array([5.0, 0.7, -0.4]) + rng.normal(0, 0.3, 3)
     exact = np.array([_pixels(T, p) for T in clones])
-    points, _, ok, _, used, Hr = _rows(clones, exact)
-    assert ok[0] and used[0] == w and Hr.shape == (3 * w - 3, 6 * w + 1)
+    points, _, ok, _, used, info = _information(clones, exact)
+    assert ok[0] and used[0] == w and info.shape == (6 * w, 6 * w + 1)
     np.testing.assert_allclose(points[0], p, atol=1e-9)
-    assert np.abs(Hr[:, -1]).max() < 1e-9
+    assert np.abs(info[:, -1]).max() < 1e-9 * np.abs(info[:, :-1]).max()
     xi = rng.normal(0, 1e-5, 6 * w)
     true = np.array([se3.exp_se3(xi[6 * c:6 * c + 6]) @ clones[c] for c in range(w)])
     moved = np.array([_pixels(T, p) for T in true])
-    _, _, ok, _, _, Hr = _rows(clones, moved)
-    r, H = Hr[:, -1], Hr[:, :-1]
-    assert ok[0] and np.abs(r).max() > 1e-3  # the motion is seen
-    np.testing.assert_allclose(r, H @ xi, rtol=0, atol=1e-4 * np.abs(r).max())
+    points, _, ok, _, _, info = _information(clones, moved)
+    assert ok[0]
+    r, Hx, Hp = _stacked_rows(clones, points[0], moved)
+    N = null_space(Hp.T)
+    assert N.shape == (3 * w, 3 * w - 3)
+    Ho, ro = N.T @ Hx, N.T @ r
+    Lam, g = info[:, :-1], info[:, -1]
+    np.testing.assert_allclose(Lam, Ho.T @ Ho, rtol=0, atol=1e-6 * np.abs(Lam).max())
+    np.testing.assert_allclose(g, Ho.T @ ro, rtol=0, atol=1e-6 * np.abs(g).max())
+    assert np.abs(g).max() > 1e-3 * np.abs(Lam).max() * np.abs(xi).max()  # the motion is seen
+    np.testing.assert_allclose(g, Lam @ xi, rtol=0, atol=1e-3 * np.abs(g).max())
 
 
 def test_a_global_motion_of_clones_and_point_is_not_seen():
-    """The rows do not see what no camera can: the clones and the point moved together by one rigid
-    motion give the same pixels, and H_o maps that motion (xi_c = xi for every clone in the
-    left-perturbation) to zero."""
+    """The information does not see what no camera can: the clones and the point moved together by
+    one rigid motion give the same pixels, and Lambda maps that motion (xi_c = xi for every clone in
+    the left perturbation) to zero."""
     rng = np.random.default_rng(3)
     w = 4
     clones = _clones(rng, w)
     p = np.array([4.0, -0.5, 0.3])
-    _, _, ok, _, _, Hr = _rows(clones, np.array([_pixels(T, p) for T in clones]))
-    H = Hr[:, :-1]
+    _, _, ok, _, _, info = _information(clones, np.array([_pixels(T, p) for T in clones]))
+    Lam = info[:, :-1]
+    assert ok[0] and np.abs(Lam).max() > 0
     for xi in (np.r_[1.0, -2.0, 0.5, 0, 0, 0], np.r_[0, 0, 0, 0.3, -0.1, 0.7]):
-        assert np.abs(H @ np.tile(xi, w)).max() < 1e-9 * np.abs(H).max()
+        assert np.abs(Lam @ np.tile(xi, w)).max() < 1e-9 * np.abs(Lam).max()
 
 
 def test_a_gross_error_leaves_the_feature_and_the_rest_is_used():
@@ -98,11 +136,38 @@ def test_a_gross_error_leaves_the_feature_and_the_rest_is_used():
     p = np.array([5.0, 0.2, 0.1])
     pixels = np.array([_pixels(T, p) for T in clones]) + rng.normal(0, 0.3, (w, 4))
     pixels[2] += [25.0, -14.0, 25.0, -14.0]
-    points, _, ok, _, used, _ = _rows(clones, pixels, obs_gate=18.47)
+    points, _, ok, _, used, _ = _information(clones, pixels, obs_gate=18.47)
     assert ok[0] and used[0] == w - 1
     assert np.linalg.norm(points[0] - p) < 0.05
-    _, _, _, _, used_all, _ = _rows(clones, pixels)
+    _, _, _, _, used_all, _ = _information(clones, pixels)
     assert used_all[0] == w
+
+
+def test_a_feature_beyond_the_bound_gets_its_exact_nis():
+    """(W5) the pixels' own bound (r_o^T r_o + sum d^2) / sigma^2 decides within the gate; a feature
+    beyond it gets the exact r_o^T (H_o P H_o^T + sigma^2 I)^-1 r_o + sum d^2 / sigma^2, here against the
+    textbook S of the independently built rows (a gate of 0 forces it)."""
+    from scipy.linalg import null_space
+
+    rng = np.random.default_rng(9)
+    w = 4
+    clones = _clones(rng, w)
+    p = np.array([4.5, 0.3, -0.2])
+    pixels = np.array([_pixels(T, p) for T in clones]) + rng.normal(0, 0.5, (w, 4))
+    A = rng.normal(size=(6 * w, 6 * w))
+    P_ww = 1e-4 * (A @ A.T) + 1e-5 * np.eye(6 * w)
+    args = (clones, _cam_T_imu(), FX, FY, CX, CY, BASELINE, np.zeros(1, dtype=np.int64), np.full(1, w, dtype=np.int64),
+            np.arange(w, dtype=np.int64), np.ascontiguousarray(pixels), P_ww, 0.25)
+    points, _, ok, bound, _, _ = feature_information(*args, np.full(w + 2, NO_GATE), NO_GATE, 8)
+    _, _, _, exact, _, info = feature_information(*args, np.zeros(w + 2), NO_GATE, 8)
+    r, Hx, Hp = _stacked_rows(clones, points[0], pixels)
+    N = null_space(Hp.T)
+    Ho, ro = N.T @ Hx, N.T @ r
+    off = np.sum(((pixels[:, 1] - pixels[:, 3]) * np.sqrt(0.5)) ** 2)
+    S = Ho @ P_ww @ Ho.T + 0.25 * np.eye(3 * w - 3)
+    np.testing.assert_allclose(exact[0], ro @ np.linalg.solve(S, ro) + off / 0.25, rtol=1e-5)
+    np.testing.assert_allclose(bound[0], (ro @ ro + off) / 0.25, rtol=1e-5)
+    assert exact[0] < bound[0] and not info.any()  # beyond the gate of 0: left out
 
 
 def _state_with_clones(rng, w):
@@ -155,8 +220,9 @@ def test_clone_transition_moves_only_the_core():
 
 @pytest.mark.parametrize("rows", [10, 40])
 def test_window_update_is_the_kalman_update_of_the_stacked_rows(rows):
-    """(W6) fewer and more rows than the clones' columns: P and dx equal the textbook update
-    P - P H^T (H P H^T + sigma^2 I)^-1 H P over the whole state, H zero on the core."""
+    """(W6) fewer and more rows than the clones' columns, given as their information [H^T H, H^T r]:
+    P and dx equal the textbook update P - P H^T (H P H^T + sigma^2 I)^-1 H P over the whole state,
+    H zero on the core."""
     rng = np.random.default_rng(7)
     state = _state_with_clones(rng, 3)
     D, c = state.P.shape[0], CORE_INERTIAL
@@ -167,7 +233,7 @@ def test_window_update_is_the_kalman_update_of_the_stacked_rows(rows):
     P = state.P.copy()
     S = H @ P @ H.T + 0.3 * np.eye(rows)
     K = P @ H.T @ np.linalg.inv(S)
-    dx = StateHelper.update_window(state, np.column_stack([H_w, r]), 0.3)
+    dx = StateHelper.update_window(state, np.column_stack([H_w.T @ H_w, H_w.T @ r]), 0.3)
     np.testing.assert_allclose(dx, K @ r, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(state.P, P - K @ S @ K.T, rtol=1e-8, atol=1e-10)
     np.testing.assert_array_equal(state.P, state.P.T)

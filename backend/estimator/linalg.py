@@ -116,6 +116,9 @@ def _warm_up() -> None:
     downdate_lower(P.copy(), A)
     add_product_lower(P.copy(), A.T.copy(), A.T.copy())
     inverse3(np.eye(3), np.empty((3, 3)))
+    solve_small(np.eye(2), np.ones(2))
+    median_inplace(np.ones(2))
+    kth_smallest(np.ones(2), 0)
 
 
 @jit
@@ -135,3 +138,76 @@ def inverse3(H, out):
     out[1, 0], out[1, 1], out[1, 2] = B * inv, (a * i - c * g) * inv, -(a * f - c * d) * inv
     out[2, 0], out[2, 1], out[2, 2] = C * inv, -(a * h - b * g) * inv, (a * e - b * d) * inv
     return True
+
+
+@jit
+def solve_small(A, b):
+    """x with A x = b for a small square A (Gaussian elimination, partial pivoting); ok False when singular."""
+    n = A.shape[0]
+    M = A.copy()
+    x = b.copy()
+    for c in range(n):
+        piv = c
+        best = abs(M[c, c])
+        for r in range(c + 1, n):
+            if abs(M[r, c]) > best:
+                best = abs(M[r, c])
+                piv = r
+        if not best > 0.0:
+            return x, False
+        if piv != c:
+            for k in range(n):
+                M[c, k], M[piv, k] = M[piv, k], M[c, k]
+            x[c], x[piv] = x[piv], x[c]
+        for r in range(c + 1, n):
+            f = M[r, c] / M[c, c]
+            if f != 0.0:
+                for k in range(c, n):
+                    M[r, k] -= f * M[c, k]
+                x[r] -= f * x[c]
+    for c in range(n - 1, -1, -1):
+        s = x[c]
+        for k in range(c + 1, n):
+            s -= M[c, k] * x[k]
+        x[c] = s / M[c, c]
+    return x, True
+
+
+@jit
+def kth_smallest(x, m):
+    """The (m+1)-th smallest of ``x`` (n,), m < n (Hoare's selection; ``x`` is reordered)."""
+    lo, hi = 0, x.size - 1
+    while lo < hi:
+        pivot = x[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while x[i] < pivot:
+                i += 1
+            while x[j] > pivot:
+                j -= 1
+            if i <= j:
+                x[i], x[j] = x[j], x[i]
+                i += 1
+                j -= 1
+        if m <= j:
+            hi = j
+        elif m >= i:
+            lo = i
+        else:
+            break
+    return x[m]
+
+
+@jit
+def median_inplace(x):
+    """The median of ``x`` (n,), n >= 1 (numpy's: the mean of the middle two for an even n); ``x`` is
+    reordered."""
+    n = x.size
+    upper = kth_smallest(x, n // 2)
+    if n % 2:
+        return upper
+    lower = x[0]
+    for i in range(1, n // 2):  # after the selection x[:n//2] holds the smaller half: its largest
+        if x[i] > lower:
+            lower = x[i]
+    return 0.5 * (lower + upper)

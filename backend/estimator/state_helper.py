@@ -171,25 +171,25 @@ class StateHelper:
         state.clones = state.clones[1:]
 
     @staticmethod
-    def update_window(state: FilterState, Hr: np.ndarray, pixel_var: float) -> np.ndarray:
-        """(W6) the update by rows r = H xi_w + n over the clones' columns, ``Hr`` = [H r] (m,6w+1), n
-        white of variance ``pixel_var``, in the clones' dimension whatever m: with Lambda = H^T H and
-        the push-through identity H^T (sigma^2 I + H P H^T)^-1 = (sigma^2 I + Lambda P_ww)^-1 H^T,
+    def update_window(state: FilterState, info: np.ndarray, pixel_var: float) -> np.ndarray:
+        """(W6) the update by rows r = H xi_w + n over the clones' columns given by their information
+        ``info`` = [Lambda g] (6w,6w+1), Lambda = H^T H, g = H^T r, n white of variance ``pixel_var``, in
+        the clones' dimension whatever the rows: with the push-through identity
+        H^T (sigma^2 I + H P H^T)^-1 = (sigma^2 I + Lambda P_ww)^-1 H^T,
 
-            K_w = (sigma^2 I + Lambda P_ww)^-1 [Lambda, H^T r],   dx = P_:,w K_w[:, -1],
+            K_w = (sigma^2 I + Lambda P_ww)^-1 [Lambda, g],   dx = P_:,w K_w[:, -1],
             P <- P - P_:,w K_w[:, :6w] P_w,:
 
         (the Kalman update P - K S K^T with its m x m inverse never formed). Returns dx (D,)."""
         c = state.core
-        w6 = Hr.shape[1] - 1
+        w6 = info.shape[1] - 1
         P = state.P
         Pw = P[c:c + w6, :]  # (6w, D): H touches the clone rows only
-        lam_g = (Hr.T @ Hr)[:w6]  # [Lambda, H^T r]
-        T = lam_g[:, :w6] @ P[c:c + w6, c:c + w6]
+        T = info[:, :w6] @ P[c:c + w6, c:c + w6]
         T[np.diag_indices_from(T)] += pixel_var
-        _, _, K, info = dgesv(np.asfortranarray(T), np.asfortranarray(lam_g), overwrite_a=1, overwrite_b=1)
-        if info:
-            raise FilterError(f"the window's update: sigma^2 I + Lambda P_ww is singular (getrf info {info})")
+        _, _, K, status = dgesv(np.asfortranarray(T), np.asfortranarray(info), overwrite_a=1, overwrite_b=1)
+        if status:
+            raise FilterError(f"the window's update: sigma^2 I + Lambda P_ww is singular (getrf info {status})")
         dx = Pw.T @ K[:, w6]
         KP = K[:, :w6].T @ Pw  # K_w's first block is symmetric (push-through); its transpose is C-ordered
         P -= Pw.T @ KP

@@ -23,17 +23,28 @@ frames, 6 rows each, in the order they were taken (``FilterState.clones``); no l
 - Its residuals (W4). s = T_c^-1 p = T_hat_c^-1 exp(-xi_c^) p ~ T_hat_c^-1 (p - rho_c + p^ phi_c), so
   with M = d(rows)/dq cam_R_world (the observation's Jacobian on a world point, I3):
 
-      r_i = z_i - h(T_hat_c, p_hat) ~ H_c,i xi_c + M_i dp + n_i,   H_c,i = [-M_i, M_i p_hat^]
+      r_i = z_i - h(T_hat_c, p_hat) ~ H_c,i xi_c + M_i dp + n_i,   H_c,i = M_i E,  E = [-I, p_hat^]
 
-  The point is not in the state: the 3n rows are multiplied by the left null space of
-  H_p = [M_1; ..; M_n] (Householder reflections zeroing its 3 columns), leaving 3n - 3 rows
-  r_o = H_o xi_w + n_o that no longer depend on dp, with the same white noise sigma^2 I.
+  The point is not in the state: the 3n rows are multiplied by an orthonormal basis N of the left
+  null space of H_p = [M_1; ..; M_n], leaving 3n - 3 rows r_o = H_o xi_w + n_o (H_o = N^T H_x,
+  r_o = N^T r) that no longer depend on dp, with the same white noise sigma^2 I. The update needs
+  only their information, and N N^T = I - H_p (H_p^T H_p)^-1 H_p^T makes it the Schur complement
+  of the point's block of the stacked rows' (no basis formed): with N_i = M_i^T M_i,
+
+      Lambda_f = H_o^T H_o:  block (i, j) = E^T (delta_ij N_i - N_i (H_p^T H_p)^-1 N_j) E
+      g_f = H_o^T r_o:       block i = E^T (M_i^T r_i - N_i (H_p^T H_p)^-1 H_p^T r)
+      r_o^T r_o = r^T r - r^T H_p (H_p^T H_p)^-1 H_p^T r
+
+  (blocks on the clones the observations were taken in; H_p^T H_p is well conditioned: its spread is
+  the point's depth over the baseline).
 - Gate (W5). NIS = r_o^T (H_o P_ww H_o^T + sigma^2 I)^-1 r_o + sum d_i^2 / sigma^2 (the off rows
   of U1) <= chi2_{4n-3}^-1(gate_probability); a feature that fails is left out whole. The
   pixels' own (r_o^T r_o + sum d_i^2) / sigma^2 bounds the NIS from above: within the gate it
-  decides without S (and is the NIS reported: 0.3 % above the exact one on the room flight).
-- Update (W6). The rows of every feature used at a frame, stacked (m rows over the clones' 6w
-  columns), update the whole state in the clones' dimension whatever m (the push-through identity,
+  decides without S (and is the NIS reported: 0.3 % above the exact one on the room flight); beyond
+  it the exact one by the push-through identity, r_o^T S^-1 r_o = (r_o^T r_o - g_f^T (sigma^2 I +
+  P_f Lambda_f)^-1 P_f g_f) / sigma^2 (P_f: the clones' block of the feature's observations).
+- Update (W6). The information of every feature used at a frame, summed (Lambda, g over the clones'
+  6w columns), updates the whole state in the clones' dimension (the push-through identity,
   ``StateHelper.update_window``): the core is corrected through its covariance with the clones,
   then the retraction (J7) of the core and of each clone, T_c <- exp(dx_c^) T_hat_c.
 - Marginalization (W7). A track is used when it ends, when its segment reaches size - (id mod
@@ -43,7 +54,8 @@ frames, 6 rows each, in the order they were taken (``FilterState.clones``); no l
   its next observation (no pixel is used twice).
 
 A feature's map point is its triangulation, with the covariance G (H_x P_ww H_x^T + sigma^2 I) G^T,
-G = (H_p^T H_p)^-1 H_p^T: its pixels' and its clones' uncertainty (the update it then makes is not in it).
+G = (H_p^T H_p)^-1 H_p^T, G H_x = [.. (H_p^T H_p)^-1 N_i E ..]: its pixels' and its clones' uncertainty
+(the update it then makes is not in it).
 
 - The trajectory (W8). A clone's estimate improves while tracks that saw it are used; when it
   leaves the window (or the run ends) every track that saw it has been used, and its pose and the
@@ -66,10 +78,10 @@ from ..config import Mode
 from ..geometry import se3
 from .invariant import body_pose_covariance
 from .layout import SQRT_HALF
-from .linalg import inverse3
+from .linalg import inverse3, median_inplace, solve_small
 from .state_helper import StateHelper
 
-__all__ = ["WindowStep", "WindowUpdater", "feature_rows", "plan_use", "retract_clones", "settled_trajectory",
+__all__ = ["WindowStep", "WindowUpdater", "feature_information", "plan_use", "retract_clones", "settled_trajectory",
            "window_in_use", "window_text", "WINDOW_ITERATIONS"]
 
 #: Gauss-Newton iterations of a feature's triangulation (W3)
@@ -144,58 +156,80 @@ def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M, res):
 
 
 @jit
-def _householder_inplace(A, col, v, s):
-    """Reflect rows col.. of A so that column ``col`` is zero below row col (one Householder step);
-    ``v`` (rows,) and ``s`` (columns,) are work space. Row by row: A is C-ordered."""
-    m, ncols = A.shape
-    norm = 0.0
-    for i in range(col, m):
-        norm += A[i, col] * A[i, col]
-    norm = np.sqrt(norm)
-    if norm == 0.0:
-        return
-    alpha = -norm if A[col, col] > 0 else norm
-    vv = 0.0
-    for i in range(col, m):
-        v[i] = A[i, col]
-    v[col] -= alpha
-    for i in range(col, m):
-        vv += v[i] * v[i]
-    if vv == 0.0:
-        return
-    for j in range(col, ncols):
-        s[j] = 0.0
-    for i in range(col, m):
-        vi = v[i]
-        for j in range(col, ncols):
-            s[j] += vi * A[i, j]
-    f = 2.0 / vv
-    for i in range(col, m):
-        vi = f * v[i]
-        for j in range(col, ncols):
-            A[i, j] -= vi * s[j]
+def _mul3_inplace(A, B, out):
+    """out = A B for 3 x 3 matrices (explicit loops: a BLAS call costs more at this size)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
 
 
 @jit
-def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot, pixels, P_ww, pixel_var,
-                 gate, obs_gate, iterations):
-    """(W3-W5) for a batch of features, in one call.
+def _expand_inplace(C, P, out, r0, c0, work, add):
+    """E^T C E with E = [-I, P], P = p^ (3,3), into (``add``: onto) ``out[r0:r0+6, c0:c0+6]``:
+    [[C, -C P], [P C, -P C P]]; ``work`` (3,3,3) is work space."""
+    CP, PC, PCP = work[0], work[1], work[2]
+    _mul3_inplace(C, P, CP)
+    _mul3_inplace(P, C, PC)
+    _mul3_inplace(PC, P, PCP)
+    keep = 1.0 if add else 0.0
+    for i in range(3):
+        for j in range(3):
+            out[r0 + i, c0 + j] = keep * out[r0 + i, c0 + j] + C[i, j]
+            out[r0 + i, c0 + 3 + j] = keep * out[r0 + i, c0 + 3 + j] - CP[i, j]
+            out[r0 + 3 + i, c0 + j] = keep * out[r0 + 3 + i, c0 + j] + PC[i, j]
+            out[r0 + 3 + i, c0 + 3 + j] = keep * out[r0 + 3 + i, c0 + 3 + j] - PCP[i, j]
 
-    ``clones`` (w,4,4) world_T_imu of the window; feature f has the observations
-    ``start[f] .. start[f] + count[f] - 1`` (oldest first) with clone ``slot`` (int) and ``pixels``
-    (4) each; ``P_ww`` (6w,6w) the clones' covariance; ``gate`` (n,) the NIS gate of a feature seen
-    n times (W5); ``obs_gate`` the chi2_4 gate of one observation's squared error (px^2 / sigma^2):
-    the worst observation beyond it is left out once and the point fitted again (W3). Returns
-    (points (F,3), covariances (F,3,3) of those within the gate, ok (F,) bool, nis (F,), used (F,) observations kept,
-    [H r] (R,6w+1)): the projected rows of the features within the gate (ok and nis <= gate[used]),
-    3 used - 3 each, in their order; ok False: a point behind a camera or a singular fit."""
+
+@jit
+def _cholesky3(A, L):
+    """L (3,3) lower with L L^T = A (3,3, symmetric); False when A is not positive definite."""
+    a = A[0, 0]
+    if not a > 0.0:
+        return False
+    L[:] = 0.0
+    L[0, 0] = np.sqrt(a)
+    L[1, 0] = A[1, 0] / L[0, 0]
+    L[2, 0] = A[2, 0] / L[0, 0]
+    a = A[1, 1] - L[1, 0] * L[1, 0]
+    if not a > 0.0:
+        return False
+    L[1, 1] = np.sqrt(a)
+    L[2, 1] = (A[2, 1] - L[2, 0] * L[1, 0]) / L[1, 1]
+    a = A[2, 2] - L[2, 0] * L[2, 0] - L[2, 1] * L[2, 1]
+    if not a > 0.0:
+        return False
+    L[2, 2] = np.sqrt(a)
+    return True
+
+
+@jit
+def _local_information(n, Ns, Ys, P, C, work):
+    """Lambda_f (6n,6n) of one feature (W4) over its observations' clones in observation order:
+    block (k, l) = E^T (delta_kl N_k - N_k (H_p^T H_p)^-1 N_l) E, ``Ys[l]`` = (H_p^T H_p)^-1 N_l."""
+    Lf = np.empty((6 * n, 6 * n))
+    for k in range(n):
+        for l in range(k, n):
+            _mul3_inplace(Ns[k], Ys[l], C)
+            for i in range(3):
+                for j in range(3):
+                    C[i, j] = (Ns[k, i, j] if l == k else 0.0) - C[i, j]
+            _expand_inplace(C, P, Lf, 6 * k, 6 * l, work, False)
+            if l != k:
+                for i in range(6):
+                    for j in range(6):
+                        Lf[6 * l + j, 6 * k + i] = Lf[6 * k + i, 6 * l + j]
+    return Lf
+
+
+@jit
+def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot, pixels, P_ww, pixel_var,
+                   gate, obs_gate, iterations):
+    """(W3-W5) of :func:`feature_information` without its one BLAS-sized product: returns (points, covs,
+    ok, nis, used, [Lambda_d g] (6w,6w+1), W (6w,3a)) with Lambda = Lambda_d - W W^T for the a features
+    within the gate."""
     F = start.size
     w = clones.shape[0]
-    total = 0
-    for f in range(F):
-        total += 3 * count[f] - 3
-    rows = 0  # rows written
-    Hr = np.zeros((total, 6 * w + 1))  # [H | r]
+    Lam = np.zeros((6 * w, 6 * w + 1))  # [Lambda g] of the features within the gate
     points = np.zeros((F, 3))
     covs = np.zeros((F, 3, 3))
     ok = np.zeros(F, dtype=np.bool_)
@@ -204,7 +238,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
     Rcw = np.empty((w, 3, 3))
     tcw = np.empty((w, 3))
     for c in range(w):
-        C = cam_T_imu @ se3.inverse(clones[c])
+        C = se3.small_matmul(cam_T_imu, se3.inverse(clones[c]))
         Rcw[c] = C[:3, :3]
         tcw[c] = C[:3, 3]
     pred = np.empty(3)
@@ -214,6 +248,15 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
     obs = np.empty(count.max() if F else 0, dtype=np.int64)  # the feature's observations in use
     Ms = np.empty((obs.size, 3, 3))  # ... their Jacobians on the point and residuals (_linearize_inplace)
     rs = np.empty((obs.size, 3))
+    Ns = np.empty((obs.size, 3, 3))  # ... M_k^T M_k,
+    Mr = np.empty((obs.size, 3))  # ... M_k^T r_k,
+    Ys = np.empty((obs.size, 3, 3))  # ... (H_p^T H_p)^-1 N_k
+    idx = np.empty(6 * obs.size, dtype=np.int64)  # the clones' columns of the feature's information
+    C = np.empty((3, 3))
+    work = np.empty((3, 3, 3))
+    Lc = np.empty((3, 3))
+    Wcols = np.zeros((6 * w, 3 * F))  # the rank-3 terms' columns W of the features within the gate
+    accepted = 0
     for f in range(F):
         n = count[f]
         for k in range(n):
@@ -230,13 +273,18 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
             z = fx * baseline / d
             qc = np.array([(pixels[o, 0] - cx) * z / fx, (0.5 * (pixels[o, 1] + pixels[o, 3]) - cy) * z / fy, z])
             s = slot[o]
-            starts[m0] = Rcw[s].T @ (qc - tcw[s])
+            for a in range(3):  # Rcw^T (qc - tcw)
+                starts[m0, a] = (Rcw[s, 0, a] * (qc[0] - tcw[s, 0]) + Rcw[s, 1, a] * (qc[1] - tcw[s, 1])
+                                 + Rcw[s, 2, a] * (qc[2] - tcw[s, 2]))
             m0 += 1
         if m0 == 0:
             continue
         p = np.empty(3)
+        column = np.empty(m0)
         for a in range(3):
-            p[a] = np.median(starts[:m0, a])
+            for k in range(m0):
+                column[k] = starts[k, a]
+            p[a] = median_inplace(column)
         # gross errors seen from that start (a random pixel misses by tens of px) leave before the fit
         kept = 0
         for k in range(n):
@@ -266,7 +314,7 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
                 if not inverse3(JtJ, inv):
                     good = False
                     break
-                step = inv @ Jtr
+                step = se3.small_matmul(inv, Jtr)
                 p = p + step
                 if np.abs(step).max() < 1e-7 * (1.0 + np.abs(p).max()):
                     break
@@ -286,71 +334,140 @@ def feature_rows(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot
             n -= 1
         if not good:
             continue
-        lo, hi = slot[obs[0]], slot[obs[n - 1]] + 1  # the clones it spans (observations oldest first)
-        ncol = 6 * (hi - lo)
-        # the rows at p (W4): A = [H_p | H_x over the clones lo..hi-1 | r]
+        # (W4) the information of its rows with the point projected out, at p: per observation
+        # N_k = M_k^T M_k, H_x,k = M_k E, E = [-I, p^]; the Schur complement of the point's block
         if not _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
             continue
-        A = np.zeros((3 * n, 3 + ncol + 1))
+        Hpp = np.zeros((3, 3))
+        Hpr = np.zeros(3)
+        rr = 0.0
         off = 0.0
         for k in range(n):
-            o = obs[k]
-            base = 3 + 6 * (slot[o] - lo)
-            Mk = Ms[k]
+            Mk, rk = Ms[k], rs[k]
             for a in range(3):
-                # row a of M p^ (p^ the cross-product matrix of p)
-                A[3 * k + a, base + 3] = Mk[a, 1] * p[2] - Mk[a, 2] * p[1]
-                A[3 * k + a, base + 4] = Mk[a, 2] * p[0] - Mk[a, 0] * p[2]
-                A[3 * k + a, base + 5] = Mk[a, 0] * p[1] - Mk[a, 1] * p[0]
                 for b in range(3):
-                    A[3 * k + a, b] = Mk[a, b]
-                    A[3 * k + a, base + b] = -Mk[a, b]
-                A[3 * k + a, 3 + ncol] = rs[k, a]
+                    nab = Mk[0, a] * Mk[0, b] + Mk[1, a] * Mk[1, b] + Mk[2, a] * Mk[2, b]
+                    Ns[k, a, b] = nab
+                    Hpp[a, b] += nab
+                mra = Mk[0, a] * rk[0] + Mk[1, a] * rk[1] + Mk[2, a] * rk[2]
+                Mr[k, a] = mra
+                Hpr[a] += mra
+            rr += rk[0] * rk[0] + rk[1] * rk[1] + rk[2] * rk[2]
+            o = obs[k]
             d = (pixels[o, 1] - pixels[o, 3]) * SQRT_HALF
             off += d * d
-        Hp = np.ascontiguousarray(A[:, :3])
-        if not inverse3(Hp.T @ Hp, inv):
+        if not inverse3(Hpp, inv) or not _cholesky3(inv, Lc):
             continue
-        Psub = np.ascontiguousarray(P_ww[6 * lo:6 * hi, 6 * lo:6 * hi])
-        GHx = inv @ (Hp.T @ np.ascontiguousarray(A[:, 3:3 + ncol]))  # G H_x, G = (H_p^T H_p)^-1 H_p^T
-        v = np.empty(3 * n)
-        sw = np.empty(A.shape[1])
-        for col in range(3):
-            _householder_inplace(A, col, v, sw)
-        m = 3 * n - 3
-        Ho = np.ascontiguousarray(A[3:, 3:3 + ncol])
-        ro = np.ascontiguousarray(A[3:, 3 + ncol])
-        # S = H_o P_ww H_o^T + sigma^2 I >= sigma^2 I: the NIS is at most the pixels' own, which decides
-        # every feature within the gate without S (the bound is 0.3 % above the NIS on the room flight)
-        nis[f] = (ro @ ro + off) / pixel_var
-        if nis[f] > gate[n]:  # then exactly
-            S = Ho @ Psub @ Ho.T
-            for i in range(m):
-                S[i, i] += pixel_var
-            nis[f] = ro @ np.linalg.solve(S, ro) + off / pixel_var
+        u = se3.small_matmul(inv, Hpr)
+        ro2 = rr - (Hpr[0] * u[0] + Hpr[1] * u[1] + Hpr[2] * u[2])  # r_o^T r_o
+        for k in range(n):
+            _mul3_inplace(inv, Ns[k], Ys[k])  # (H_p^T H_p)^-1 N_k
+        m6 = 6 * n
+        gf = np.empty(m6)  # g_f over the observations' clones, in observation order
+        P = se3.hat3(p)
+        a3 = np.empty(3)
+        for k in range(n):
+            for i in range(3):
+                a3[i] = Mr[k, i] - (Ns[k, i, 0] * u[0] + Ns[k, i, 1] * u[1] + Ns[k, i, 2] * u[2])  # g_f,k = E^T a3
+                gf[6 * k + i] = -a3[i]
+            gf[6 * k + 3] = a3[1] * p[2] - a3[2] * p[1]  # (p^)^T a3 = -p^ a3 = a3 x p
+            gf[6 * k + 4] = a3[2] * p[0] - a3[0] * p[2]
+            gf[6 * k + 5] = a3[0] * p[1] - a3[1] * p[0]
+            for i in range(6):
+                idx[6 * k + i] = 6 * slot[obs[k]] + i
+        Pf = np.empty((m6, m6))
+        for i in range(m6):
+            for j in range(m6):
+                Pf[i, j] = P_ww[idx[i], idx[j]]
+        # the pixels' own (r_o^T r_o + sum d^2) / sigma^2 bounds the NIS from above (S >= sigma^2 I) and
+        # decides every feature within the gate; beyond it, exactly (push-through: r_o^T S^-1 r_o =
+        # (r_o^T r_o - g_f^T (sigma^2 I + P_f Lambda_f)^-1 P_f g_f) / sigma^2)
+        nis[f] = (ro2 + off) / pixel_var
+        if nis[f] > gate[n]:
+            T = se3.small_matmul(Pf, _local_information(n, Ns, Ys, P, C, work))
+            for i in range(m6):
+                T[i, i] += pixel_var
+            x, solved = solve_small(T, se3.small_matmul(Pf, gf))
+            if solved:
+                nis[f] = (ro2 - np.sum(gf * x) + off) / pixel_var
         points[f] = p
         used[f] = n
         ok[f] = True
         if nis[f] > gate[n]:
             continue
-        # the map point's covariance: G (H_x P H_x^T + sigma^2 I) G^T
-        covs[f] = GHx @ Psub @ GHx.T + pixel_var * inv
-        for i in range(m):  # the rows of the features within the gate, one after the other
-            Hr[rows + i, 6 * w] = ro[i]
-            for j in range(ncol):
-                Hr[rows + i, 6 * lo + j] = Ho[i, j]
-        rows += m
-    return points, covs, ok, nis, used, Hr[:rows]
+        # the map point's covariance: G (H_x P H_x^T + sigma^2 I) G^T, G H_x = [.. (H_p^T H_p)^-1 N_k E ..]
+        GHx = np.empty((3, m6))
+        for k in range(n):
+            for i in range(3):
+                y0, y1, y2 = Ys[k, i, 0], Ys[k, i, 1], Ys[k, i, 2]
+                GHx[i, 6 * k] = -y0
+                GHx[i, 6 * k + 1] = -y1
+                GHx[i, 6 * k + 2] = -y2
+                GHx[i, 6 * k + 3] = y1 * p[2] - y2 * p[1]  # row i of Y p^
+                GHx[i, 6 * k + 4] = y2 * p[0] - y0 * p[2]
+                GHx[i, 6 * k + 5] = y0 * p[1] - y1 * p[0]
+        GP = se3.small_matmul(GHx, Pf)
+        for i in range(3):
+            for j in range(3):
+                acc = pixel_var * inv[i, j]
+                for k in range(m6):
+                    acc += GP[i, k] * GHx[j, k]
+                covs[f, i, j] = acc
+        # the feature's information joins the frame's: the blocks E^T N_k E of its clones, g_f, and the
+        # rank-3 term -B (H_p^T H_p)^-1 B^T, B = [.. E^T N_k ..] (6w,3), as columns W = B L of W W^T
+        col = 3 * accepted
+        accepted += 1
+        for k in range(n):
+            r0 = 6 * slot[obs[k]]
+            _expand_inplace(Ns[k], P, Lam, r0, r0, work, True)
+            for i in range(6):
+                Lam[r0 + i, 6 * w] += gf[6 * k + i]
+            _mul3_inplace(P, Ns[k], C)  # E^T N_k = [-N_k; -p^ N_k]
+            for i in range(3):
+                for j in range(3):
+                    top = 0.0
+                    bottom = 0.0
+                    for m in range(3):
+                        top -= Ns[k, i, m] * Lc[m, j]
+                        bottom -= C[i, m] * Lc[m, j]
+                    Wcols[r0 + i, col + j] = top
+                    Wcols[r0 + 3 + i, col + j] = bottom
+    return points, covs, ok, nis, used, Lam, Wcols[:, :3 * accepted]
+
+
+def feature_information(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, slot, pixels, P_ww, pixel_var,
+                        gate, obs_gate, iterations):
+    """(W3-W5) for a batch of features, in one compiled call.
+
+    ``clones`` (w,4,4) world_T_imu of the window; feature f has the observations
+    ``start[f] .. start[f] + count[f] - 1`` (oldest first) with clone ``slot`` (int) and ``pixels``
+    (4) each; ``P_ww`` (6w,6w) the clones' covariance; ``gate`` (n,) the NIS gate of a feature seen
+    n times (W5); ``obs_gate`` the chi2_4 gate of one observation's squared error (px^2 / sigma^2):
+    the worst observation beyond it is left out once and the point fitted again (W3). Returns
+    (points (F,3), covariances (F,3,3) of those within the gate, ok (F,) bool, nis (F,), used (F,)
+    observations kept, [Lambda g] (6w,6w+1)): the information H_o^T H_o and H_o^T r_o of the
+    projected rows of the features within the gate (ok and nis <= gate[used]), summed (W4); ok
+    False: a point behind a camera or a singular fit. The rank-3 terms' sum W W^T is one BLAS product."""
+    points, covs, ok, nis, used, info, W = _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count,
+                                                          slot, pixels, P_ww, pixel_var, gate, obs_gate, iterations)
+    if W.shape[1]:
+        info[:, :-1] -= W @ W.T
+    return points, covs, ok, nis, used, info
 
 
 @jit
 def retract_clones(clones, dx):
     """(W6) T_c <- exp(dx_c^) T_hat_c for each clone (w,4,4), dx (6w,) = [rho_c; phi_c] per clone."""
-    out = clones.copy()
+    out = np.empty_like(clones)
     for c in range(clones.shape[0]):
-        E, J = se3.exp_so3_and_left_jacobian(dx[6 * c + 3:6 * c + 6].copy())
-        out[c, :3, :3] = E @ np.ascontiguousarray(clones[c, :3, :3])
-        out[c, :3, 3] = E @ clones[c, :3, 3].copy() + J @ dx[6 * c:6 * c + 3].copy()
+        E, J = se3.exp_so3_and_left_jacobian(dx[6 * c + 3:6 * c + 6])
+        for i in range(3):
+            for j in range(3):
+                out[c, i, j] = E[i, 0] * clones[c, 0, j] + E[i, 1] * clones[c, 1, j] + E[i, 2] * clones[c, 2, j]
+            out[c, i, 3] = (E[i, 0] * clones[c, 0, 3] + E[i, 1] * clones[c, 1, 3] + E[i, 2] * clones[c, 2, 3]
+                            + J[i, 0] * dx[6 * c] + J[i, 1] * dx[6 * c + 1] + J[i, 2] * dx[6 * c + 2])
+            out[c, 3, i] = 0.0
+        out[c, 3, 3] = 1.0
     return out
 
 
@@ -374,15 +491,71 @@ def window_text(config, inertial: bool) -> str | None:
 
 
 @jit
+def _stable_order(keys):
+    """The stable ascending order (n,) of ``keys`` (n,) int: a bottom-up merge sort in plain loops
+    (numba's argsort and sort took 3 s to compile)."""
+    n = keys.size
+    a = np.arange(n)
+    b = np.empty(n, dtype=np.int64)
+    width = 1
+    while width < n:
+        for lo in range(0, n, 2 * width):
+            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
+            i, j, k = lo, mid, lo
+            while i < mid and j < hi:
+                if keys[a[j]] < keys[a[i]]:
+                    b[k] = a[j]
+                    j += 1
+                else:
+                    b[k] = a[i]
+                    i += 1
+                k += 1
+            while i < mid:
+                b[k] = a[i]
+                i += 1
+                k += 1
+            while j < hi:
+                b[k] = a[j]
+                j += 1
+                k += 1
+        a, b = b, a
+        width *= 2
+    return a
+
+
+@jit
+def _sorted(keys):
+    """``keys`` (n,) int in ascending order."""
+    out = np.empty(keys.size, dtype=np.int64)
+    order = _stable_order(keys)
+    for i in range(keys.size):
+        out[i] = keys[order[i]]
+    return out
+
+
+@jit
+def _holds(sorted_keys, key):
+    """Whether the ascending ``sorted_keys`` hold ``key`` (binary search)."""
+    lo, hi = 0, sorted_keys.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if sorted_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo < sorted_keys.size and sorted_keys[lo] == key
+
+
+@jit
 def plan_use(ids, slots, last, current, full, size, stagger):
     """(W7) which tracks of the window's observations (``ids``, ``slots`` (O,), in frame order) a
     frame uses: those of the last frame's ``last`` not in this one's ``current`` (ended), those whose
     observations reach ``size`` - (id mod ``stagger``), and with the window ``full`` those seen in
     clone 0. Returns (rows (R,): the used observations, by track and then oldest first; start (F,),
     count (F,): each used track's run in ``rows``; the tracks left in the window)."""
-    order = np.argsort(ids, kind="mergesort")  # stable: each track's observations stay oldest first
-    cur = np.sort(current)
-    lst = np.sort(last)
+    order = _stable_order(ids)  # stable: each track's observations stay oldest first
+    cur = _sorted(current)
+    lst = _sorted(last)
     rows = np.empty(ids.size, dtype=np.int64)
     start = np.empty(ids.size, dtype=np.int64)
     count = np.empty(ids.size, dtype=np.int64)
@@ -395,9 +568,7 @@ def plan_use(ids, slots, last, current, full, size, stagger):
             g1 += 1
         use = g1 - g0 >= size - track % stagger or (full and slots[order[g0]] == 0)
         if not use:
-            i = np.searchsorted(lst, track)
-            j = np.searchsorted(cur, track)
-            use = (i < lst.size and lst[i] == track) and not (j < cur.size and cur[j] == track)
+            use = _holds(lst, track) and not _holds(cur, track)
         if use:
             start[n_used] = n_rows
             count[n_used] = g1 - g0
@@ -509,13 +680,13 @@ class WindowUpdater:
         start, count = start[two], count[two]
         cam, c = self.camera, state.core
         w6 = 6 * state.clones.shape[0]
-        points, covs, ok, nis, used, Hr = feature_rows(
+        points, covs, ok, nis, used, info = feature_information(
             state.clones, self.cam_T_imu, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline, start, count, slots, pixels,
             np.ascontiguousarray(state.P[c:c + w6, c:c + w6]), self.pixel_var, self._gate, self._obs_gate,
             WINDOW_ITERATIONS)
         good = ok & (nis <= self._gate[used])
         if good.any():
-            dx = StateHelper.update_window(state, Hr, self.pixel_var)
+            dx = StateHelper.update_window(state, info, self.pixel_var)
             correct(state, dx)
             self.map.add(ids[start[good]], points[good], covs[good])
         n_used = int(used[good].sum())
@@ -537,7 +708,7 @@ def _warm_up() -> None:
     clones = np.tile(np.eye(4), (2, 1, 1))
     clones[1, 0, 3] = 0.5
     pixels = np.array([[600.0, 180.0, 560.0, 180.0], [590.0, 180.0, 550.0, 180.0]])
-    feature_rows(clones, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, np.zeros(1, dtype=np.int64),
+    feature_information(clones, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, np.zeros(1, dtype=np.int64),
                  np.full(1, 2, dtype=np.int64), np.arange(2, dtype=np.int64), pixels, np.eye(12), 1.0,
                  np.full(4, 10.0), 18.5, WINDOW_ITERATIONS)
     ids = np.arange(3, dtype=np.int64)

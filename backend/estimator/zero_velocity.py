@@ -60,6 +60,7 @@ from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..geometry import se3
 from ..geometry.camera import StereoCamera, dpi_dq
 from .inertial import BA, BG, NU, PHI
+from .linalg import kth_smallest
 from .state import FilterState
 from .state_helper import StateHelper
 
@@ -168,32 +169,7 @@ def _flow_median(last_ids, last_pixels, ids, pixels, pixel_var, min_tracks):
                 break
     if k < min_tracks:
         return np.nan, rows[:k]
-    return _kth_smallest(d[:k], (k + 1) // 2 - 1), rows[:k]  # the median the threshold is made for
-
-
-@jit
-def _kth_smallest(x, m):
-    """The (m+1)-th smallest of ``x`` (n,), m < n (Hoare's selection; ``x`` is reordered)."""
-    lo, hi = 0, x.size - 1
-    while lo < hi:
-        pivot = x[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while x[i] < pivot:
-                i += 1
-            while x[j] > pivot:
-                j -= 1
-            if i <= j:
-                x[i], x[j] = x[j], x[i]
-                i += 1
-                j -= 1
-        if m <= j:
-            hi = j
-        elif m >= i:
-            lo = i
-        else:
-            break
-    return x[m]
+    return kth_smallest(d[:k], (k + 1) // 2 - 1), rows[:k]  # the median the threshold is made for
 
 
 def translation_covariance(pixels: np.ndarray, camera: StereoCamera, pixel_var: float) -> np.ndarray | None:

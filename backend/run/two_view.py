@@ -28,7 +28,7 @@ import numpy as np
 
 from ..compiled import jit, warms_up
 from ..data.sequence import Sequence
-from ..estimator.linalg import inverse3
+from ..estimator.linalg import inverse3, solve_small
 from ..geometry import se3
 
 __all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps", "pooled_mean_square"]
@@ -111,39 +111,6 @@ def _predict_all(T, beta, p, fx, fy, cx, cy, fb, jac):
     for i in range(n):
         _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred[i], Jp[i], Jg[i], jac, work)
     return pred, Jp, Jg
-
-
-@jit
-def _solve_small(A, b):
-    """x with A x = b for a small square A (Gaussian elimination, partial pivoting); ok False when singular."""
-    n = A.shape[0]
-    M = A.copy()
-    x = b.copy()
-    for c in range(n):
-        piv = c
-        best = abs(M[c, c])
-        for r in range(c + 1, n):
-            if abs(M[r, c]) > best:
-                best = abs(M[r, c])
-                piv = r
-        if not best > 0.0:
-            return x, False
-        if piv != c:
-            for k in range(n):
-                M[c, k], M[piv, k] = M[piv, k], M[c, k]
-            x[c], x[piv] = x[piv], x[c]
-        for r in range(c + 1, n):
-            f = M[r, c] / M[c, c]
-            if f != 0.0:
-                for k in range(c, n):
-                    M[r, k] -= f * M[c, k]
-                x[r] -= f * x[c]
-    for c in range(n - 1, -1, -1):
-        s = x[c]
-        for k in range(c + 1, n):
-            s -= M[c, k] * x[k]
-        x[c] = s / M[c, c]
-    return x, True
 
 
 @jit
@@ -285,7 +252,7 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
         A = S.copy()
         for a in range(g):
             A[a, a] += 1e-9
-        dg, ok = _solve_small(A, rhs)
+        dg, ok = solve_small(A, rhs)
         if not ok:
             return False, T, beta, S, np.zeros((n, 8))
         for a in range(g):
