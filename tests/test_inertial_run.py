@@ -192,6 +192,51 @@ def test_start_in_motion(scenario):
     assert nees["mean"] <= 6.0 and nees["share_inside_95"] >= 0.8
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rest_is_told_from_motion_where_no_track_lasts_the_window(seed):
+    """(Z3) tracks of 6 frames on average, 18-56 a frame: no track lasts the first second, so the fits
+    of successive frames are composed with their covariance. At rest the IMU's start is taken (vision
+    cannot show a motion beyond the tolerance within 3 sigma) and the velocity starts as uncertain as
+    the chain is; moving (0.5-1.2 m and 18-30 deg in that second) it is refused, the motion named."""
+    from vislam.backend.run.initialization import RestOptions, initialize_at_rest, vision_motion
+
+    for rest in (2.0, None):
+        cfg = InertialSceneConfig(scenario="room", duration=5.0, seed=seed, points=100, mean_track_length=6.0,
+                                  start_at_rest=rest)
+        seq = make_inertial_scene(cfg).sequence
+        seen = vision_motion(seq, 1.0, np.zeros(3))
+        assert seen is not None and seen.links == 20  # chained
+        init = initialize_at_rest(seq.imu, float(seq.time_stamps[0]), np.array([0.0, 0.0, -9.81]), seq.imu.noise,
+                                  RestOptions(), seen)
+        if rest:
+            assert init.ok and seen.translation < 3 * seen.translation_sigma + 0.02
+            assert np.sqrt(init.covariance[9, 9]) >= seen.translation + seen.translation_sigma - 1e-12  # nu's sigma (m/s over 1 s)
+        else:
+            assert not init.ok and "vision sees the camera move" in init.reason and seen.translation > 0.4
+
+
+def test_the_motion_guess_is_not_led_by_one_far_disparity():
+    """A gross mismatch with a disparity 20 times the others' (its weight disparity^4 would be 160000
+    times theirs) does not move the translation the fit starts from: the weights are capped."""
+    from vislam.backend.run.initialization import _motion_guess
+
+    rng = np.random.default_rng(3)
+    fx, fy, cx, cy, b = 450.0, 450.0, 370.0, 240.0, 0.11
+    P = np.column_stack([rng.uniform(-1, 1, 30), rng.uniform(-0.7, 0.7, 30), rng.uniform(2.0, 4.0, 30)])
+    t_true = np.array([0.03, -0.01, 0.05])
+
+    def pixels(Q):
+        return np.column_stack([fx * Q[:, 0] / Q[:, 2] + cx, fy * Q[:, 1] / Q[:, 2] + cy,
+                                fx * (Q[:, 0] - b) / Q[:, 2] + cx, fy * Q[:, 1] / Q[:, 2] + cy])
+
+    za, zb = pixels(P), pixels(P + t_true)
+    for z in (za, zb):  # a mismatch in both frames: 20 times the disparity
+        z[0, 2] = z[0, 0] - 20.0 * (z[0, 0] - z[0, 2])
+    T, agree = _motion_guess(za, zb, (fx, fy, cx, cy, b), np.eye(3))
+    np.testing.assert_allclose(T[:3, 3], t_true, atol=2e-3)
+    assert agree[1:].all() and not agree[0]
+
+
 def test_a_start_neither_at_rest_nor_seen_is_refused_in_one_line(flight):
     """Moving, and vision and the IMU disagree (the specific force halved: gravity fits 5 m/s^2 long):
     refused with one line naming the reasons of both starts."""

@@ -14,10 +14,17 @@ Rest is decided from the samples, by how far attitude and velocity wander: the i
 (w_m - mean) and (a_m - mean) over the window stay under ``max_attitude_wander_deg`` and
 ``max_velocity_wander`` (a vibrating rig at rest: EuRoC's before take-off wanders 0.06-0.19 deg
 and 0.01-0.04 m/s in 1 s; hovering or turning, 1-5 deg); and, since an IMU cannot tell rest from
-a constant velocity, from the images: the camera moves less than ``max_vision_translation`` and
-turns less than ``max_attitude_wander_deg`` between the first frame and the last of the window
-(a two-view fit, D2 of ``backend.run.two_view``: :func:`vision_motion`; EuRoC's before take-off:
-3-5 mm, the tracks 0.4-1.2 px; a car at 8 m/s: 8 m).                                              (Z3)
+a constant velocity, from the images: vision cannot show the camera moving more than
+``max_vision_translation`` or turning more than ``max_attitude_wander_deg`` between the first
+frame and the last of the window, |t| - 3 sigma_t <= max and |r| - 3 sigma_r <= max (a two-view
+fit, D2 of ``backend.run.two_view``: :func:`vision_motion`; EuRoC's before take-off: 3-5 mm, the
+tracks 0.4-1.2 px; a car at 8 m/s: 8 m). Where too few tracks last the window, the fits of
+successive frames are composed, T = T_K .. T_1, with the covariance of the left perturbation
+
+    Sigma = sum_k Ad(T_K .. T_k+1) C_k Ad(T_K .. T_k+1)^T        (C_k: each fit's, independent)
+
+(an upper bound: a frame's pixel noise enters two successive fits with opposite signs). The
+velocity starts with the sigma max(wander, (|t| + sigma_t) / window): what the window allows.  (Z3)
 
 The accelerometer bias's horizontal part cannot be told from a tilt at rest: a bias b tilts the
 estimate by |b_horizontal| / g. The covariance says so: with the bias prior sigma_ba0 per axis,
@@ -40,7 +47,8 @@ from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..estimator.inertial import BA, BG, CORE_INERTIAL, NU, PHI, RHO, InertialMean, integrate_samples
 from ..geometry.camera import StereoCamera
 
-__all__ = ["RestOptions", "Initialization", "initialize_at_rest", "rest_test", "vision_motion", "MotionOptions",
+__all__ = ["RestOptions", "Initialization", "VisionMotion", "initialize_at_rest", "rest_test", "vision_motion",
+           "MotionOptions",
            "initialize_in_motion", "initialize_in_motion_over"]
 
 
@@ -102,6 +110,20 @@ class Initialization:
                 **{k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in self.measured.items()}}
 
 
+@dataclass(frozen=True)
+class VisionMotion:
+    """The camera's motion between the first frame and the last of a window, seen by vision (Z3):
+    ``translation`` (m) and ``rotation_deg`` of the two-view fit (``links`` 1) or of the successive
+    frames' fits composed (``links`` of them), with the standard deviations of each (the largest of
+    the covariance's translation and rotation blocks)."""
+
+    translation: float
+    rotation_deg: float
+    translation_sigma: float
+    rotation_sigma_deg: float
+    links: int
+
+
 def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
     """(Z3) the wander of attitude (deg) and velocity (m/s) over [t0, t0 + window], with the means."""
     t = imu.time_stamps
@@ -124,6 +146,11 @@ def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
     return out
 
 
+#: Tracks a fit of two successive frames needs when fits are chained over the rest window (Z3): a
+#: stereo two-view fit has 5 equations a point beyond its own 3 unknowns for 6 of motion
+CHAIN_MIN_POINTS = 6
+
+
 def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
     """The two-view fit (D2) of frames a and b, started from the gyro's rotation ``Ia_R_Ib`` (3,3) and a
     robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
@@ -143,12 +170,12 @@ def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
     return fit_pair(za[agree], zb[agree], cam, min_points=min_points, step=a, gap=b - a, initial=guess)
 
 
-def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> tuple[float, float] | None:
-    """(Z3) (translation m, rotation deg) of the camera between the first frame and the last one of the
-    first ``window`` seconds: the two-view fit of the two (D2, started from the gyro's rotation with
-    ``gyro_bias`` removed), or where too few tracks last that long, the fits of successive frames
-    composed (their errors telescope: each frame's pixel noise enters two fits with opposite signs);
-    None when neither can be fitted."""
+def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> VisionMotion | None:
+    """(Z3) the camera's motion between the first frame and the last one of the first ``window``
+    seconds: the two-view fit of the two (D2, started from the gyro's rotation with ``gyro_bias``
+    removed), or where too few tracks last that long, the fits of successive frames composed (each
+    on at least ``CHAIN_MIN_POINTS`` tracks), with their covariance (module docstring); None when
+    neither can be fitted."""
     from ..geometry import se3
 
     t = seq.time_stamps
@@ -158,15 +185,19 @@ def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> tuple[float, flo
     R = integrate_samples(seq.imu, t[:last + 1], gyro_bias)[0]
     direct = _fit_frames(seq, 0, last, R[last])
     if direct is not None:
-        T = direct.b_T_a
+        T, cov, links = direct.b_T_a, direct.motion_covariance, 1
     else:
-        T = np.eye(4)
+        T, cov, links = np.eye(4), np.zeros((6, 6)), last
         for k in range(1, last + 1):
-            step = _fit_frames(seq, k - 1, k, R[k - 1].T @ R[k])
+            step = _fit_frames(seq, k - 1, k, R[k - 1].T @ R[k], CHAIN_MIN_POINTS)
             if step is None:
                 return None
+            A = se3.adjoint(step.b_T_a)  # the chain so far seen through this link (left perturbations)
+            cov = A @ cov @ A.T + step.motion_covariance
             T = step.b_T_a @ T
-    return float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.linalg.norm(se3.log_so3(T[:3, :3]))))
+    return VisionMotion(float(np.linalg.norm(T[:3, 3])), float(np.degrees(np.linalg.norm(se3.log_so3(T[:3, :3])))),
+                        float(np.sqrt(np.linalg.eigvalsh(cov[:3, :3])[-1])),
+                        float(np.degrees(np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1]))), links)
 
 
 def gravity_aligned_rotation(up_in_imu: np.ndarray) -> np.ndarray:
@@ -183,19 +214,24 @@ def gravity_aligned_rotation(up_in_imu: np.ndarray) -> np.ndarray:
 def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: ImuNoiseDensities | None = None,
                        options: RestOptions = RestOptions(), seen=False) -> Initialization:
     """(Z1-Z5) the inertial state at ``t0`` (the first frame) if the IMU is at rest over the window
-    after it and vision agrees: ``seen`` is :func:`vision_motion` of the window ((translation m,
-    rotation deg), None where it could not be fitted, False: no images); else an
-    :class:`Initialization` with ``at_rest`` False and the reason."""
+    after it and vision agrees: ``seen`` is :func:`vision_motion` of the window (None where it could
+    not be fitted, False: no images); else an :class:`Initialization` with ``at_rest`` False and the
+    reason."""
     m = rest_test(imu, t0, options.window)
     if seen is not False:
         if seen is None:
             return Initialization(False, "vision cannot fit the first frame to the last of the first "
                                          f"{options.window:g} s (the scene changed)", measured=m)
-        m["vision_translation"], m["vision_rotation_deg"] = seen
-        if seen[0] > options.max_vision_translation or seen[1] > options.max_attitude_wander_deg:
-            return Initialization(False, f"vision sees the camera move {seen[0]:.3f} m and turn {seen[1]:.2f} deg in "
-                                         f"the first {options.window:g} s (at most {options.max_vision_translation:g} "
-                                         f"m, {options.max_attitude_wander_deg:g} deg)", measured=m)
+        m.update(vision_translation=seen.translation, vision_rotation_deg=seen.rotation_deg,
+                 vision_translation_sigma=seen.translation_sigma, vision_rotation_sigma_deg=seen.rotation_sigma_deg,
+                 vision_links=seen.links)
+        if (seen.translation - 3.0 * seen.translation_sigma > options.max_vision_translation
+                or seen.rotation_deg - 3.0 * seen.rotation_sigma_deg > options.max_attitude_wander_deg):
+            return Initialization(False, f"vision sees the camera move {seen.translation:.3f} +- "
+                                         f"{seen.translation_sigma:.3f} m and turn {seen.rotation_deg:.2f} +- "
+                                         f"{seen.rotation_sigma_deg:.2f} deg in the first {options.window:g} s (at most "
+                                         f"{options.max_vision_translation:g} m, {options.max_attitude_wander_deg:g} deg "
+                                         f"within 3 sigma)", measured=m)
     if m.get("window_s", 0.0) < options.min_window or "gyro_mean" not in m:
         return Initialization(False, f"{m.get('window_s', 0.0):.2f} s of IMU after the first frame, "
                                      f"{options.min_window:g} s needed", measured=m)
@@ -210,7 +246,7 @@ def initialize_at_rest(imu: ImuSamples, t0: float, gravity: np.ndarray, noise: I
     T[:3, :3] = R
     mean = InertialMean(T, np.zeros(3), m["gyro_mean"].copy(), np.zeros(3))
     P = _first_pose_and_bias_prior(R, g, options.accel_bias_sigma0, options.pose_sigma0)
-    moved = m.get("vision_translation", 0.0) / max(m["window_s"], 1e-9)  # a velocity vision allows
+    moved = (m.get("vision_translation", 0.0) + m.get("vision_translation_sigma", 0.0)) / max(m["window_s"], 1e-9)  # (Z3)
     P[NU, NU] = np.eye(3) * max(m["velocity_wander"], moved, options.min_velocity_sigma0) ** 2
     se = m["gyro_se"]
     if noise is not None:  # the white noise's share when the vibration is smaller than it (never on a real rig)
@@ -260,9 +296,11 @@ def _motion_guess(za: np.ndarray, zb: np.ndarray, cam, b_R_a: np.ndarray, inlier
     """(a camera motion b_T_a (4,4) to start a two-view fit from, the matches (n,) bool it agrees with):
     for motions too large to start from none. The rotation ``b_R_a`` (3,3) is the gyro's; the
     translation the weighted median over the matched stereo points of Pb - b_R_a Pa per axis (weights
-    disparity^4, a triangulated depth's inverse variance); the points of frame a it moves within
-    ``inlier_px`` of their pixels in frame b (uL, vL, uR) are the matches kept (gross mismatches, which
-    an undamped fit from a good start can still follow, are left out)."""
+    disparity^4, a triangulated depth's inverse variance, capped at the upper quartile's: the
+    disparity of a gross mismatch can be any), or no translation where more points agree with that;
+    the points of frame a it moves within ``inlier_px`` of their pixels in frame b (uL, vL, uR) are the
+    matches kept (gross mismatches, which an undamped fit from a good start can still follow, are left
+    out)."""
     fx, fy, cx, cy, b = cam
     camera = StereoCamera(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), b)
     da, db = za[:, 0] - za[:, 2], zb[:, 0] - zb[:, 2]
@@ -274,17 +312,25 @@ def _motion_guess(za: np.ndarray, zb: np.ndarray, cam, b_R_a: np.ndarray, inlier
     if ok.sum() < 3:
         return T, ok
     t = Pb[ok] - Pa[ok] @ b_R_a.T
-    w = np.minimum(da[ok], db[ok]) ** 4
+    d = np.minimum(da[ok], db[ok])
+    w = np.minimum(d, np.quantile(d, 0.75)) ** 4  # capped: one gross mismatch of a large disparity cannot outweigh the rest
     for axis in range(3):
         order = np.argsort(t[:, axis])
         cum = np.cumsum(w[order])
         T[axis, 3] = t[order[np.searchsorted(cum, 0.5 * cum[-1])], axis]
-    q = Pa @ b_R_a.T + T[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        iz = 1.0 / q[:, 2]
-        err = np.maximum.reduce([np.abs(fx * q[:, 0] * iz + cx - zb[:, 0]), np.abs(fy * q[:, 1] * iz + cy - zb[:, 1]),
-                                 np.abs(fx * (q[:, 0] - b) * iz + cx - zb[:, 2])])
-    return T, ok & (q[:, 2] > 0) & (err <= inlier_px)
+    best = None
+    for translation in (T[:3, 3].copy(), np.zeros(3)):  # the median, or none (at rest few far points mislead it)
+        q = Pa @ b_R_a.T + translation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = 1.0 / q[:, 2]
+            err = np.maximum.reduce([np.abs(fx * q[:, 0] * iz + cx - zb[:, 0]),
+                                     np.abs(fy * q[:, 1] * iz + cy - zb[:, 1]),
+                                     np.abs(fx * (q[:, 0] - b) * iz + cx - zb[:, 2])])
+        agree = ok & (q[:, 2] > 0) & (err <= inlier_px)
+        if best is None or agree.sum() > best[1].sum():
+            best = (translation, agree)
+    T[:3, 3] = best[0]
+    return T, best[1]
 
 
 def _chain_vision(seq, frames: range, min_points: int, imu_rotations: np.ndarray, max_skip: int = 3):
