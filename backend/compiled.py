@@ -134,12 +134,22 @@ _seconds = 0.0
 _lock = threading.Lock()
 
 
+#: The kinds of run a warm-up can be registered for (``warms_up(only=...)``), and which runs each
+#: serves: a velocity run and a real IMU's run with landmarks in the state use the landmark filter's
+#: kernels, a window run (a real IMU's with ``estimator.window``) none of them
+ONLY = {
+    "inertial": "a real IMU's runs",
+    "window": "a real IMU's runs with a sliding window of clones",
+    "landmarks": "runs with landmarks in the state (every run but a window's)",
+    "velocity": "runs with body velocities",
+}
+
+
 def warms_up(function: Callable[[], None] | None = None, *, only: str | None = None):
     """Decorator: register ``function`` (no arguments; calls a module's kernels once) for
-    :func:`warm_up`; ``@warms_up(only="inertial")``: for a real IMU's runs only; ``only="window"``:
-    for those with a sliding window of clones (``estimator.window``) only."""
-    if only not in (None, "inertial", "window"):
-        raise ValueError(f"warms_up: only must be 'inertial' or 'window', got {only!r}")
+    :func:`warm_up`; ``only`` (a key of :data:`ONLY`): for that kind of run only, else for every run."""
+    if only is not None and only not in ONLY:
+        raise ValueError(f"warms_up: only must be one of {sorted(ONLY)}, got {only!r}")
 
     def register(f: Callable[[], None]) -> Callable[[], None]:
         _registered.append(f)
@@ -152,15 +162,16 @@ def warms_up(function: Callable[[], None] | None = None, *, only: str | None = N
 
 def _serves(function: Callable[[], None], inertial: bool, window: bool = False) -> bool:
     """Whether the registered warm-up ``function`` serves a run (a real IMU's with ``inertial``, with a
-    sliding window of clones with ``window`` too)."""
+    sliding window of clones with ``window`` too; :data:`ONLY`)."""
     only = _only.get(function)
-    return only is None or (only == "inertial" and inertial) or (only == "window" and inertial and window)
+    return (only is None or (only == "inertial" and inertial) or (only == "window" and inertial and window)
+            or (only == "landmarks" and not (inertial and window)) or (only == "velocity" and not inertial))
 
 
 def warm_up(notice: Callable[[], None] | None = None, inertial: bool = False, window: bool = False) -> float:
-    """Compile or load every registered kernel not warmed up yet in this process (those registered
-    ``only="inertial"`` with ``inertial`` only, ``only="window"`` with ``inertial`` and ``window``:
-    a run compiles what it uses); returns the seconds spent (0 when there was nothing left).
+    """Compile or load every registered kernel not warmed up yet in this process that serves the run
+    (:func:`_serves`: a run compiles what it uses); returns the seconds spent (0 when there was
+    nothing left).
     ``notice()`` is called from a timer thread when it takes longer than :data:`NOTICE_AFTER`
     seconds (compiling after an install or an update)."""
     global _seconds

@@ -108,7 +108,7 @@ class EstimatorOptions(OptionTable):
     estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk) ...
     gyro_bias_min_observations: float = 10.0  # ... only with at least this many stereo observations per step on average
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
-    window: int = 0  # a real IMU's SLAM run: a sliding window of this many pose clones and no landmark in the state (MSCKF, backend.estimator.window: 13 runs 4-8x the landmarks' speed on a 20 Hz flight; the trajectory is each pose as its clone leaves, W8); 0: landmarks in the state (velocity runs always)
+    window: int = 13  # a real IMU's SLAM run: a sliding window of this many pose clones and no landmark in the state (MSCKF, backend.estimator.window: 6-8x the landmarks' speed on a 20 Hz flight; the trajectory is each pose as its clone leaves, W8); 0: landmarks in the state (velocity and mapping runs always)
 
     def check(self) -> None:
         self.require_positive("max_state_mib")

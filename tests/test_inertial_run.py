@@ -253,18 +253,20 @@ def test_a_start_neither_at_rest_nor_seen_is_refused_in_one_line(flight):
     assert "\n" not in msg and "not at rest" in msg and "disagree" in msg
 
 
-def test_monte_carlo_pose_nees_in_band():
-    """12 runs of one 10 s room flight, the IMU noise, biases (accelerometer from the filter's prior,
-    N(0, 0.1^2)) and pixels drawn anew: in flight (from 3 s on) the average pose NEES is in its 95 %
-    band for at least 90 % of steps; over the 2 s at rest and the take-off the filter is conservative
-    (position across the view, yaw: NEES 3.2-4 against 6, under the band) and never above the band;
-    the time average is within [4, 7]."""
+def test_monte_carlo_pose_nees_in_band_with_landmarks_in_the_state():
+    """The landmark state (``estimator.window = 0``; the default window's Monte Carlo is in
+    test_window.py): 12 runs of one 10 s room flight, the IMU noise, biases (accelerometer from the
+    filter's prior, N(0, 0.1^2)) and pixels drawn anew: in flight (from 3 s on) the average pose NEES is
+    in its 95 % band for at least 90 % of steps; over the 2 s at rest and the take-off the filter is
+    conservative (position across the view, yaw: NEES 3.2-4 against 6, under the band) and never
+    above the band; the time average is within [4, 7]."""
     cfg = InertialSceneConfig(duration=10.0, seed=3)
+    landmarks = Config().with_assignments(["estimator.window=0"])
     nees = []
     for r in range(12):
         bias = np.random.default_rng(500 + r).normal(0.0, 0.1, 3)
         scene = make_inertial_scene(dataclasses.replace(cfg, accel_bias0=tuple(bias)), noise_seed=100 + r)
-        res = run_inertial(scene.sequence, Config())
+        res = run_inertial(scene.sequence, landmarks)
         n = trajectory_nees(res.time_stamps, res.world_T_imu, res.pose_covariance, scene.sequence.time_stamps,
                             scene.world_T_imu_true, gravity_aligned=True)
         nees.append(n.pose_nees[1:])

@@ -617,6 +617,46 @@ def test_the_window_kernels_are_warmed_up_for_a_window_run_only():
     assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
 
 
+_WINDOW_RUN_ALONE = r"""
+import json, sys, warnings
+warnings.simplefilter("ignore")
+from vislam.backend import compiled
+from vislam.backend.config import Config
+from vislam.backend.run.inertial import run_inertial
+from vislam.synth.inertial_scene import InertialSceneConfig, make_inertial_scene
+
+def counts():
+    return {f"{m}.{n}": len(f.signatures) for m, mod in list(sys.modules.items()) if m.startswith("vislam.")
+            for n, f in vars(mod).items() if hasattr(f, "signatures") and getattr(f, "py_func", None) is not None
+            and f.py_func.__module__ == m}
+
+compiled.warm_up(inertial=True, window=True)
+kinds = sorted({compiled._only.get(f, "every run") for f in compiled._done})
+skipped = sorted({compiled._only[f] for f in compiled._registered if f not in compiled._done})
+before = counts()
+res = run_inertial(make_inertial_scene(InertialSceneConfig(duration=4.0)).sequence, Config())
+print(json.dumps([kinds, skipped, before, counts(), res.stats.filter_seconds > 0]))
+"""
+
+
+def test_a_window_run_compiles_only_what_it_uses():
+    """A real IMU's run with the default window warms up the kernels of every run, a real IMU's and the
+    window's, not the landmark filter's or the velocity runs' (about 17 s of compiling after an
+    install), and the run then calls no kernel it did not warm up (in a fresh process)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", _WINDOW_RUN_ALONE], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=False)
+    assert out.returncode == 0, out.stderr
+    kinds, skipped, before, after, ran = json.loads(out.stdout.strip().splitlines()[-1])
+    assert ran and kinds == ["every run", "inertial", "window"] and skipped == ["landmarks", "velocity"]
+    assert not any(k.startswith("vislam.backend.estimator.update.") and v for k, v in before.items())
+    assert after == before, {k: (before.get(k), v) for k, v in after.items() if before.get(k) != v}
+
+
 def test_warm_up_says_so_when_it_takes_a_while(monkeypatch):
     """``compiled.warm_up(notice)`` calls ``notice`` when warming up outlasts ``NOTICE_AFTER``; it
     runs each registered warm-up once per process."""

@@ -255,7 +255,8 @@ def test_room_flight_with_a_window_is_accurate_and_consistent():
     at least 90 % of steps (99 % measured), never above it at rest and take-off, and each run's ATE is
     under 2 cm (about 6 mm)."""
     cfg = InertialSceneConfig(duration=10.0, seed=3)
-    config = Config().with_assignments(["estimator.window=13"])
+    config = Config()  # the default: a window of 13
+    assert config.estimator.window == 13
     nees, ates = [], []
     for run in range(12):
         bias = np.random.default_rng(500 + run).normal(0.0, 0.1, 3)
@@ -306,16 +307,24 @@ def test_a_window_run_writes_each_frame_as_its_clone_left():
 
 
 def test_a_run_says_what_it_does_with_the_window():
-    """The window is a real IMU's SLAM run's: such a run says it holds the clones; a velocity run and
-    a mapping run say they keep their landmarks; off, nothing is said."""
-    from vislam.backend.estimator.window import window_text
+    """The window is a real IMU's SLAM run's, by default: such a run says it holds the clones; a
+    velocity run and a mapping run keep their landmarks, and say so where the option was set to
+    another size; 0 (landmarks in the state) and the default on such runs say nothing."""
+    from vislam.backend.estimator.window import window_in_use, window_text
 
-    on = Config().with_assignments(["estimator.window=13"])
-    assert "13 pose clones" in window_text(on, inertial=True)
-    assert "a velocity run keeps its landmarks" in window_text(on, inertial=False)
-    mapping = on.with_assignments(["estimator.mode=mapping"])
-    assert "a mapping run keeps its landmarks" in window_text(mapping, inertial=True)
-    assert window_text(Config(), inertial=True) is None and window_text(Config(), inertial=False) is None
+    default = Config()
+    assert window_in_use(default, inertial=True) and "13 pose clones" in window_text(default, inertial=True)
+    assert not window_in_use(default, inertial=False) and window_text(default, inertial=False) is None
+    mapping = default.with_assignments(["estimator.mode=mapping"])
+    assert not window_in_use(mapping, inertial=True) and window_text(mapping, inertial=True) is None
+    other = Config().with_assignments(["estimator.window=20"])
+    assert "20 pose clones" in window_text(other, inertial=True)
+    assert "a velocity run keeps its landmarks" in window_text(other, inertial=False)
+    assert "a mapping run keeps its landmarks" in window_text(other.with_assignments(["estimator.mode=mapping"]),
+                                                              inertial=True)
+    off = Config().with_assignments(["estimator.window=0"])
+    assert not window_in_use(off, inertial=True)
+    assert window_text(off, inertial=True) is None and window_text(off, inertial=False) is None
 
 
 def test_plan_use_picks_ended_long_and_oldest_tracks_by_track_oldest_first():

@@ -116,7 +116,7 @@ def repair_if_indefinite(P: np.ndarray, estimated: np.ndarray) -> float | None:
     return float(eigval.min())
 
 
-@warms_up
+@warms_up(only="landmarks")
 def _warm_up() -> None:
     P = np.eye(CORE + 6)
     mirror_lower_inplace(P)

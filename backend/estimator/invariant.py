@@ -406,7 +406,7 @@ class InvariantModel(ErrorModel):
         return body_pose_covariance(state.mu, state.P[POSE, POSE])
 
 
-@warms_up
+@warms_up(only="landmarks")
 def _warm_up() -> None:
     D, k = CORE + 6, 2
     P = np.eye(D)

@@ -107,7 +107,7 @@ def add_product_lower(P, Z, X):
            X.ctypes, ld[0:].ctypes, Z.ctypes, ld[1:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
 
 
-@warms_up
+@warms_up(only="landmarks")
 def _warm_up() -> None:
     P = np.eye(3)
     A = np.ones((2, 3))

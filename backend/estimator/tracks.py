@@ -121,7 +121,7 @@ def plan_removal(mask, ended, outlier_run):
     return removed, keep, remap, counted[:c]
 
 
-@warms_up
+@warms_up(only="landmarks")
 def _warm_up() -> None:
     ids = np.arange(2, dtype=np.int64)
     counts = np.ones(2, dtype=np.int64)

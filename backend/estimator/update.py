@@ -405,7 +405,7 @@ def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots,
     return status, dx, use
 
 
-@warms_up
+@warms_up(only="landmarks")
 def _warm_up() -> None:
     D, k = CORE + 6, 2
     P = np.eye(D)

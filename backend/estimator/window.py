@@ -74,8 +74,9 @@ import numpy as np
 from scipy.special import chdtri
 
 from ..compiled import jit, warms_up
-from ..config import Mode
+from ..config import EstimatorOptions, Mode
 from ..geometry import se3
+from .covariance import gather_symmetric
 from .invariant import body_pose_covariance
 from .layout import SQRT_HALF
 from .linalg import inverse3, median_inplace, solve_small
@@ -473,19 +474,22 @@ def retract_clones(clones, dx):
 
 def window_in_use(config, inertial: bool) -> bool:
     """Whether a run holds a sliding window of clones: a real IMU's (``inertial``) SLAM run with
-    ``estimator.window`` set; any other run keeps its landmarks in the state."""
+    ``estimator.window`` above 0 (the default); any other run keeps its landmarks in the state."""
     return inertial and config.estimator.window > 0 and Mode(config.estimator.mode) == Mode.SLAM
 
 
 def window_text(config, inertial: bool) -> str | None:
-    """What a run does with ``estimator.window`` (one line), None when it is off: a real IMU's SLAM
-    run holds that many clones; any other run keeps landmarks in the state, and says so."""
+    """What a run does with ``estimator.window`` (one line): a real IMU's SLAM run holds that many
+    clones; any other run keeps its landmarks in the state, and says so where the option was set to
+    other than its default (None then, and where it is 0)."""
     size, mode = config.estimator.window, Mode(config.estimator.mode)
     if not size:
         return None
     if window_in_use(config, inertial):
         return (f"state: a sliding window of {size} pose clones, no landmark in the state (estimator.window; "
                 f"the tracks' points are projected out, W1-W7; each frame's pose is written as its clone leaves, W8)")
+    if size == EstimatorOptions.window:
+        return None
     what = "a velocity run" if not inertial else f"a {mode.value} run"
     return f"note: estimator.window = {size} serves a real IMU's SLAM run; {what} keeps its landmarks in the state"
 
@@ -716,3 +720,4 @@ def _warm_up() -> None:
     plan_use(ids, np.zeros(3, dtype=np.int64), ids, ids[:0], False, 1, 1)
 
     retract_clones(clones, np.zeros(12))
+    gather_symmetric(np.eye(20), np.arange(6, 20, dtype=np.int64))  # a clone leaves (W7): the landmarks' warm-up is not a window run's

@@ -180,7 +180,7 @@ def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: st
     )
 
 
-@warms_up
+@warms_up(only="velocity")
 def _warm_up() -> None:
     pixels = np.array([[600.0, 180.0]] * 2)
     _left_errors(np.eye(4)[None], np.zeros(2, dtype=np.int64), np.ones((2, 3)) + 5.0, pixels, 700.0, 700.0, 600.0,

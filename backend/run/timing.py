@@ -126,7 +126,7 @@ def repeated_steps(seq: Sequence) -> np.ndarray:
     return repeated
 
 
-@warms_up
+@warms_up(only="velocity")
 def _warm_up() -> None:
     ids = np.arange(2, dtype=np.int64)
     pixels = np.ones((2, 4))
