@@ -495,49 +495,6 @@ def window_text(config, inertial: bool) -> str | None:
 
 
 @jit
-def _stable_order(keys):
-    """The stable ascending order (n,) of ``keys`` (n,) int: a bottom-up merge sort in plain loops
-    (numba's argsort and sort took 3 s to compile)."""
-    n = keys.size
-    a = np.arange(n)
-    b = np.empty(n, dtype=np.int64)
-    width = 1
-    while width < n:
-        for lo in range(0, n, 2 * width):
-            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
-            i, j, k = lo, mid, lo
-            while i < mid and j < hi:
-                if keys[a[j]] < keys[a[i]]:
-                    b[k] = a[j]
-                    j += 1
-                else:
-                    b[k] = a[i]
-                    i += 1
-                k += 1
-            while i < mid:
-                b[k] = a[i]
-                i += 1
-                k += 1
-            while j < hi:
-                b[k] = a[j]
-                j += 1
-                k += 1
-        a, b = b, a
-        width *= 2
-    return a
-
-
-@jit
-def _sorted(keys):
-    """``keys`` (n,) int in ascending order."""
-    out = np.empty(keys.size, dtype=np.int64)
-    order = _stable_order(keys)
-    for i in range(keys.size):
-        out[i] = keys[order[i]]
-    return out
-
-
-@jit
 def _holds(sorted_keys, key):
     """Whether the ascending ``sorted_keys`` hold ``key`` (binary search)."""
     lo, hi = 0, sorted_keys.size
@@ -550,16 +507,21 @@ def _holds(sorted_keys, key):
     return lo < sorted_keys.size and sorted_keys[lo] == key
 
 
-@jit
 def plan_use(ids, slots, last, current, full, size, stagger):
     """(W7) which tracks of the window's observations (``ids``, ``slots`` (O,), in frame order) a
     frame uses: those of the last frame's ``last`` not in this one's ``current`` (ended), those whose
     observations reach ``size`` - (id mod ``stagger``), and with the window ``full`` those seen in
     clone 0. Returns (rows (R,): the used observations, by track and then oldest first; start (F,),
-    count (F,): each used track's run in ``rows``; the tracks left in the window)."""
-    order = _stable_order(ids)  # stable: each track's observations stay oldest first
-    cur = _sorted(current)
-    lst = _sorted(last)
+    count (F,): each used track's run in ``rows``; the tracks left in the window). The sorting is
+    numpy's (stable: each track's observations stay oldest first), the grouping compiled."""
+    return _plan_groups(ids, slots, np.argsort(ids, kind="stable"), np.sort(last), np.sort(current), full, size,
+                        stagger)
+
+
+@jit
+def _plan_groups(ids, slots, order, lst, cur, full, size, stagger):
+    """:func:`plan_use` over the observations in ``order`` (their ids ascending), ``lst`` and ``cur``
+    sorted."""
     rows = np.empty(ids.size, dtype=np.int64)
     start = np.empty(ids.size, dtype=np.int64)
     count = np.empty(ids.size, dtype=np.int64)
