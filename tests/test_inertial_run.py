@@ -210,6 +210,7 @@ def test_rest_is_told_from_motion_where_no_track_lasts_the_window(seed):
                                   RestOptions(), seen)
         if rest:
             assert init.ok and seen.translation < 3 * seen.translation_sigma + 0.02
+            assert "(20 successive fits chained)" in init.describe()  # the run says what vision saw
             assert np.sqrt(init.covariance[9, 9]) >= seen.translation + seen.translation_sigma - 1e-12  # nu's sigma (m/s over 1 s)
         else:
             assert not init.ok and "vision sees the camera move" in init.reason and seen.translation > 0.4

@@ -98,8 +98,13 @@ class Initialization:
                     f"[{', '.join(f'{x:+.5f}' for x in m['gyro_bias'])}] rad/s; roll and pitch +- "
                     f"{m['tilt_sigma_deg']:.2f} deg (the fit's and an accelerometer bias of "
                     f"{m['accel_bias_sigma0']:g} m/s^2)")
+        seen = ""
+        if "vision_translation" in m:
+            how = "one fit" if m["vision_links"] == 1 else f"{m['vision_links']} successive fits chained"
+            seen = (f"; vision: {1e3 * m['vision_translation']:.1f} +- {1e3 * m['vision_translation_sigma']:.1f} mm, "
+                    f"{m['vision_rotation_deg']:.2f} +- {m['vision_rotation_sigma_deg']:.2f} deg ({how})")
         return (f"inertial initialization: at rest over {m['window_s']:.2f} s ({m['samples']} samples; attitude wander "
-                f"{m['attitude_wander_deg']:.2f} deg, velocity wander {m['velocity_wander']:.3f} m/s); up (minus gravity) in the "
+                f"{m['attitude_wander_deg']:.2f} deg, velocity wander {m['velocity_wander']:.3f} m/s{seen}); up (minus gravity) in the "
                 f"IMU frame [{g[0]:+.4f}, {g[1]:+.4f}, {g[2]:+.4f}], |specific force| {m['specific_force']:.4f} m/s^2; "
                 f"gyro bias [{', '.join(f'{x:+.5f}' for x in m['gyro_bias'])}] rad/s; roll and pitch +- "
                 f"{m['tilt_sigma_deg']:.2f} deg (an accelerometer bias of {m['accel_bias_sigma0']:g} m/s^2 cannot be "
