@@ -102,17 +102,20 @@ def _interrupted(exc: BaseException) -> bool:
 
 
 def entry() -> None:  # pragma: no cover - the console script; tests call main()
-    """``vislam``: :func:`main`; after an interruption leave at once (the outputs are already cleaned up, and
-    the teardown of native libraries would change the exit code: open3d reports "memory leaks" and
-    exits 1 when an import or a write of it was interrupted); once the work is done, a Ctrl-C during
-    the interpreter's teardown is ignored."""
+    """``vislam``: :func:`main`, then leave at once, its two streams flushed: every output is in place
+    (or cleaned up after an interruption) and every helper process and thread has ended, so the
+    interpreter's teardown would only free memory (0.25 s after a run, numba's and LLVM's objects;
+    and the teardown of native libraries would change the exit code after an interruption: open3d
+    reports "memory leaks" and exits 1 when an import or a write of it was interrupted). A Ctrl-C
+    once the work is done changes nothing."""
     clock.count_from_process_start()  # the user waits from the process's start: the figures say so
-    rc = _main(None, sigint_after=signal.SIG_IGN)  # done: a signal during the teardown changes nothing
-    if rc >= 128:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(rc)
-    sys.exit(rc)
+    rc = _main(None, sigint_after=signal.SIG_IGN)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # the reader of a pipe left: as a shell reports it
+            rc = rc or EXIT_BROKEN_PIPE
+    os._exit(rc)
 
 
 if __name__ == "__main__":  # pragma: no cover
