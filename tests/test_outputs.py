@@ -422,32 +422,6 @@ def test_the_output_helper_writes_what_the_run_would(tmp_path):
         assert (here / name).read_bytes() == (there / name).read_bytes(), name
 
 
-def test_a_deferred_helper_waits_for_begin_or_its_first_job(tmp_path):
-    """``output_process(deferred=True)``: the helper imports nothing until it is told to begin, then
-    writes the same files; one never told (its first job begins it) too; one that never began ends
-    with its block."""
-    import multiprocessing
-
-    from vislam.tools.output_process import output_process
-    from vislam.tools.report import write_run_outputs
-
-    result, gt = _small_run()
-    for begin in (True, False):
-        out = tmp_path / f"begin_{begin}"
-        out.mkdir()
-        with output_process(deferred=True) as helper:
-            assert helper is not None and helper._process.is_alive()
-            if begin:
-                helper.begin()
-                helper.begin()  # once
-            write_run_outputs(result, out, "scene.npz", gt, helper=helper)
-        assert {"map.ply", "trajectory.ply", "trajectory.png", "ate_over_time.png"} <= set(listing(out))
-    assert (tmp_path / "begin_True" / "map.ply").read_bytes() == (tmp_path / "begin_False" / "map.ply").read_bytes()
-    with output_process(deferred=True):
-        pass
-    assert multiprocessing.active_children() == []
-
-
 def test_with_a_helper_the_run_imports_neither_matplotlib_nor_open3d(tmp_path):
     """The point of the helper: the run's own process never pays for matplotlib's and open3d's
     imports (checked in a fresh interpreter: this one has them from other tests)."""

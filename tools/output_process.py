@@ -1,8 +1,7 @@
 """A helper process for the outputs whose libraries cost most to start: the PNG figures (matplotlib)
 and the PLY point clouds (open3d).
 
-``vislam run`` starts it with the command. It imports both while the run computes (on a feature file
-from the filter's first step: the decisions before fit step pairs in two threads); a thread could
+``vislam run`` starts it with the command. It imports both while the run computes; a thread could
 not do that without slowing the run, whose Python holds the interpreter lock. Then it writes the
 files it is sent (each atomically, as in-process), while the run writes the rest. The run waits
 for its replies before the outputs are moved into place. Where it cannot start, dies or fails, the
@@ -24,18 +23,12 @@ __all__ = ["OutputProcess", "output_process"]
 JOIN_SECONDS = 5.0
 
 
-def _serve(conn, deferred: bool = False) -> None:
-    """The helper: import the libraries (``deferred``: once the run says begin), then call each function
-    it is sent (a module-level function, sent by its name) until the run's end of the pipe closes (or
-    the run terminates it)."""
+def _serve(conn) -> None:
+    """The helper: import the libraries, then call each function it is sent (a module-level function,
+    sent by its name) until the run's end of the pipe closes (or the run terminates it)."""
     for name in ("SIGINT", "SIGHUP"):
         if hasattr(signal, name):
             signal.signal(getattr(signal, name), signal.SIG_IGN)
-    if deferred:
-        try:
-            conn.recv()  # begin
-        except EOFError:
-            return
     from . import outputs, plots  # noqa: F401 (the modules of the functions it is sent, imported now; not the
     # filter's: numba and scipy would cost it 0.6 s of CPU beside the run)
 
@@ -55,31 +48,18 @@ def _serve(conn, deferred: bool = False) -> None:
 
 
 class OutputProcess:
-    """The helper process (module docstring): :meth:`submit` jobs, then :meth:`results` waits for them.
-    ``deferred``: it starts, but imports its libraries only at :meth:`begin` (or the first job): a run
-    whose decisions take both cores says begin when its one-threaded filter starts."""
+    """The helper process (module docstring): :meth:`submit` jobs, then :meth:`results` waits for them."""
 
-    def __init__(self, deferred: bool = False) -> None:
+    def __init__(self) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        self._process = ctx.Process(target=_serve, args=(child, deferred), name="vislam-outputs", daemon=True)
+        self._process = ctx.Process(target=_serve, args=(child,), name="vislam-outputs", daemon=True)
         self._process.start()
         child.close()
         self._jobs: list[tuple[Callable[..., Any], tuple, dict]] = []
-        self._waiting = deferred
-
-    def begin(self) -> None:
-        """Let a deferred helper import its libraries now (once; nothing otherwise)."""
-        if self._waiting:
-            self._waiting = False
-            try:
-                self._conn.send(None)
-            except (OSError, ValueError):  # the helper is gone: results() does its jobs here
-                pass
 
     def submit(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         """Send the helper one output to write: ``function(*args, **kwargs)``, a module-level function."""
-        self.begin()
         self._jobs.append((function, args, kwargs))
         try:
             self._conn.send((function, args, kwargs))
@@ -113,11 +93,11 @@ class OutputProcess:
 
 
 @contextmanager
-def output_process(deferred: bool = False) -> Iterator[Optional[OutputProcess]]:
+def output_process() -> Iterator[Optional[OutputProcess]]:
     """The helper for the block (None where it cannot start: the run then writes everything), ended
-    when the block ends, by a stop too; ``deferred``: see :class:`OutputProcess`."""
+    when the block ends, by a stop too."""
     try:
-        helper = OutputProcess(deferred)
+        helper = OutputProcess()
     except (OSError, ValueError, RuntimeError):
         helper = None
     try:

@@ -88,7 +88,7 @@ def main(args: argparse.Namespace) -> int:
     # the recording is moved into place after the outputs, and written whole before them (finish_writing)
     # the helper that writes the figures and point clouds ends before the staging directory is removed
     with _recorder(args) as recorder, output_directory(args.out, args.force, OUTPUT_SPACE) as staging, \
-            output_process(deferred=not images) as helper:  # a file's decisions take both cores: imports after them
+            output_process() as helper:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", HealthWarning)  # listed in the summary, shown by print_health
             drive = euroc_truth = None
@@ -101,7 +101,7 @@ def main(args: argparse.Namespace) -> int:
             elif images:
                 (result, notes), gt, drive = _run_images(args, config, tracker, gt, say, recorder)
             else:
-                result, notes = _run_file(args, config, gt, say, recorder, helper)
+                result, notes = _run_file(args, config, gt, say, recorder)
         if recorder is not None:
             recorder.log_result(result, gt[2] if gt else None)
         if euroc_truth is not None:
@@ -177,9 +177,7 @@ def _recorder(args: argparse.Namespace):
     return RerunRecorder(args.rerun, spawn=args.rerun_live)
 
 
-def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None, helper=None):
-    """A feature file (.npz): loaded, then the filter; the output ``helper`` begins its imports with
-    the filter (its decisions' fits run in two threads before)."""
+def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None):
     from ...backend.data.npz import load_sequence
 
     t0 = time.perf_counter()
@@ -191,8 +189,7 @@ def _run_file(args: argparse.Namespace, config: Config, gt, say, recorder=None, 
     for note in seq.notes:
         say(f"note: {note}")
     say(console.configuration_text(args.verbose, config))
-    return _filter(args, seq, config, load_seconds, say, recorder, None if helper is None else helper.begin), \
-        list(seq.notes)
+    return _filter(args, seq, config, load_seconds, say, recorder), list(seq.notes)
 
 
 def _run_euroc(args: argparse.Namespace, config: Config, tracker, gt, say, recorder=None):
@@ -242,20 +239,14 @@ def _run_rig(args: argparse.Namespace, data, kind: str, config: Config, tracker,
     return (_filter(args, seq, config, time.perf_counter() - t0, say, recorder), notes), gt, truth
 
 
-def _filter(args: argparse.Namespace, seq, config: Config, load_seconds: float, say, recorder=None, begin=None):
+def _filter(args: argparse.Namespace, seq, config: Config, load_seconds: float, say, recorder=None):
     """The filter over a whole sequence (a feature file, or tracked from an EuRoC folder or a raw drive's
-    inertial input), with its progress bar and the recorder's time stamps; ``begin()`` is called at
-    its first step (once the decisions are taken)."""
+    inertial input), with its progress bar and the recorder's time stamps."""
     from ...backend.run.runner import run_sequence
 
     if recorder is not None:
         recorder.time_stamps = seq.time_stamps
-    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as bar:
-        progress = bar
-        if begin is not None:
-            def progress(k):
-                begin()
-                bar(k)
+    with console.progress_bar(seq.num_steps, "filter", "step", console.progress_off(args)) as progress:
         return run_sequence(seq, config, load_seconds=load_seconds, progress=progress, say=say,
                             observer=None if recorder is None else recorder.observer)
 
