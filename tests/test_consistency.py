@@ -156,6 +156,27 @@ def test_monte_carlo_runs_are_the_seeded_single_runs(tiny_mc):
     trace = run_one(scene, config, noise_seed=3)
     assert trace.pose_nees[SKIP_STEPS:].mean() == pytest.approx(result.per_run_pose_nees[3], rel=1e-9)
     assert trace.mean_nis == pytest.approx(result.per_run_nis[3], rel=1e-9)
+    assert result.nis_expected == 4.0 and trace.dof == 4 * int(trace.nis_count.sum())  # 4 dof an observation
+
+
+def test_the_nis_is_judged_against_its_degrees_of_freedom():
+    """A window's feature seen n times has 4n - 3 degrees of freedom (W5): the runs' NIS per
+    observation is judged against the expectation their degrees of freedom give, not 4."""
+    from vislam.backend.evaluation.consistency import RunTrace, summarize
+
+    rng = np.random.default_rng(11)
+    traces = []
+    for seed in range(6):
+        n = rng.integers(2, 14, size=(50, 10))  # 10 features a step, each seen n times
+        dof = (4 * n - 3).sum(axis=1)
+        traces.append(RunTrace(noise_seed=seed, pose_nees=rng.chisquare(6, 50), nis_sum=rng.chisquare(dof).astype(float),
+                               nis_count=n.sum(axis=1), landmark_nees=rng.chisquare(3, 20), ate_estimate=0.1,
+                               ate_dead_reckoning=1.0, nis_dof=dof))
+    result = summarize(traces, skip=0)
+    expected = sum(int(t.nis_dof.sum()) for t in traces) / sum(int(t.nis_count.sum()) for t in traces)
+    assert result.nis_expected == pytest.approx(expected) and result.nis_expected < 3.9
+    line = [m for m in result._metric_lines(*result.pose_nees_band) if m.startswith("NIS")][0]
+    assert f"consistent with {round(expected, 3):g}" in line and "4n - 3" in line
 
 
 def test_filter_is_consistent_on_its_own_model(tiny_mc):

@@ -252,12 +252,13 @@ def test_retract_clones_is_the_left_exponential():
 def test_room_flight_with_a_window_is_accurate_and_consistent():
     """12 runs of one 10 s room flight (2 % gross outliers; IMU noise, biases and pixels drawn anew)
     with a window of 13 clones: in flight (from 3 s on) the average pose NEES is in its 95 % band for
-    at least 90 % of steps (99 % measured), never above it at rest and take-off, and each run's ATE is
-    under 2 cm (about 6 mm)."""
+    at least 90 % of steps (99 % measured), never above it at rest and take-off, each run's ATE is
+    under 2 cm (about 6 mm), and the NIS per observation is within 7 % of what its degrees of freedom
+    expect (4n - 3 a feature seen n times, W5; 0.998 measured)."""
     cfg = InertialSceneConfig(duration=10.0, seed=3)
     config = Config()  # the default: a window of 13
     assert config.estimator.window == 13
-    nees, ates = [], []
+    nees, ates, nis = [], [], []
     for run in range(12):
         bias = np.random.default_rng(500 + run).normal(0.0, 0.1, 3)
         scene = make_inertial_scene(dataclasses.replace(cfg, accel_bias0=tuple(bias)), noise_seed=100 + run)
@@ -267,6 +268,9 @@ def test_room_flight_with_a_window_is_accurate_and_consistent():
         nees.append(trajectory_nees(res.time_stamps, res.world_T_imu, res.pose_covariance, t, scene.world_T_imu_true,
                                     gravity_aligned=True).pose_nees[1:])
         ates.append(trajectory_errors(res.time_stamps, res.world_T_imu, t, scene.world_T_imu_true).ate_rmse)
+        nis.append(res.stats.mean_nis / res.stats.nis_expected)  # its expectation: 4n - 3 dof a feature (W5)
+        assert 3.0 < res.stats.nis_expected < 4.0
+    assert 0.93 <= np.mean(nis) <= 1.07, nis
     avg = np.mean(nees, axis=0)
     lo, hi = average_band(6, len(nees))
     flying = avg[60:]

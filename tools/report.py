@@ -72,6 +72,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
             "active_max": stats.active_landmarks_max,
         },
         "mean_nis_per_observation": stats.mean_nis,
+        "expected_nis_per_observation": stats.nis_expected,
         "gyro_bias_final": result.gyro_bias,
         **({"accel_bias_final": result.accel_biases[-1], "velocity_final": result.velocity[-1]} if result.inertial else {}),
         "timing": {
@@ -188,8 +189,10 @@ def _number(value) -> str:
     return "inf" if value is None else f"{value:.2f}"
 
 
-def _nis_text(mean_nis: float) -> str:
-    return f"{mean_nis:.2f}" if math.isfinite(mean_nis) else "n/a (no observation used)"
+def _nis_text(mean_nis: float, expected: float = 4.0) -> str:
+    if not math.isfinite(mean_nis):
+        return "n/a (no observation used)"
+    return f"{mean_nis:.2f}" + ("" if expected == 4.0 else f" (expected {expected:.2f}: the window's features)")
 
 
 def _timing_text(t: dict) -> str:
@@ -217,7 +220,8 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     lines = [
         f"steps {summary['steps']}, observations used {obs['used']} (gated {100 * obs['gated_share']:.1f} %), "
         f"landmarks mapped {lm['mapped']} (active mean {lm['active_mean']:.1f}, max {lm['active_max']})",
-        _timing_text(t) + "; mean NIS per observation " + _nis_text(summary['mean_nis_per_observation']),
+        _timing_text(t) + "; mean NIS per observation " + _nis_text(summary['mean_nis_per_observation'],
+                                                                    summary.get('expected_nis_per_observation', 4.0)),
     ]
     if obs.get("still_frames"):
         lines.append(f"standing still at {obs['still_frames']} of {summary['steps']} frames (the tracks, the IMU and the "

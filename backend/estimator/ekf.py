@@ -65,7 +65,8 @@ class StepStats:
     marginalized: int = 0  # landmarks moved from the state to the map
     reanchored: int = 0  # landmarks re-triangulated from their current observation (drifting tracks, R1)
     dropped: int = 0  # landmarks removed as repeatedly gated
-    nis_sum: float = 0.0  # sum over used observations of their NIS (expectation 4 each, U4)
+    nis_sum: float = 0.0  # sum over used observations of their NIS (expectation 4 each, U4; a window's: W5)
+    nis_dof: int = 0  # the degrees of freedom of nis_sum, its expectation: 4 a used observation; 4n - 3 a window's feature seen n times (W5)
     log_likelihood: float = 0.0  # sum over observations in front of the camera of their Student-t log-likelihood (L1)
     tested: int = 0  # observations in that sum
     active: int = 0  # landmarks in the state after the step
@@ -354,6 +355,7 @@ class VisualInertialEKF:
             self._initialize(ids[new], pixels[new], stats, restart[new] if stats.reanchored else None)
         self.seconds_bookkeeping += (t1 - t0) + (time.perf_counter() - t2)
         stats.active = st.num_landmarks
+        stats.nis_dof = 4 * stats.used
         if stats.used or stats.gated:
             self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)
         if self.step_index % 100 == 0:
@@ -373,7 +375,7 @@ class VisualInertialEKF:
 
     def _window_step(self, step: WindowStep, stats: StepStats) -> StepStats:
         """A window's frame (W1-W7) in the step's counts and the health."""
-        stats.used, stats.gated, stats.nis_sum = step.used, step.gated, step.nis_sum
+        stats.used, stats.gated, stats.nis_sum, stats.nis_dof = step.used, step.gated, step.nis_sum, step.dof
         stats.marginalized, stats.active = step.mapped, step.active
         if stats.used or stats.gated:
             self.health.add_nis(self.step_index, stats.nis_sum, stats.used, stats.gated)

@@ -551,13 +551,15 @@ def _plan_groups(ids, slots, order, lst, cur, full, size, stagger):
 @dataclass
 class WindowStep:
     """What one frame of the window did: the observations of the features used and left out (W5),
-    their NIS sum, the features mapped, and the tracks in the window after the frame."""
+    their NIS sum and its degrees of freedom (4n - 3 a feature seen n times: its expectation), the
+    features mapped, and the tracks in the window after the frame."""
 
     used: int
     gated: int
     nis_sum: float
     mapped: int
     active: int
+    dof: int = 0
 
 
 class WindowUpdater:
@@ -656,7 +658,8 @@ class WindowUpdater:
             correct(state, dx)
             self.map.add(ids[start[good]], points[good], covs[good])
         n_used = int(used[good].sum())
-        return WindowStep(n_used, int(count.sum()) - n_used, float(nis[good].sum()), int(good.sum()), 0)
+        return WindowStep(n_used, int(count.sum()) - n_used, float(nis[good].sum()), int(good.sum()), 0,
+                          4 * n_used - 3 * int(good.sum()))
 
 
 def settled_trajectory(settled: list, frames: int) -> tuple[np.ndarray, np.ndarray]:

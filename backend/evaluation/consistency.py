@@ -304,7 +304,7 @@ class RunTrace:
 
     noise_seed: int
     pose_nees: np.ndarray  # (N,) per step, 6 dof
-    nis_sum: np.ndarray  # (N,) per step, sum over the used observations (4 dof each)
+    nis_sum: np.ndarray  # (N,) per step, sum over the used observations (4 dof each; a window's feature 4n - 3)
     nis_count: np.ndarray  # (N,) int, used observations per step
     landmark_nees: np.ndarray  # (K,) mapped landmarks (3 dof each), in id order
     # Final-trajectory position RMSE against the truth WITHOUT alignment (m): the truth and both
@@ -315,6 +315,7 @@ class RunTrace:
     conventions: str = ""  # decided by backend.run.decisions.decide, e.g. "flip=no,velocity=this"
     health_messages: list = field(default_factory=list)
     wall_seconds: float = 0.0
+    nis_dof: np.ndarray | None = None  # (N,) int, the degrees of freedom of nis_sum (None: 4 an observation)
 
     @property
     def steps(self) -> int:
@@ -324,6 +325,11 @@ class RunTrace:
     def mean_nis(self) -> float:
         used = int(self.nis_count.sum())
         return float(self.nis_sum.sum() / used) if used else float("nan")
+
+    @property
+    def dof(self) -> int:
+        """The degrees of freedom of every NIS summed: the expectation of ``nis_sum.sum()``."""
+        return int(self.nis_dof.sum()) if self.nis_dof is not None else 4 * int(self.nis_count.sum())
 
 
 def _position_rmse(estimate: np.ndarray, truth: np.ndarray) -> float:
@@ -363,6 +369,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
         nees = np.empty(n)
         nis_sum = np.zeros(n)
         nis_count = np.zeros(n, dtype=np.int64)
+        nis_dof = np.zeros(n, dtype=np.int64)
 
         align = [np.eye(4)]  # an inertial run's world is the truth's up to yaw and position (E5)
 
@@ -375,6 +382,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
             if step_stats is not None:
                 nis_sum[k] = step_stats.nis_sum
                 nis_count[k] = step_stats.used
+                nis_dof[k] = step_stats.nis_dof
 
         result = run_sequence(scene.sequence, config, observer=record)  # one BLAS thread by config
         A = align[0]
@@ -394,6 +402,7 @@ def run_one(scene_factory: SceneFactory, filter_config: Config, noise_seed: int,
         pose_nees=nees,
         nis_sum=nis_sum,
         nis_count=nis_count,
+        nis_dof=nis_dof,
         landmark_nees=lm_nees,
         ate_estimate=_position_rmse(estimate, truth),
         ate_dead_reckoning=_position_rmse(dead_reckoning, truth),
@@ -421,7 +430,7 @@ class ConsistencyResult:
     landmark_nees_mean: float  # over every mapped landmark of every run (expectation 3)
     landmark_count: int
     landmark_nees_band: tuple  # of the mean of every landmark's NEES as if independent (they are not: a run's share errors)
-    nis_mean: float  # per used observation over every run (expectation 4, a little less after gating)
+    nis_mean: float  # per used observation over every run (expectation nis_expected, a little less after gating)
     nis_count: int
     nis_band: tuple
     nis_per_step: np.ndarray  # (N,) NIS per used observation at each step over the runs (nan: none used)
@@ -437,6 +446,7 @@ class ConsistencyResult:
     wall_seconds: float = 0.0
     scene: dict = field(default_factory=dict)
     filter: dict = field(default_factory=dict)
+    nis_expected: float = 4.0  # NIS per observation expected: 4; a window's features 4 - 3 / n each (W5)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -462,6 +472,7 @@ class ConsistencyResult:
             },
             "nis": {
                 "dof": 4,
+                "expected_per_observation": self.nis_expected,
                 "mean_per_observation": self.nis_mean,
                 "count": self.nis_count,
                 "band": list(self.nis_band),
@@ -504,8 +515,10 @@ class ConsistencyResult:
             f"95 % band [{lo:.2f}, {hi:.2f}] of the {self.runs}-run average; time average {self.pose_nees_time_average:.2f}",
             f"landmark NEES (3 dof): mean {self.landmark_nees_mean:.2f} over {self.landmark_count} landmarks; "
             + consistency_verdict(3.0, self.per_run_landmark_nees, "the map's covariances"),
-            f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}; "
-            + consistency_verdict(4.0, self.per_run_nis, "the innovations' covariances"),
+            f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}"
+            + ("; " if self.nis_expected == 4.0 else f" (expected {self.nis_expected:.3f}: a window's feature seen n "
+                                                     "times has 4n - 3 dof); ")
+            + consistency_verdict(round(self.nis_expected, 3), self.per_run_nis, "the innovations' covariances"),
         ]
 
 
@@ -577,6 +590,7 @@ def summarize(traces: list[RunTrace], skip: int = SKIP_STEPS) -> ConsistencyResu
         landmark_count=int(lm.size),
         landmark_nees_band=average_band(3, int(lm.size)),
         nis_mean=float(nis_sum.sum() / total) if total else float("nan"),
+        nis_expected=float(sum(t.dof for t in traces) / total) if total else 4.0,
         nis_count=total,
         nis_band=average_band(4, total),
         nis_per_step=nis_step,

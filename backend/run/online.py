@@ -48,7 +48,8 @@ class RunStats:
     landmarks_mapped: int = 0
     active_landmarks_mean: float = 0.0
     active_landmarks_max: int = 0
-    mean_nis: float = float("nan")  # per used observation; expectation 4 (a little less after gating)
+    mean_nis: float = float("nan")  # per used observation; expectation nis_expected (a little less after gating)
+    nis_expected: float = 4.0  # 4 per used observation; a window's feature seen n times has 4n - 3 dof (W5)
     filter_seconds: float = 0.0  # the filter loop (predict and update of every step)
     load_seconds: float = 0.0  # reading the input (`vislam run`)
     input_seconds: float = 0.0  # producing the steps while the run goes (an image stream: decoding and tracking)
@@ -96,6 +97,7 @@ class RunBook:
         self.step_seconds: list[float] = []
         self._active_sum = 0
         self._nis_sum = 0.0
+        self._nis_dof = 0
 
     def add_update(self, step_stats: StepStats) -> None:
         """Count one update's observations and landmarks."""
@@ -109,6 +111,7 @@ class RunBook:
         stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
         self._active_sum += step_stats.active
         self._nis_sum += step_stats.nis_sum
+        self._nis_dof += step_stats.nis_dof
 
     def add_step(self, t: float, predict_seconds: float, update_seconds: float) -> None:
         """One time stamp done, with the seconds of its prediction and its update."""
@@ -133,6 +136,7 @@ class RunBook:
         stats.sequence_seconds = self.times[-1] - self.times[0]
         stats.active_landmarks_mean = self._active_sum / stats.steps
         stats.mean_nis = self._nis_sum / stats.observations_used if stats.observations_used else float("nan")
+        stats.nis_expected = self._nis_dof / stats.observations_used if stats.observations_used else 4.0
         if mode != Mode.DEAD_RECKONING:  # H3: a run meant to see that did not
             message = vision_check(stats.observations, stats.observations_used, stats.observations_gated,
                                    slam=mode == Mode.SLAM)
