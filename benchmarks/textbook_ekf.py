@@ -11,7 +11,8 @@ ends), one joint update a step with every observation (S = H P H^T + sigma^2 I, 
 observation gated by its own chi2_4 test (batched). The convention test: the IMU's axes as given or
 flipped, the velocity stamped k or k+1, by the median reprojection of points triangulated at k,
 carried by dead reckoning to k+3. Fixed noise: 1.5 px, 0.5 m/s and 0.05 rad/s per axis. numpy only
-(its BLAS with its default threads); no numba, no outputs. BENCHMARKS.md times its whole process
+(its BLAS with its default threads) and its own few SE(3) lines (vislam's geometry imports numba, whose
+import the yardstick must not pay); no numba, no outputs. BENCHMARKS.md times its whole process
 against ``vislam run``'s.
 """
 

@@ -157,28 +157,19 @@ def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M, res):
 
 
 @jit
-def _mul3_inplace(A, B, out):
-    """out = A B for 3 x 3 matrices (explicit loops: a BLAS call costs more at this size)."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-
-
-@jit
-def _expand_inplace(C, P, out, r0, c0, work, add):
-    """E^T C E with E = [-I, P], P = p^ (3,3), into (``add``: onto) ``out[r0:r0+6, c0:c0+6]``:
-    [[C, -C P], [P C, -P C P]]; ``work`` (3,3,3) is work space."""
+def _expand_inplace(C, P, out, r0, c0, work):
+    """E^T C E with E = [-I, P], P = p^ (3,3), into ``out[r0:r0+6, c0:c0+6]``: [[C, -C P], [P C, -P C P]];
+    ``work`` (3,3,3) is work space."""
     CP, PC, PCP = work[0], work[1], work[2]
-    _mul3_inplace(C, P, CP)
-    _mul3_inplace(P, C, PC)
-    _mul3_inplace(PC, P, PCP)
-    keep = 1.0 if add else 0.0
+    se3.small_matmul_into(C, P, CP)
+    se3.small_matmul_into(P, C, PC)
+    se3.small_matmul_into(PC, P, PCP)
     for i in range(3):
         for j in range(3):
-            out[r0 + i, c0 + j] = keep * out[r0 + i, c0 + j] + C[i, j]
-            out[r0 + i, c0 + 3 + j] = keep * out[r0 + i, c0 + 3 + j] - CP[i, j]
-            out[r0 + 3 + i, c0 + j] = keep * out[r0 + 3 + i, c0 + j] + PC[i, j]
-            out[r0 + 3 + i, c0 + 3 + j] = keep * out[r0 + 3 + i, c0 + 3 + j] - PCP[i, j]
+            out[r0 + i, c0 + j] = C[i, j]
+            out[r0 + i, c0 + 3 + j] = -CP[i, j]
+            out[r0 + 3 + i, c0 + j] = PC[i, j]
+            out[r0 + 3 + i, c0 + 3 + j] = -PCP[i, j]
 
 
 @jit
@@ -201,25 +192,6 @@ def _cholesky3(A, L):
         return False
     L[2, 2] = np.sqrt(a)
     return True
-
-
-@jit
-def _local_information(n, Ns, Ys, P, C, work):
-    """Lambda_f (6n,6n) of one feature (W4) over its observations' clones in observation order:
-    block (k, l) = E^T (delta_kl N_k - N_k (H_p^T H_p)^-1 N_l) E, ``Ys[l]`` = (H_p^T H_p)^-1 N_l."""
-    Lf = np.empty((6 * n, 6 * n))
-    for k in range(n):
-        for l in range(k, n):
-            _mul3_inplace(Ns[k], Ys[l], C)
-            for i in range(3):
-                for j in range(3):
-                    C[i, j] = (Ns[k, i, j] if l == k else 0.0) - C[i, j]
-            _expand_inplace(C, P, Lf, 6 * k, 6 * l, work, False)
-            if l != k:
-                for i in range(6):
-                    for j in range(6):
-                        Lf[6 * l + j, 6 * k + i] = Lf[6 * k + i, 6 * l + j]
-    return Lf
 
 
 @jit
@@ -362,9 +334,13 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
         u = se3.small_matmul(inv, Hpr)
         ro2 = rr - (Hpr[0] * u[0] + Hpr[1] * u[1] + Hpr[2] * u[2])  # r_o^T r_o
         for k in range(n):
-            _mul3_inplace(inv, Ns[k], Ys[k])  # (H_p^T H_p)^-1 N_k
+            se3.small_matmul_into(inv, Ns[k], Ys[k])  # (H_p^T H_p)^-1 N_k
         m6 = 6 * n
-        gf = np.empty(m6)  # g_f over the observations' clones, in observation order
+        # over the observations' clones, in observation order: g_f, the blocks E^T N_k E and the rank-3
+        # term's columns W_f = B L (B = [.. E^T N_k ..], L L^T = (H_p^T H_p)^-1): Lambda_f = diag - W_f W_f^T
+        gf = np.empty(m6)
+        Df = np.empty((n, 6, 6))
+        Wf = np.empty((m6, 3))
         P = se3.hat3(p)
         a3 = np.empty(3)
         for k in range(n):
@@ -374,6 +350,17 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
             gf[6 * k + 3] = a3[1] * p[2] - a3[2] * p[1]  # (p^)^T a3 = -p^ a3 = a3 x p
             gf[6 * k + 4] = a3[2] * p[0] - a3[0] * p[2]
             gf[6 * k + 5] = a3[0] * p[1] - a3[1] * p[0]
+            _expand_inplace(Ns[k], P, Df[k], 0, 0, work)
+            se3.small_matmul_into(P, Ns[k], C)  # E^T N_k = [-N_k; -p^ N_k]
+            for i in range(3):
+                for j in range(3):
+                    top = 0.0
+                    bottom = 0.0
+                    for m in range(3):
+                        top -= Ns[k, i, m] * Lc[m, j]
+                        bottom -= C[i, m] * Lc[m, j]
+                    Wf[6 * k + i, j] = top
+                    Wf[6 * k + 3 + i, j] = bottom
             for i in range(6):
                 idx[6 * k + i] = 6 * slot[obs[k]] + i
         Pf = np.empty((m6, m6))
@@ -385,7 +372,15 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
         # (r_o^T r_o - g_f^T (sigma^2 I + P_f Lambda_f)^-1 P_f g_f) / sigma^2)
         nis[f] = (ro2 + off) / pixel_var
         if nis[f] > gate[n]:
-            T = se3.small_matmul(Pf, _local_information(n, Ns, Ys, P, C, work))
+            Lf = np.empty((m6, m6))
+            for i in range(m6):
+                for j in range(m6):
+                    Lf[i, j] = -(Wf[i, 0] * Wf[j, 0] + Wf[i, 1] * Wf[j, 1] + Wf[i, 2] * Wf[j, 2])
+            for k in range(n):
+                for i in range(6):
+                    for j in range(6):
+                        Lf[6 * k + i, 6 * k + j] += Df[k, i, j]
+            T = se3.small_matmul(Pf, Lf)
             for i in range(m6):
                 T[i, i] += pixel_var
             x, solved = solve_small(T, se3.small_matmul(Pf, gf))
@@ -414,25 +409,18 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
                 for k in range(m6):
                     acc += GP[i, k] * GHx[j, k]
                 covs[f, i, j] = acc
-        # the feature's information joins the frame's: the blocks E^T N_k E of its clones, g_f, and the
-        # rank-3 term -B (H_p^T H_p)^-1 B^T, B = [.. E^T N_k ..] (6w,3), as columns W = B L of W W^T
+        # the feature's information joins the frame's: its blocks E^T N_k E and g_f on its clones' rows, and
+        # its columns of W (the rank-3 terms' sum W W^T is one product, feature_information's)
         col = 3 * accepted
         accepted += 1
         for k in range(n):
             r0 = 6 * slot[obs[k]]
-            _expand_inplace(Ns[k], P, Lam, r0, r0, work, True)
             for i in range(6):
                 Lam[r0 + i, 6 * w] += gf[6 * k + i]
-            _mul3_inplace(P, Ns[k], C)  # E^T N_k = [-N_k; -p^ N_k]
-            for i in range(3):
+                for j in range(6):
+                    Lam[r0 + i, r0 + j] += Df[k, i, j]
                 for j in range(3):
-                    top = 0.0
-                    bottom = 0.0
-                    for m in range(3):
-                        top -= Ns[k, i, m] * Lc[m, j]
-                        bottom -= C[i, m] * Lc[m, j]
-                    Wcols[r0 + i, col + j] = top
-                    Wcols[r0 + 3 + i, col + j] = bottom
+                    Wcols[r0 + i, col + j] = Wf[6 * k + i, j]
     return points, covs, ok, nis, used, Lam, Wcols[:, :3 * accepted]
 
 

@@ -71,6 +71,13 @@ def small_matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return A @ B
 
 
+def small_matmul_into(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """out = A @ B for small matrices (m,k) @ (k,n), in place (no allocation in a kernel's inner loop);
+    returns ``out``. Python uses numpy's product; compiled code the loop nest of :func:`small_matmul`."""
+    np.matmul(A, B, out=out)
+    return out
+
+
 def put_block(out: np.ndarray, row: int, col: int, block: np.ndarray) -> None:
     """out[row:row + m, col:col + n] = block (m,n), in place. Python uses numpy's slice assignment;
     compiled code gets a loop nest instead (numba's first 2-d slice assignment in a process costs
@@ -87,6 +94,20 @@ def _put_block_compiled(out, row, col, block):
     return put
 
 
+@overload(small_matmul_into)
+def _small_matmul_into_compiled(A, B, out):
+    def product(A, B, out):
+        for i in range(A.shape[0]):
+            for j in range(B.shape[1]):
+                out[i, j] = 0.0
+            for k in range(A.shape[1]):
+                a = A[i, k]
+                for j in range(B.shape[1]):
+                    out[i, j] += a * B[k, j]
+        return out
+    return product
+
+
 @overload(small_matmul)
 def _small_matmul_compiled(A, B):
     if B.ndim == 1:
@@ -98,13 +119,7 @@ def _small_matmul_compiled(A, B):
             return out
     else:
         def product(A, B):
-            out = np.zeros((A.shape[0], B.shape[1]))
-            for i in range(A.shape[0]):
-                for k in range(A.shape[1]):
-                    a = A[i, k]
-                    for j in range(B.shape[1]):
-                        out[i, j] += a * B[k, j]
-            return out
+            return small_matmul_into(A, B, np.empty((A.shape[0], B.shape[1])))
     return product
 
 
