@@ -26,8 +26,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtri  # chi-square quantile without scipy.stats (40 MB, 0.6 s to import)
 
+from .. import chi2
 from ..compiled import warm_up, warm_up_seconds
 from ..config import Choice, Config, ErrorModel as ErrorModelKind, Mode
 from ..errors import FilterError
@@ -220,7 +220,7 @@ class VisualInertialEKF:
         drifting = drift.track_drift != Choice.NO
         xyz = config.landmarks.parametrization == "xyz"
         self._landmark_walk = drift.landmark_random_walk**2 if drifting and xyz else 0.0
-        self._gate = float(chdtri(4, 1.0 - config.update.gate_probability))  # chi2(4) quantile (U4)
+        self._gate = chi2.quantile(4, config.update.gate_probability)  # chi2(4) quantile (U4)
         self._reanchor = (drifting and not est.full_state
                           and (drift.reanchor_observations > 0 or drift.reanchor_far_observations > 0))
         self._near_limit = drift.reanchor_observations or _NEVER

@@ -15,6 +15,12 @@ small work arrays.
 
 from __future__ import annotations
 
+import ctypes
+import importlib.machinery
+import importlib.util
+import os
+import sys
+
 import numpy as np
 from llvmlite import binding as _llvm
 from numba import types
@@ -26,11 +32,45 @@ _BLAS = ("dsyrk", "dtrsm", "dgemm")
 _LAPACK = ("dpotrf",)
 
 
+def _cython_module(name: str):
+    """scipy's ``scipy.linalg.<name>`` (cython_blas, cython_lapack) loaded from its own file, without
+    ``scipy.linalg``'s package (its import, scipy's array-API layer with it, took 0.15-0.2 s of a run's
+    start-up that needs four function pointers); None where that file is not found."""
+    module = sys.modules.get(f"scipy.linalg.{name}")
+    if module is not None:
+        return module
+    import scipy
+
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = os.path.join(scipy.__path__[0], "linalg", name + suffix)
+        if os.path.exists(path):
+            loader = importlib.machinery.ExtensionFileLoader(f"scipy.linalg.{name}", path)
+            module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+            loader.exec_module(module)
+            sys.modules[loader.name] = module  # the module scipy.linalg would import: later imports take it
+            return module
+    return None
+
+
+def _cython_address(module_name: str, name: str) -> int:
+    """The address of the cython-exported function ``name`` of scipy's ``module_name`` (its capsule in
+    ``__pyx_capi__``, as ``numba.extending.get_cython_function_address`` reads it)."""
+    module = _cython_module(module_name)
+    if module is None:
+        return get_cython_function_address(f"scipy.linalg.{module_name}", name)
+    capsule = module.__pyx_capi__[name]
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype, api.PyCapsule_GetName.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    return api.PyCapsule_GetPointer(capsule, api.PyCapsule_GetName(capsule))
+
+
 def _register() -> None:
     for name in _BLAS:
-        _llvm.add_symbol("vislam_" + name, get_cython_function_address("scipy.linalg.cython_blas", name))
+        _llvm.add_symbol("vislam_" + name, _cython_address("cython_blas", name))
     for name in _LAPACK:
-        _llvm.add_symbol("vislam_" + name, get_cython_function_address("scipy.linalg.cython_lapack", name))
+        _llvm.add_symbol("vislam_" + name, _cython_address("cython_lapack", name))
 
 
 _register()

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from scipy.linalg.lapack import dgesv
 
 from ..errors import FilterError
 from .covariance import augment, gather_landmarks, gather_symmetric, repair_if_indefinite
@@ -181,6 +180,8 @@ class StateHelper:
             P <- P - P_:,w K_w[:, :6w] P_w,:
 
         (the Kalman update P - K S K^T with its m x m inverse never formed). Returns dx (D,)."""
+        from scipy.linalg.lapack import dgesv  # a window's run only: a velocity run need not import scipy.linalg
+
         c = state.core
         w6 = info.shape[1] - 1
         P = state.P

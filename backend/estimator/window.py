@@ -71,8 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scipy.special import chdtri
-
+from .. import chi2
 from ..compiled import jit, warms_up
 from ..config import EstimatorOptions, Mode
 from ..geometry import se3
@@ -565,8 +564,8 @@ class WindowUpdater:
         self.pixel_var = float(pixel_var)
         self.map = map_
         n = np.arange(size + 2)
-        self._gate = chdtri(np.maximum(4 * n - 3, 1), 1.0 - gate_probability)  # chi2_{4n-3} quantile by n (W5)
-        self._obs_gate = float(chdtri(4, 1.0 - gate_probability))  # one observation's (U4) (W3)
+        self._gate = np.array([chi2.quantile(max(4 * i - 3, 1), gate_probability) for i in n])  # chi2_{4n-3} quantile by n (W5)
+        self._obs_gate = chi2.quantile(4, gate_probability)  # one observation's (U4) (W3)
         self._stagger = max(1, size // 2)  # a track's segments hold size - (id mod this) observations (W7)
         self._ids = np.zeros(0, dtype=np.int64)  # (O,) the window's observations: track id,
         self._slots = np.zeros(0, dtype=np.int64)  # ... clone slot (0: the oldest),

@@ -53,8 +53,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.special import bdtri, chdtri
 
+from .. import chi2
 from ..compiled import jit, warms_up
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..geometry import se3
@@ -134,8 +134,10 @@ def imu_rest_statistic(samples: ImuSamples, t0: float, t1: float, world_R_imu: n
 @lru_cache(maxsize=1024)
 def median_threshold(k: int, probability: float) -> float:
     """(Z6) x_k: the median of k chi2_4 draws exceeds it with probability 1 - ``probability``."""
+    from scipy.special import bdtri  # a real IMU's runs only: a velocity run need not import scipy.special
+
     q = bdtri((k + 1) // 2 - 1, k, 1.0 - probability)
-    return float(chdtri(4, 1.0 - q))
+    return chi2.quantile(4, q)
 
 
 def flow_rest_statistic(last_ids: np.ndarray, last_pixels: np.ndarray, ids: np.ndarray, pixels: np.ndarray,
@@ -200,7 +202,7 @@ class ZeroVelocityUpdater:
         self.noise, self.gravity, self.pixel_var, self.probability = noise, np.asarray(gravity, float), pixel_var, probability
         self.camera = camera
         self.imu_R_cam = np.asarray(cam_T_imu, dtype=float)[:3, :3].T
-        self._velocity_gate = float(chdtri(3, 1.0 - probability))
+        self._velocity_gate = chi2.quantile(3, probability)
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._interval: tuple[ImuSamples, float, float] | None = None
 
@@ -237,7 +239,7 @@ class ZeroVelocityUpdater:
         c = state.core
         s, dof = imu_rest_statistic(imu, t0, t1, state.mu[:3, :3], state.gyro_bias, state.accel_bias,
                                     state.P[:c, :c], self.noise, self.gravity)
-        imu_test = (s, float(chdtri(dof, 1.0 - self.probability)) if dof else float("nan"))
+        imu_test = (s, chi2.quantile(dof, self.probability) if dof else float("nan"))
         C_t = translation_covariance(pixels[rows], self.camera, self.pixel_var) if s <= imu_test[1] else None
         if C_t is None:
             return RestTest(*flow, *imu_test), None

@@ -53,9 +53,9 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Protocol
 
 import numpy as np
-from scipy.special import chdtri  # chdtri(k, 1 - p) = chi2.ppf(p, k), without importing scipy.stats
 from threadpoolctl import threadpool_limits
 
+from .. import chi2
 from ..config import Config, Mode
 from ..data.sequence import Sequence
 from ..errors import ConfigError, HealthWarning, VislamError
@@ -149,12 +149,12 @@ def average_band(dof: int, count: int, probability: float = BAND_PROBABILITY) ->
     if count <= 0:
         return (float("nan"), float("nan"))
     tail = 0.5 * (1.0 - probability)
-    return (float(chdtri(dof * count, 1.0 - tail) / count), float(chdtri(dof * count, tail) / count))
+    return (chi2.quantile(dof * count, tail) / count, chi2.quantile(dof * count, 1.0 - tail) / count)
 
 
 def chi2_quantile(dof: int, probability: float = INSIDE_PROBABILITY) -> float:
-    """chi2.ppf(probability, dof): 7.815 for 3 dof and 12.59 for 6 at 0.95 (scipy.special, not scipy.stats)."""
-    return float(chdtri(dof, 1.0 - probability))
+    """chi2.ppf(probability, dof): 7.815 for 3 dof and 12.59 for 6 at 0.95 (``backend.chi2``)."""
+    return chi2.quantile(dof, probability)
 
 
 # ---------------------------------------------------------------------------------------- one trajectory, NEES

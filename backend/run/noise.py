@@ -42,8 +42,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import chdtri
 
+from ..chi2 import quantile as chi2_quantile
 from ..data.sequence import Sequence
 from ..geometry import se3
 from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
@@ -203,7 +203,7 @@ class ImuVsVision:
     def significant(self, white_linear: np.ndarray) -> bool:
         """The correction is shown (chi-square beyond ``CORRECTION_PROBABILITY``) and matters (RMS effect
         beyond ``MIN_EFFECT`` of the white noise on some axis)."""
-        return bool(self.chi2 > chdtri(6, 1.0 - CORRECTION_PROBABILITY)
+        return bool(self.chi2 > chi2_quantile(6, CORRECTION_PROBABILITY)
                     and np.any(self.effect_rms > MIN_EFFECT * np.maximum(white_linear, 1e-3)))
 
 

@@ -64,10 +64,16 @@ GROUND_TRUTH = "ground_truth.txt"
 OUTPUT_SPACE = 32 * 2**20
 
 
+def _is_euroc(path) -> bool:
+    """``frontend.euroc.is_euroc``, imported only for a directory (a feature file's run need not)."""
+    from ...frontend.euroc import is_euroc
+
+    return is_euroc(path)
+
+
 def main(args: argparse.Namespace) -> int:
     from ...backend.data.files import output_directory
     from ...backend.data.tum import read_tum, write_tum
-    from ...frontend.euroc import is_euroc
     from ..output_process import output_process
     from ..report import format_summary, print_health, write_run_outputs
 
@@ -94,7 +100,7 @@ def main(args: argparse.Namespace) -> int:
             drive = euroc_truth = None
             if bag:
                 (result, notes), gt, euroc_truth = _run_bag(args, config, tracker, gt, say, recorder)
-            elif images and is_euroc(args.data):
+            elif images and _is_euroc(args.data):
                 (result, notes), gt, euroc_truth = _run_euroc(args, config, tracker, gt, say, recorder)
             elif images and args.imu_input == "inertial":
                 (result, notes), gt, drive = _run_raw_inertial(args, config, tracker, gt, say, recorder)
