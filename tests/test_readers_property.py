@@ -751,6 +751,8 @@ def _tum_oracle(raw: bytes):
         tokens = s.split()
         if len(tokens) != 8:
             return ("refuse", lineno), tiny
+        if any("_" in x for x in tokens):  # Python's digit separator (float("0.7_5") == 0.75) is no number in a data file
+            return ("refuse", lineno), tiny
         try:
             values = [float(x) for x in tokens]
         except ValueError:
