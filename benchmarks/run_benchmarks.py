@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import platform
+import os
 import subprocess
 import sys
 import tempfile
@@ -132,6 +133,10 @@ def main() -> int:
     if not DATA.is_dir():
         print(f"benchmarks need {DATA}", file=sys.stderr)
         return 1
+    # A user's first run writes the package's bytecode beside its sources as it writes numba's cache;
+    # where the environment forbids it (PYTHONDONTWRITEBYTECODE) every measured process would compile
+    # every module of vislam again (0.1-0.25 s of start-up measured): the subprocesses may write it.
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
     # One run before the measured ones: the first run after an install compiles the kernels into
     # numba's cache (a one-time cost, reported apart), so that every measured run loads them.
     warm = measure(DATA / FILES[-1], repeats=1)
