@@ -152,13 +152,15 @@ def _key(flip: bool, velocity_index: str) -> str:
     return f"flip={'yes' if flip else 'no'},velocity={velocity_index}"
 
 
-def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: str = "auto", horizon: int = 3) -> ConventionDecision:
-    """Test every variant that is not fixed by the caller and take the one that fits best."""
+def decide_conventions(seq: Sequence, imu_flip: str = "auto", velocity_index: str = "auto", horizon: int = 3,
+                       pairs: MatchedPairs | None = None) -> ConventionDecision:
+    """Test every variant that is not fixed by the caller and take the one that fits best; ``pairs``:
+    ``matched_pairs(seq, horizon)`` when the caller has them."""
     flips = [False, True] if imu_flip == "auto" else [imu_flip == "yes"]
     indices = ["this", "next"] if velocity_index == "auto" else [velocity_index]
     errors: dict[str, float] = {}
     if len(flips) * len(indices) > 1:
-        pairs = matched_pairs(seq, horizon)
+        pairs = pairs if pairs is not None else matched_pairs(seq, horizon)
         poses = {i: dead_reckoning(seq.time_stamps, seq.linear_velocity, seq.angular_velocity, i) for i in indices}
         for flip, index in itertools.product(flips, indices):
             extrinsic = flipped_extrinsic(seq.imu_T_cam) if flip else seq.imu_T_cam

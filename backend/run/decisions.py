@@ -33,7 +33,7 @@ import numpy as np
 
 from ..config import Choice, Config, Mode
 from ..data.sequence import Sequence
-from .conventions import ConventionDecision, decide_conventions, reprojection_error
+from .conventions import ConventionDecision, MatchedPairs, decide_conventions, matched_pairs, reprojection_error
 from .drift import DriftDecision, decide_track_drift
 from .noise import (
     ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, hold_error, imu_vs_vision,
@@ -137,18 +137,20 @@ def _offset_model(config: Config) -> str:
 
 
 def _guarded(seq: Sequence, conventions: ConventionDecision, horizon: int, without: float | None,
-             corrected: Sequence) -> tuple[bool, dict]:
-    """Dead reckoning's reprojection (C1) with and without a correction: (keep it, the numbers)."""
+             corrected: Sequence, pairs: MatchedPairs | None = None) -> tuple[bool, dict]:
+    """Dead reckoning's reprojection (C1) with and without a correction: (keep it, the numbers);
+    ``pairs``: the corrected sequence's ``matched_pairs`` when the correction left its pixels as they were."""
     if without is None:
         without = reprojection_error(seq, conventions.imu_T_cam, conventions.velocity_index, horizon)
-    with_ = reprojection_error(corrected, conventions.imu_T_cam, conventions.velocity_index, horizon)
+    with_ = reprojection_error(corrected, conventions.imu_T_cam, conventions.velocity_index, horizon, pairs=pairs)
     numbers = {"without": float(without), "with": float(with_)}
     keep = not (np.isfinite(without) and np.isfinite(with_) and with_ > GUARD_TOLERANCE * without)
     return keep, numbers
 
 
 def _velocity_correction(seq: Sequence, conventions: ConventionDecision, vision: ImuVsVision | None,
-                         white: np.ndarray, config: Config) -> tuple[VelocityCorrection, dict]:
+                         white: np.ndarray, config: Config,
+                         pairs: MatchedPairs | None = None) -> tuple[VelocityCorrection, dict]:
     setting = config.conventions.velocity_correction
     if vision is None or setting == Choice.NO or config.estimator.mode == Mode.DEAD_RECKONING:
         return VelocityCorrection(), {}
@@ -156,7 +158,8 @@ def _velocity_correction(seq: Sequence, conventions: ConventionDecision, vision:
         return VelocityCorrection(), {}
     correction = VelocityCorrection(vision.lever_arm.copy(), vision.offset.copy())
     corrected = dataclasses.replace(seq, linear_velocity=correction.correct(seq.linear_velocity, seq.angular_velocity))
-    keep, numbers = _guarded(seq, conventions, config.conventions.horizon, conventions.chosen_error_px, corrected)
+    keep, numbers = _guarded(seq, conventions, config.conventions.horizon, conventions.chosen_error_px, corrected,
+                             pairs)  # the velocities changed, not the pixels: the same matched pairs
     if keep or setting == Choice.YES:
         return correction, numbers
     numbers["rejected"] = (f"the correction made dead reckoning's reprojection worse ({numbers['without']:.2f} -> "
@@ -191,7 +194,8 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
     """The decisions (module docstring) from ``seq``; ``imu_velocities`` (linear (N,3), angular (N,3)):
     the whole stream's samples for the white noise (N1) when ``seq`` holds only its first frames."""
     c = config.conventions
-    conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon)
+    pairs = matched_pairs(seq, c.horizon)  # the reprojection test's points (C1), for every test of the pixels as given
+    conventions = decide_conventions(seq, c.imu_flip, c.velocity_index, c.horizon, pairs)
     repeated = repeated_steps(seq)
     vision_used = config.estimator.mode != Mode.DEAD_RECKONING
     fits = {gap: fit_pairs(seq, gap, PAIRS_GAP1 if gap == 1 else PAIRS_LONGER, offset=True,
@@ -213,7 +217,7 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
     lin, ang = (seq.linear_velocity, seq.angular_velocity) if imu_velocities is None else imu_velocities
     white_lin, white_ang = estimate_white_noise(np.asarray(lin)), estimate_white_noise(np.asarray(ang))
     vision = imu_vs_vision(fits.get(1, []), seq, conventions.imu_T_cam, conventions.velocity_index) if vision_used else None
-    velocity, guard = _velocity_correction(seq, conventions, vision, white_lin, config)
+    velocity, guard = _velocity_correction(seq, conventions, vision, white_lin, config, pairs)
     imu = _imu_noise(config, white_lin, white_ang, vision)
     per_step = seq.num_observations / max(seq.num_steps, 1)
     est = config.estimator
