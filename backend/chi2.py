@@ -18,6 +18,7 @@ f(x) = x^(k/2 - 1) e^-y / (2^(k/2) Gamma(k/2)).                                 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -55,11 +56,17 @@ def _density(x: float, k: int) -> float:
 
 
 def quantile(dof: int, probability: float) -> float:
-    """x with P(chi2_k <= x) = ``probability`` (scipy's ``chi2.ppf(p, k)``, ``chdtri(k, 1 - p)``) (X2)."""
+    """x with P(chi2_k <= x) = ``probability`` (scipy's ``chi2.ppf(p, k)``, ``chdtri(k, 1 - p)``) (X2).
+    Remembered by (k, p): gates ask for the same few every frame."""
     k = _check_dof(dof)
     p = float(probability)
     if not 0.0 < p < 1.0:
         raise ValueError(f"probability must lie in (0, 1), got {probability!r}")
+    return _quantile(k, p)
+
+
+@lru_cache(maxsize=4096)
+def _quantile(k: int, p: float) -> float:
     target = 1.0 - p
     # Wilson-Hilferty: chi2_k / k ~ (1 - 2/(9k) + z sqrt(2/(9k)))^3, z the normal quantile (Acklam-free: by erfc)
     z = _normal_quantile(p)
