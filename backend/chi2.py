@@ -9,8 +9,9 @@ here, in closed form. With k = 2m + a degrees of freedom (a = 0 or 1) and y = x/
     Q(x; 2m + 1) = erfc(sqrt y) + e^-y sum_{i<m} y^(i + 1/2) / Gamma(i + 3/2)                 (X1)
 
 (each term from its logarithm, so no power or factorial overflows). The quantile x_p, Q(x_p) = 1 - p,
-is found by Newton's method on Q from the Wilson-Hilferty approximation, kept inside a bracket that
-bisection narrows where a step would leave it; Q'(x) = -f(x), the density
+is found by Newton's method on Q from the Wilson-Hilferty approximation (the standard library's
+normal quantile in it), kept inside a bracket that bisection narrows where a step would leave it;
+Q'(x) = -f(x), the density
 f(x) = x^(k/2 - 1) e^-y / (2^(k/2) Gamma(k/2)).                                                     (X2)
 ``tests/test_chi2.py`` compares both with scipy's.
 """
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
+from statistics import NormalDist
 
 import numpy as np
 
@@ -37,7 +39,10 @@ def _check_dof(dof: int) -> int:
 
 def upper_tail(x: float, dof: int) -> float:
     """Q(x; k) = P(chi2_k > x) (X1); 1 for x <= 0."""
-    k = _check_dof(dof)
+    return _upper_tail(x, _check_dof(dof))
+
+
+def _upper_tail(x: float, k: int) -> float:
     if x <= 0.0:
         return 1.0
     y = 0.5 * x
@@ -46,8 +51,8 @@ def upper_tail(x: float, dof: int) -> float:
     out = math.erfc(math.sqrt(y)) if odd else 0.0
     if m:
         i = np.arange(m, dtype=float)
-        logs = (i + a) * math.log(y) - y - np.array([math.lgamma(j + a + 1.0) for j in range(m)])
-        out += float(np.exp(logs).sum())
+        log_gamma = np.array([math.lgamma(j + a + 1.0) for j in range(m)])  # each exact: a running sum drifts
+        out += float(np.exp((i + a) * math.log(y) - y - log_gamma).sum())
     return min(out, 1.0)
 
 
@@ -68,13 +73,13 @@ def quantile(dof: int, probability: float) -> float:
 @lru_cache(maxsize=4096)
 def _quantile(k: int, p: float) -> float:
     target = 1.0 - p
-    # Wilson-Hilferty: chi2_k / k ~ (1 - 2/(9k) + z sqrt(2/(9k)))^3, z the normal quantile (Acklam-free: by erfc)
-    z = _normal_quantile(p)
+    # Wilson-Hilferty: chi2_k / k ~ (1 - 2/(9k) + z sqrt(2/(9k)))^3, z the normal quantile
+    z = NormalDist().inv_cdf(p)
     c = 2.0 / (9.0 * k)
     x = k * max(1.0 - c + z * math.sqrt(c), 1e-3) ** 3
     lo, hi = 0.0, math.inf
     for _ in range(200):
-        q = upper_tail(x, k)
+        q = _upper_tail(x, k)
         if q > target:
             lo = x
         else:
@@ -89,17 +94,3 @@ def _quantile(k: int, p: float) -> float:
         x = new
     return x
 
-
-def _normal_quantile(p: float) -> float:
-    """The standard normal quantile, by Newton's method on erfc from 0 (a start for :func:`quantile`)."""
-    z = 0.0
-    for _ in range(60):
-        cdf = 0.5 * math.erfc(-z / math.sqrt(2.0))
-        pdf = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
-        if pdf < 1e-300:
-            break
-        step = (cdf - p) / pdf
-        z -= max(min(step, 2.0), -2.0)
-        if abs(step) < 1e-12:
-            break
-    return z

@@ -40,7 +40,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,15 +91,19 @@ def turn_ratio(measured: np.ndarray, truth: np.ndarray) -> tuple[float, float, i
     return (*slope(along, angle[m]), int(m.sum()))
 
 
-def sensor_ratios(seq, truth: np.ndarray) -> dict:
+def rotation(w) -> np.ndarray:
+    """exp(w^) (3,3) of the rotation vector w (3,)."""
+    return se3.exp_so3_and_left_jacobian(np.asarray(w, dtype=float))[0]
+
+
+def sensor_ratios(seq, truth: np.ndarray, velocity_index: str) -> dict:
     """Rotation and translation ratios (tracks / truth, IMU / truth) over the ordinary step pairs."""
     n = min(seq.num_steps, truth.shape[0])
     repeated = repeated_steps(seq)
-    fits = [f for f in fit_pairs(seq, gap=1, max_pairs=seq.num_steps, skip=repeated) if f.step + 1 < n]
-    fits = [f for f in fits if not (f.step > 0 and repeated[f.step])]  # its content is the step before's
+    fits = [f for f in fit_pairs(seq, gap=1, max_pairs=seq.num_steps, skip=repeated)
+            if f.step + 1 < n and not (f.step > 0 and repeated[f.step])]  # a repeated step k holds the step before's content
     out = {"pairs": len(fits)}
-    conv = decide_conventions(seq)
-    v, w = step_velocities(seq.linear_velocity, seq.angular_velocity, conv.velocity_index)
+    v, w = step_velocities(seq.linear_velocity, seq.angular_velocity, velocity_index)
     dt = np.diff(seq.time_stamps)
     steps = np.flatnonzero(~repeated[1:n] & ~repeated[:n - 1])
     true_steps = relative(truth, steps)
@@ -123,24 +126,23 @@ def scaled_rotations(truth: np.ndarray, scale: float) -> np.ndarray:
     for k in range(truth.shape[0] - 1):
         step = se3.inverse(truth[k]) @ truth[k + 1]
         moved = np.eye(4)
-        moved[:3, :3] = Rotation.from_rotvec(scale * se3.log_so3(step[:3, :3])).as_matrix()
+        moved[:3, :3] = rotation(scale * se3.log_so3(step[:3, :3]))
         moved[:3, 3] = step[:3, 3]
         out.append(out[-1] @ moved)
     return np.array(out)
 
 
-def run_against(seq, gt_t: np.ndarray, gt_poses: np.ndarray) -> tuple[float, float, float]:
-    result = run_sequence(seq, Config())
+def against(result, gt_t: np.ndarray, gt_poses: np.ndarray) -> tuple[float, float, float]:
+    """A run's ATE, position NEES mean and share inside the 95 % ellipsoid against ``gt_poses``."""
     ate = trajectory_errors(result.time_stamps, result.world_T_imu, gt_t, gt_poses).ate_rmse
     nees = trajectory_nees(result.time_stamps, result.world_T_imu, result.pose_covariance, gt_t, gt_poses).position
     return ate, nees.mean, nees.share_inside_95
 
 
-def velocity_frame(seq, truth: np.ndarray) -> dict:
+def velocity_frame(seq, truth: np.ndarray, velocity_index: str) -> dict:
     """Residual (deg) of the velocity's elevation against the truth's motion, body- and level-frame."""
     n = min(seq.num_steps, truth.shape[0])
-    conv = decide_conventions(seq)
-    v, _ = step_velocities(seq.linear_velocity, seq.angular_velocity, conv.velocity_index)
+    v, _ = step_velocities(seq.linear_velocity, seq.angular_velocity, velocity_index)
     dt = np.diff(seq.time_stamps)
     h = HALF_WINDOW
     centers = np.arange(h, n - h)
@@ -155,7 +157,7 @@ def velocity_frame(seq, truth: np.ndarray) -> dict:
     body_res = (elevation(moved) - elevation(body))[fast]
 
     def level_res(tilt):
-        R = Rotation.from_rotvec([tilt[0], tilt[1], 0.0]).as_matrix()  # level_R_world
+        R = rotation([tilt[0], tilt[1], 0.0])  # level_R_world
         return (elevation(moved @ R.T) - elevation(level))[fast]
 
     tilt = least_squares(level_res, [0.0, 0.0]).x
@@ -174,12 +176,12 @@ def velocity_frame(seq, truth: np.ndarray) -> dict:
 def level_dead_reckoning(seq, tilt_deg: np.ndarray, velocity_index: str) -> np.ndarray:
     """Dead reckoning with the velocities and rates taken in the level frame (KITTI's vf vl vu, wf wl wu)."""
     v, w = step_velocities(seq.linear_velocity, seq.angular_velocity, velocity_index)
-    R0 = Rotation.from_rotvec(np.radians([tilt_deg[0], tilt_deg[1], 0.0])).as_matrix()
+    R0 = rotation(np.radians([tilt_deg[0], tilt_deg[1], 0.0]))
     T = np.eye(4)
     out = [T]
     for k, dt in enumerate(np.diff(seq.time_stamps)):
         Rg = R0 @ T[:3, :3]
-        body_R_level = Rg.T @ Rotation.from_rotvec([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])]).as_matrix()
+        body_R_level = Rg.T @ rotation([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])])
         T = T @ se3.exp_se3(np.r_[body_R_level @ v[k], body_R_level @ w[k]] * dt)
         out.append(T)
     return np.array(out)
@@ -218,11 +220,13 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     frames = []
     for name, seq, gt_t, gt in cases:
-        r = sensor_ratios(seq, gt)
-        ate, nees, inside = run_against(seq, gt_t, gt)
+        index = decide_conventions(seq).velocity_index
+        r = sensor_ratios(seq, gt, index)
+        result = run_sequence(seq, Config())
+        ate, nees, inside = against(result, gt_t, gt)
         ratio = r.get("tracks_rotation")
         if ratio is not None and np.isfinite(ratio[0]):
-            ate2, nees2, inside2 = run_against(seq, gt_t, scaled_rotations(gt, ratio[0]))
+            ate2, nees2, inside2 = against(result, gt_t, scaled_rotations(gt, ratio[0]))
             turned = f"{ate2:.2f}, {nees2:.1f} / {inside2:.0%}"
         else:
             turned = "n/a (no step pair with 12 points)"
@@ -230,16 +234,15 @@ def main() -> None:
               f"| {_fmt(r['imu_rotation'])} | {_fmt(r.get('tracks_translation'))} "
               f"| {_fmt(r['imu_translation'])} | {ate:.2f}, {nees:.1f} / {inside:.0%} | {turned} |")
         if not name.startswith("synthetic"):
-            frames.append((name, seq, gt_t, gt))
+            frames.append((name, seq, gt_t, gt, index))
 
     print()
     print("| drive | windows | elevation residual: body frame (deg) | level frame (deg), world's tilt fitted (roll, pitch deg) "
           "| dead reckoning ATE m: body | level | velocity - truth's body velocity, RMS x y z m/s: first 5 s | after "
           "| truth's sideslip, first 5 s (median deg) |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for name, seq, gt_t, gt in frames:
-        f = velocity_frame(seq, gt)
-        index = decide_conventions(seq).velocity_index
+    for name, seq, gt_t, gt, index in frames:
+        f = velocity_frame(seq, gt, index)
         body = trajectory_errors(seq.time_stamps, dead_reckoning(seq.time_stamps, seq.linear_velocity,
                                                                  seq.angular_velocity, index), gt_t, gt).ate_rmse
         level = trajectory_errors(seq.time_stamps, level_dead_reckoning(seq, f["tilt_deg"], index), gt_t, gt).ate_rmse

@@ -349,7 +349,7 @@ def test_plot_consistency(tmp_path):
     nees[0] = 0.0  # not positive: left out of the log-scale panel
     result = SimpleNamespace(steps=steps, runs=5, skip=10, pose_nees_mean=nees, pose_nees_band=(3.5, 9.4),
                              pose_nees_in_band=0.9, nis_per_step=rng.chisquare(4, steps), nis_band=(3.8, 4.2),
-                             nis_mean=4.01, per_run_nis=np.array([3.9, 4.05, 4.0, 4.1, 3.95]))
+                             nis_mean=4.01, nis_expected=4.0, per_run_nis=np.array([3.9, 4.05, 4.0, 4.1, 3.95]))
     path = tmp_path / "consistency.png"
     fig = plot_consistency(path, result)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

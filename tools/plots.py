@@ -499,7 +499,7 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
     ax = fig.add_subplot(2, 1, 2, sharex=ax)
     nis = np.asarray(result.nis_per_step, dtype=float)
     ax.plot(steps, nis, color="tab:purple", linewidth=0.8, label="NIS per observation (all runs)")
-    expected = getattr(result, "nis_expected", 4.0)
+    expected = result.nis_expected
     ax.axhline(expected, color="tab:green", linewidth=0.8, linestyle="--", label=f"expectation {expected:.3g}")
     from ..backend.evaluation.consistency import run_mean_interval
 
