@@ -83,6 +83,61 @@ def test_two_view_jacobians_match_finite_differences():
     np.testing.assert_allclose(Jg[:, :, 6], numeric, atol=1e-6)
 
 
+def test_the_fits_jacobian_rows_are_the_models_bit_for_bit():
+    """The Gauss-Newton's Jacobian rows (``_point_jacobians``: the rows that vary, the structural
+    zeros skipped) are the model's (``_point``), to the bit, and its constant rows are as documented."""
+    from vislam.backend.run.two_view import _point, _point_jacobians
+
+    cam, T, p, _, _, _ = _two_view_problem(2)
+    fx, fy, cx, cy, baseline = cam
+    pred, Jp, Jg, work = np.empty(8), np.empty((8, 3)), np.empty((8, 7)), np.empty((4, 4, 3))
+    pred2, A, G = np.empty(8), np.empty((4, 3)), np.empty((4, 6))
+    for q in p:
+        _point(T, -0.4, q[0], q[1], q[2], fx, fy, cx, cy, fx * baseline, pred, Jp, Jg, True, work)
+        _point_jacobians(T, -0.4, q[0], q[1], q[2], fx, fy, cx, cy, fx * baseline, pred2, A, G)
+        np.testing.assert_array_equal(pred2, pred)
+        np.testing.assert_array_equal(A, Jp[4:])
+        np.testing.assert_array_equal(G, Jg[4:, :6])
+        np.testing.assert_array_equal(Jp[:4], [[1, 0, 0], [0, 1, 0], [1, 0, -1], [0, 1, 0]])
+        np.testing.assert_array_equal(Jg[:4, :6], 0.0)
+        np.testing.assert_array_equal(Jg[:, 6], [0, 0, -1, 0, 0, 0, -1, 0])
+
+
+def test_the_compiled_sum_is_numpys_to_the_bit():
+    from vislam.backend.run.two_view import _pairwise_sum
+
+    rng = np.random.default_rng(5)
+    for n in [0, 1, 7, 8, 9, 127, 128, 129, 255, 256, 1000, 4097, 20011]:
+        x = rng.standard_normal(n) ** 2 * 10.0 ** rng.uniform(-6, 6, n)
+        assert _pairwise_sum(x, 0, n) == np.sum(x), n
+        assert _pairwise_sum(x, n // 3, n - n // 3) == np.sum(x[n // 3:]), n
+
+
+def test_a_batch_of_pairs_fits_each_pair_as_alone():
+    """One compiled call for many pairs (``_fits``) gives each pair's fit as a call for it alone, to the
+    bit, and None where a pair has no fit (too few rows that agree)."""
+    from vislam.backend.run.two_view import _fits, matched_pixels
+
+    seq = _scene(3, 0.5).sequence
+    K = seq.K
+    cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
+    steps = list(range(0, 60, 3))
+    pixels = [matched_pixels(seq, k, k + 1) for k in steps]
+    za, zb = [a for a, _ in pixels], [b for _, b in pixels]
+    za[4], zb[4] = za[4][:5], zb[4][:5]  # too few points
+    batch = _fits(steps, za, zb, cam, True, 12, 1)
+    assert batch[4] is None and sum(f is not None for f in batch) >= len(steps) - 1
+    for k, a, b, f in zip(steps, za, zb, batch):
+        alone = fit_pair(a, b, cam, offset=True, step=k)
+        assert (f is None) == (alone is None)
+        if f is not None:
+            assert f.step == alone.step == k and f.beta == alone.beta and f.beta_variance == alone.beta_variance
+            assert f.dof == alone.dof
+            np.testing.assert_array_equal(f.b_T_a, alone.b_T_a)
+            np.testing.assert_array_equal(f.motion_covariance, alone.motion_covariance)
+            np.testing.assert_array_equal(f.residuals, alone.residuals)
+
+
 def test_exact_tracks_give_exactly_no_offset():
     seq = _scene(0, pixel_sigma=0.0).sequence
     offset = identify_stereo_offset(seq, seq.imu_T_cam)

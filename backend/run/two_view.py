@@ -8,7 +8,8 @@ disparity offset beta (D1 of ``backend.run.stereo_offset``). They minimize the r
     z_k   = [u, v, u - d - beta, v]
     z_k+h = [pi_L(T q(u, v, d)), pi_R(T q(u, v, d)) - beta],  q = the point triangulated at k        (D2)
 
-by Gauss-Newton with the points eliminated (Schur complement), one compiled call a fit. Both frames' pixels are
+by Gauss-Newton with the points eliminated (Schur complement), one compiled call for many step
+pairs (:func:`_fit_batch`; numpy inverts their normal matrices after). Both frames' pixels are
 measurements, so pixel noise in either biases neither the motion nor beta (triangulating at k and
 fitting k+h alone would: errors in variables). Pairs whose rows disagree (|vL - vR| > ``ROW_PX``)
 are left out, and after a first fit the points with a residual beyond ``TRIM_PX`` are dropped and
@@ -39,6 +40,9 @@ HUBER_PX = 1.0
 ROW_PX = 2.0
 #: ... and, after a first fit, every one of its eight residuals is within this (px).
 TRIM_PX = 3.0
+#: Gauss-Newton iterations of a fit at most (it stops earlier once a step is below 1e-6 in the
+#: motion and 1e-4 px in beta).
+ITERATIONS = 8
 #: A point enters a fit only with a disparity above this (px) in both frames.
 MIN_DISPARITY = 1.0
 #: Threads that fit step pairs (the compiled fit releases the GIL); fewer pairs than
@@ -167,16 +171,80 @@ def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
     Jg[2, 6] = Jg[6, 6] = -1.0
 
 
-#: The rows of (D2) whose Jacobian in the motion and beta is not zero (uR at k: beta only; the four
-#: pixels at k+h), in the order of the rows: the sums below skip only exact zeros.
-_MOTION_ROWS = (2, 4, 5, 6, 7)
+@jit
+def _point_jacobians(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, A, G):
+    """(D2) for one point (u, v, d) at k, as :func:`_point` with ``jac`` but only the Jacobian rows
+    that vary: its 8 predicted pixels into ``pred``; d/dp of the four pixels at k+h into ``A``
+    (4,3); d/d(rho, phi) of those four into ``G`` (4,6). The rest is constant:
+
+        d(uL vL uR vR at k)/dp = [[1,0,0], [0,1,0], [1,0,-1], [0,1,0]],  d/d(rho, phi) = 0,
+        d(uR at k)/dbeta = d(uR at k+h)/dbeta = -1,  every other d/dbeta = 0.
+
+    With x the point at k (camera), q = R x + t at k+h, P = d(pixels at k+h)/dq (4,3) and
+    D = dx/dp (3,3):
+
+        P = [[fx/z, 0, -fx q0/z^2], [0, fy/z, -fy q1/z^2], [fx/z, 0, -fx q0/z^2 + fb/z^2], [0, fy/z, -fy q1/z^2]]
+        D = [[d/fx, 0, -x0/p2], [0, d/fy, -x1/p2], [0, 0, -x2/p2]]   (d = fb/p2 the depth)
+        A = P R D,  G = [P, -P q^]
+
+    The products skip only the structural zeros of P, D and q^ (x * 0 added to a sum changes
+    nothing), each remaining sum in :func:`_point`'s order: the numbers are :func:`_point`'s, bit
+    for bit."""
+    depth = fb / p2
+    x0 = (p0 - cx) * depth / fx
+    x1 = (p1 - cy) * depth / fy
+    x2 = depth
+    q0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3]
+    q1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3]
+    q2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3]
+    z = max(q2, 1e-6)
+    u = fx * q0 / z + cx
+    v = fy * q1 / z + cy
+    pred[0], pred[1], pred[2], pred[3] = p0, p1, p0 - p2 - beta, p1
+    pred[4], pred[5], pred[6], pred[7] = u, v, u - fb / z - beta, v
+    iz = 1.0 / z
+    P00 = fx * iz
+    P02 = -fx * q0 * iz * iz
+    P11 = fy * iz
+    P12 = -fy * q1 * iz * iz
+    P22 = P02 + fb * iz * iz
+    D00 = depth / fx
+    D11 = depth / fy
+    D02 = -x0 / p2
+    D12 = -x1 / p2
+    D22 = -x2 / p2
+    RD00, RD01, RD02 = T[0, 0] * D00, T[0, 1] * D11, T[0, 0] * D02 + T[0, 1] * D12 + T[0, 2] * D22
+    RD10, RD11, RD12 = T[1, 0] * D00, T[1, 1] * D11, T[1, 0] * D02 + T[1, 1] * D12 + T[1, 2] * D22
+    RD20, RD21, RD22 = T[2, 0] * D00, T[2, 1] * D11, T[2, 0] * D02 + T[2, 1] * D12 + T[2, 2] * D22
+    A[0, 0], A[0, 1], A[0, 2] = P00 * RD00 + P02 * RD20, P00 * RD01 + P02 * RD21, P00 * RD02 + P02 * RD22
+    A[1, 0], A[1, 1], A[1, 2] = P11 * RD10 + P12 * RD20, P11 * RD11 + P12 * RD21, P11 * RD12 + P12 * RD22
+    A[2, 0], A[2, 1], A[2, 2] = P00 * RD00 + P22 * RD20, P00 * RD01 + P22 * RD21, P00 * RD02 + P22 * RD22
+    A[3, 0], A[3, 1], A[3, 2] = A[1, 0], A[1, 1], A[1, 2]  # vR = vL
+    G[0, 0], G[0, 1], G[0, 2] = P00, 0.0, P02
+    G[1, 0], G[1, 1], G[1, 2] = 0.0, P11, P12
+    G[2, 0], G[2, 1], G[2, 2] = P00, 0.0, P22
+    G[0, 3], G[0, 4], G[0, 5] = -(P02 * -q1), -(P00 * -q2 + P02 * q0), -(P00 * q1)
+    G[1, 3], G[1, 4], G[1, 5] = -(P11 * q2 + P12 * -q1), -(P12 * q0), -(P11 * -q0)
+    G[2, 3], G[2, 4], G[2, 5] = -(P22 * -q1), -(P00 * -q2 + P22 * q0), -(P00 * q1)
+    for b in range(6):
+        G[3, b] = G[1, b]
 
 
 @jit
 def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, huber):
     """The Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement), in one
     compiled call: (ok, T, beta, S (g,g) of the last iteration, residuals (n,8) at the end); ok
-    False when a residual is not finite or a normal matrix is singular."""
+    False when a residual is not finite or a normal matrix is singular.
+
+    Per point i, with J_p (8,3), J_g (8,g) its Jacobians (:func:`_point_jacobians`), W the Huber
+    weights and r its residuals:
+
+        H_pp = J_p^T W J_p (+ 1e-9 I),  H_pg = J_p^T W J_g,  b_p = J_p^T W r
+        S   += J_g^T W J_g - H_pg^T H_pp^-1 H_pg,   rhs += J_g^T W r - H_pg^T H_pp^-1 b_p
+
+    then S dg = rhs (dg = -(S + 1e-9 I)^-1 rhs the step of the motion and beta) and each point's
+    step dp = -H_pp^-1 (b_p + H_pg dg). The constant rows of J_p, J_g (rows 0-3, and beta's column)
+    enter each sum in closed form: w0 + w2 etc. below are their products, in the order of the rows."""
     g = 7 if offset else 6
     n = za.shape[0]
     fb = fx * baseline
@@ -190,55 +258,73 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
     se3.put_block(z, 0, 4, zb)
     S = np.zeros((g, g))
     pred = np.empty(8)
-    Jp = np.zeros((8, 3))
-    Jg = np.zeros((8, 7))
+    A = np.empty((4, 3))  # J_p rows 4-7
+    G = np.empty((4, 6))  # J_g rows 4-7, columns rho, phi
     Hinv = np.empty((n, 3, 3))
     Hpg = np.empty((n, 3, g))
     bp = np.empty((n, 3))
     r = np.empty(8)
     w = np.empty(8)
     Hpp = np.empty((3, 3))
-    work = np.empty((4, 4, 3))
     c = np.empty(3)
     rhs = np.zeros(g)
     for _ in range(iterations):
         S[:] = 0.0
         rhs[:] = 0.0
         for i in range(n):
-            _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, Jp, Jg, True, work)
+            _point_jacobians(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, A, G)
             for j in range(8):
                 r[j] = pred[j] - z[i, j]
                 if not np.isfinite(r[j]):
                     return False, T, beta, S, np.zeros((n, 8))
                 a = abs(r[j])
                 w[j] = 1.0 if a <= huber else huber / max(a, 1e-12)
+            w0, w1, w2, w3, w6 = w[0], w[1], w[2], w[3], w[6]
+            # rows 0-3 of J_p: (1,0,0), (0,1,0), (1,0,-1), (0,1,0)
+            Hpp[0, 0], Hpp[0, 1], Hpp[0, 2] = w0 + w2, 0.0, -w2
+            Hpp[1, 0], Hpp[1, 1], Hpp[1, 2] = 0.0, w1 + w3, 0.0
+            Hpp[2, 0], Hpp[2, 1], Hpp[2, 2] = -w2, 0.0, w2
+            bp[i, 0] = w0 * r[0] + w2 * r[2]
+            bp[i, 1] = w1 * r[1] + w3 * r[3]
+            bp[i, 2] = -w2 * r[2]
             for a in range(3):
                 for b in range(3):
-                    s = 0.0
-                    for j in range(8):
-                        s += Jp[j, a] * w[j] * Jp[j, b]
+                    s = Hpp[a, b]
+                    for k in range(4):
+                        s += A[k, a] * w[4 + k] * A[k, b]
                     Hpp[a, b] = s + (1e-9 if a == b else 0.0)
-                for b in range(g):
+                for b in range(6):
                     s = 0.0
-                    for j in _MOTION_ROWS:
-                        s += Jp[j, a] * w[j] * Jg[j, b]
+                    for k in range(4):
+                        s += A[k, a] * w[4 + k] * G[k, b]
                     Hpg[i, a, b] = s
-                s = 0.0
-                for j in range(8):
-                    s += Jp[j, a] * w[j] * r[j]
+                s = bp[i, a]
+                for k in range(4):
+                    s += A[k, a] * w[4 + k] * r[4 + k]
                 bp[i, a] = s
-            for a in range(g):
-                for b in range(a, g):
+            if offset:  # beta's column of J_g: -1 in rows 2 and 6
+                Hpg[i, 0, 6] = w2 * -1.0 + A[2, 0] * w6 * -1.0
+                Hpg[i, 1, 6] = A[2, 1] * w6 * -1.0
+                Hpg[i, 2, 6] = -1.0 * w2 * -1.0 + A[2, 2] * w6 * -1.0
+            for a in range(6):
+                for b in range(a, 6):
                     s = 0.0
-                    for j in _MOTION_ROWS:
-                        s += Jg[j, a] * Jg[j, b] * w[j]
+                    for k in range(4):
+                        s += G[k, a] * G[k, b] * w[4 + k]
                     S[a, b] += s
                     if b != a:
                         S[b, a] += s
+                if offset:
+                    s = G[2, a] * -1.0 * w6
+                    S[a, 6] += s
+                    S[6, a] += s
                 s = 0.0
-                for j in _MOTION_ROWS:
-                    s += Jg[j, a] * w[j] * r[j]
+                for k in range(4):
+                    s += G[k, a] * w[4 + k] * r[4 + k]
                 rhs[a] += s
+            if offset:
+                S[6, 6] += w2 + w6
+                rhs[6] += -1.0 * w2 * r[2] + -1.0 * w6 * r[6]
             if not inverse3(Hpp, Hinv[i]):
                 return False, T, beta, S, np.zeros((n, 8))
             # S -= Hgp Hpp^-1 Hpg, rhs -= Hgp Hpp^-1 bp
@@ -249,10 +335,10 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                 for b in range(g):
                     S[a, b] -= t0 * Hpg[i, 0, b] + t1 * Hpg[i, 1, b] + t2 * Hpg[i, 2, b]
                 rhs[a] -= t0 * bp[i, 0] + t1 * bp[i, 1] + t2 * bp[i, 2]
-        A = S.copy()
+        M = S.copy()
         for a in range(g):
-            A[a, a] += 1e-9
-        dg, ok = solve_small(A, rhs)
+            M[a, a] += 1e-9
+        dg, ok = solve_small(M, rhs)
         if not ok:
             return False, T, beta, S, np.zeros((n, 8))
         for a in range(g):
@@ -277,6 +363,9 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
         if (not offset or abs(dg[6]) < 1e-4) and small:
             break
     res = np.empty((n, 8))
+    Jp = np.zeros((8, 3))
+    Jg = np.zeros((8, 7))
+    work = np.empty((4, 4, 3))
     for i in range(n):
         _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, Jp, Jg, False, work)
         for j in range(8):
@@ -284,36 +373,270 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
     return True, T, beta, S, res
 
 
-def _bundle_adjust(za: np.ndarray, zb: np.ndarray, cam, offset: bool, iterations: int = 8,
-                   initial: np.ndarray | None = None):
-    """(T, beta, S^-1 of the motion (and beta), residuals (n,8), dof, sigma^2) or None: the
-    Huber-weighted Gauss-Newton of (D2) with the points eliminated (:func:`_gauss_newton`);
-    ``offset``: beta is fitted (7 unknowns besides the points), else held at 0 (6); ``initial``:
-    the motion to start from (default: none)."""
+@jit
+def _block_sum(x, lo, n):
+    """x[lo:lo+n].sum() for n <= 128 in numpy's order: eight running sums, combined pairwise, then
+    the rest one by one (below 8: one by one)."""
+    if n < 8:
+        s = 0.0
+        for i in range(lo, lo + n):
+            s += x[i]
+        return s
+    r0, r1, r2, r3 = x[lo], x[lo + 1], x[lo + 2], x[lo + 3]
+    r4, r5, r6, r7 = x[lo + 4], x[lo + 5], x[lo + 6], x[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        j = lo + i
+        r0 += x[j]
+        r1 += x[j + 1]
+        r2 += x[j + 2]
+        r3 += x[j + 3]
+        r4 += x[j + 4]
+        r5 += x[j + 5]
+        r6 += x[j + 6]
+        r7 += x[j + 7]
+        i += 8
+    s = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        s += x[lo + i]
+        i += 1
+    return s
+
+
+@jit
+def _pairwise_sum(x, lo, n):
+    """x[lo:lo+n].sum() in numpy's order (its pairwise summation of a contiguous float64 array): a
+    block of up to 128 by :func:`_block_sum`, a longer range as the sum of its halves (the first
+    half's length a multiple of 8), so a compiled sum is numpy's to the bit. The halving runs on an
+    explicit stack: numba's cache does not load a recursive kernel safely."""
+    los = np.empty(64, dtype=np.int64)
+    ns = np.empty(64, dtype=np.int64)
+    stage = np.zeros(64, dtype=np.int64)  # 0: to split, 1: first half summed, 2: both
+    left = np.empty(64)
+    los[0], ns[0] = lo, n
+    top = 0
+    ret = 0.0  # the sum of the range last finished
+    while top >= 0:
+        m = ns[top]
+        if m <= 128:
+            ret = _block_sum(x, los[top], m)
+            top -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if stage[top] == 0:
+            stage[top] = 1
+            los[top + 1], ns[top + 1], stage[top + 1] = los[top], half, 0
+            top += 1
+        elif stage[top] == 1:
+            left[top] = ret
+            stage[top] = 2
+            los[top + 1], ns[top + 1], stage[top + 1] = los[top] + half, m - half, 0
+            top += 1
+        else:
+            ret = left[top] + ret
+            top -= 1
+    return ret
+
+
+@jit
+def _noise_of(r, g, squares):
+    """(usable, sigma^2) of a fit's residuals ``r`` (n,8) with ``g`` unknowns besides the points: the
+    residuals within ``3 HUBER_PX`` (inliers) have dof = inliers - 3n - g degrees of freedom and
+    sigma^2 = (their sum of squares) / dof; unusable when dof < 20 or a residual is not finite.
+    ``squares``: scratch of at least 8n."""
+    n = r.shape[0]
+    m = 0
+    finite = True
+    for i in range(n):
+        for j in range(8):
+            x = r[i, j]
+            if not np.isfinite(x):
+                finite = False
+            if abs(x) <= 3 * HUBER_PX:
+                squares[m] = x * x
+                m += 1
+    dof = m - 3 * n - g
+    if dof < 20 or not finite:
+        return False, 0.0
+    return True, _pairwise_sum(squares, 0, m) / dof
+
+
+@jit
+def _rows_within(r, limit):
+    """(n,) bool: the rows of ``r`` (n,8) whose eight entries all lie within ``limit`` in absolute value."""
+    n = r.shape[0]
+    keep = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        ok = True
+        for j in range(8):
+            if not abs(r[i, j]) <= limit:
+                ok = False
+        keep[i] = ok
+    return keep
+
+
+@jit
+def _fit_batch(za, zb, starts, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, initial):
+    """The compiled part of :func:`fit_pair` for many step pairs in one call (the GIL released
+    throughout): pair k's matched pixels are ``za[starts[k]:starts[k+1]]``, ``zb[...]`` (n,4);
+    ``initial`` (4,4) the motion to start from, or (0,0) for none. Per pair: the rows that agree,
+    the first fit, the trimming, the second fit (or the first again), each fit's noise
+    (:func:`_noise_of`) and the final residuals' bound; what needs S^-1 is left to the caller
+    (numpy's inverse, to keep its numbers). Returns
+
+    - status (m,): 0 no fit, 1 a fit (the second is the first), 2 a fit whose first must pass too;
+    - T (m,4,4), beta (m,), S (m,g,g), sigma^2 (m,), dof (m,) of the final fit (dof: residuals
+      minus unknowns, as ``TwoViewFit.dof``);
+    - beta, S, sigma^2 of the first fit (status 2);
+    - the final residuals of pair k: ``residuals[rows[k]:rows[k+1]]`` (n_k,8)."""
+    m = starts.size - 1
     g = 7 if offset else 6
-    T0 = np.eye(4) if initial is None else np.array(initial, dtype=float)
-    fx, fy, cx, cy, baseline = map(float, cam)
-    ok, T, beta, S, r = _gauss_newton(np.ascontiguousarray(za, dtype=float), np.ascontiguousarray(zb, dtype=float),
-                                      fx, fy, cx, cy, baseline, offset, iterations, T0, HUBER_PX)
-    if not ok:
-        return None
-    n = za.shape[0]
-    inliers = np.abs(r) <= 3 * HUBER_PX
-    dof = int(inliers.sum()) - 3 * n - g
-    if dof < 20 or not np.all(np.isfinite(r)):
-        return None
-    sigma2 = float(np.sum(r[inliers] ** 2) / dof)
+    with_initial = initial.shape[0] == 4
+    start = initial if with_initial else np.eye(4)
+    status = np.zeros(m, dtype=np.int64)
+    Ts = np.zeros((m, 4, 4))
+    betas = np.zeros(m)
+    Ss = np.zeros((m, g, g))
+    sigma2s = np.zeros(m)
+    dofs = np.zeros(m, dtype=np.int64)
+    betas1 = np.zeros(m)
+    Ss1 = np.zeros((m, g, g))
+    sigma2s1 = np.zeros(m)
+    residuals = np.empty((za.shape[0], 8))
+    rows = np.zeros(m + 1, dtype=np.int64)
+    squares = np.empty(8 * max(za.shape[0], 1))
+    for k in range(m):
+        rows[k + 1] = rows[k]
+        a0, a1 = starts[k], starts[k + 1]
+        agree = np.empty(a1 - a0, dtype=np.int64)
+        n = 0
+        for i in range(a0, a1):
+            if abs(za[i, 1] - za[i, 3]) <= ROW_PX and abs(zb[i, 1] - zb[i, 3]) <= ROW_PX:
+                agree[n] = i
+                n += 1
+        if n < min_points:
+            continue
+        A = np.empty((n, 4))
+        B = np.empty((n, 4))
+        for i in range(n):
+            for j in range(4):
+                A[i, j] = za[agree[i], j]
+                B[i, j] = zb[agree[i], j]
+        ok, T, beta, S, r = _gauss_newton(A, B, fx, fy, cx, cy, baseline, offset, iterations, start, huber)
+        if not ok:
+            continue
+        ok, sigma2 = _noise_of(r, g, squares)
+        if not ok:
+            continue
+        keep = _rows_within(r, TRIM_PX)
+        kept = 0
+        for i in range(n):
+            kept += keep[i]
+        if kept < max(min_points, 2 * n / 3):
+            continue
+        if kept == n and not with_initial:
+            status[k] = 1  # the same points from the same start: the same fit
+        else:
+            betas1[k], sigma2s1[k] = beta, sigma2
+            for i in range(g):
+                for j in range(g):
+                    Ss1[k, i, j] = S[i, j]
+            A2 = np.empty((kept, 4))
+            B2 = np.empty((kept, 4))
+            j2 = 0
+            for i in range(n):
+                if keep[i]:
+                    for j in range(4):
+                        A2[j2, j] = A[i, j]
+                        B2[j2, j] = B[i, j]
+                    j2 += 1
+            ok, T, beta, S, r = _gauss_newton(A2, B2, fx, fy, cx, cy, baseline, offset, iterations,
+                                              T if with_initial else start, huber)
+            if not ok:
+                continue
+            ok, sigma2 = _noise_of(r, g, squares)
+            if not ok:
+                continue
+            within = True
+            for i in range(r.shape[0]):
+                for j in range(8):
+                    if abs(r[i, j]) > TRIM_PX:
+                        within = False
+            if not within:
+                continue
+            status[k] = 2
+        n2 = r.shape[0]
+        for i in range(4):
+            for j in range(4):
+                Ts[k, i, j] = T[i, j]
+        betas[k], sigma2s[k] = beta, sigma2
+        for i in range(g):
+            for j in range(g):
+                Ss[k, i, j] = S[i, j]
+        dofs[k] = r.size - 3 * n2 - g
+        for i in range(n2):
+            for j in range(8):
+                residuals[rows[k] + i, j] = r[i, j]
+        rows[k + 1] = rows[k] + n2
+    return status, Ts, betas, Ss, sigma2s, dofs, betas1, Ss1, sigma2s1, residuals, rows
+
+
+def _usable_inverses(S: np.ndarray, beta: np.ndarray, sigma2: np.ndarray,
+                     offset: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(S^-1 (m,g,g), usable (m,) bool) of fits' S (m,g,g): numpy's inverse (one call for all; one a
+    matrix where one of them is singular); a fit is usable when its inverse is finite and, with
+    ``offset``, beta is finite, |beta| < 20 px and its variance S^-1[6,6] sigma^2 finite and positive."""
+    if S.shape[0] == 0:
+        return S.copy(), np.zeros(0, dtype=bool)
     try:
         S_inv = np.linalg.inv(S)
+        usable = np.ones(S.shape[0], dtype=bool)
     except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(S_inv)):
-        return None
+        S_inv = np.full_like(S, np.nan)
+        usable = np.zeros(S.shape[0], dtype=bool)
+        for k in range(S.shape[0]):
+            try:
+                S_inv[k] = np.linalg.inv(S[k])
+                usable[k] = True
+            except np.linalg.LinAlgError:
+                pass
+    usable &= np.isfinite(S_inv).all(axis=(1, 2))
     if offset:
-        var = float(S_inv[6, 6]) * sigma2
-        if not (np.isfinite(beta) and np.isfinite(var) and var > 0 and abs(beta) < 20):
-            return None
-    return T, beta, S_inv, r, r.size - 3 * n - g, sigma2
+        with np.errstate(invalid="ignore", over="ignore"):
+            var = S_inv[:, 6, 6] * sigma2
+            usable &= np.isfinite(beta) & np.isfinite(var) & (var > 0) & (np.abs(beta) < 20)
+    return S_inv, usable
+
+
+def _fits(steps: list[int], za: list[np.ndarray], zb: list[np.ndarray], cam, offset: bool, min_points: int,
+          gap: int, initial: np.ndarray | None = None) -> list[TwoViewFit | None]:
+    """:func:`fit_pair` of each step pair (``steps[k]``, ``za[k]``, ``zb[k]``): one compiled call for
+    them all (:func:`_fit_batch`), then numpy's inverse of the fits' S (:func:`_usable_inverses`)."""
+    if not steps:
+        return []
+    fx, fy, cx, cy, baseline = map(float, cam)
+    starts = np.zeros(len(za) + 1, dtype=np.int64)
+    np.cumsum([a.shape[0] for a in za], out=starts[1:])
+    status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows = _fit_batch(
+        np.ascontiguousarray(np.concatenate(za), dtype=float), np.ascontiguousarray(np.concatenate(zb), dtype=float),
+        starts, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
+        np.zeros((0, 0)) if initial is None else np.ascontiguousarray(initial, dtype=float))
+    good = status > 0
+    S_inv, usable = _usable_inverses(S[good], beta[good], sigma2[good], offset)
+    ok = np.zeros(status.size, dtype=bool)
+    ok[good] = usable
+    twice = status == 2  # the first fit must have been usable too
+    ok[twice] &= _usable_inverses(S1[twice], beta1[twice], sigma21[twice], offset)[1]
+    out: list[TwoViewFit | None] = [None] * status.size
+    inverse_of = np.flatnonzero(good)
+    for j, k in enumerate(inverse_of):
+        if ok[k]:
+            s2 = float(sigma2[k])
+            out[k] = TwoViewFit(steps[k], gap, T[k], S_inv[j, :6, :6] * s2, float(beta[k]),
+                                float(S_inv[j, 6, 6]) * s2 if offset else float("nan"),
+                                residuals[rows[k]:rows[k + 1]], int(dof[k]))
+    return out
 
 
 def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_points: int = 12,
@@ -325,25 +648,7 @@ def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_poin
     ``min_points`` remain, a third of them is trimmed, or the fit is degenerate.
     ``cam`` = (fx, fy, cx, cy, baseline); ``initial``: the motion to start from (default: none, for
     the small motions of consecutive steps)."""
-    rows = (np.abs(za[:, 1] - za[:, 3]) <= ROW_PX) & (np.abs(zb[:, 1] - zb[:, 3]) <= ROW_PX)
-    za, zb = za[rows], zb[rows]
-    if za.shape[0] < min_points:
-        return None
-    first = _bundle_adjust(za, zb, cam, offset, initial=initial)
-    if first is None:
-        return None
-    keep = np.abs(first[3]).max(axis=1) <= TRIM_PX
-    if keep.sum() < max(min_points, 2 * za.shape[0] / 3):
-        return None
-    if keep.all() and initial is None:
-        second = first  # the same points from the same start: the same fit
-    else:
-        second = _bundle_adjust(za[keep], zb[keep], cam, offset, initial=None if initial is None else first[0])
-    if second is None or np.abs(second[3]).max() > TRIM_PX:
-        return None
-    T, beta, S_inv, r, dof, sigma2 = second
-    beta_var = float(S_inv[6, 6]) * sigma2 if offset else float("nan")
-    return TwoViewFit(step, gap, T, S_inv[:6, :6] * sigma2, float(beta), beta_var, r, dof)
+    return _fits([step], [za], [zb], cam, offset, min_points, gap, initial)[0]
 
 
 def pair_steps(num_steps: int, gap: int, max_pairs: int, skip: np.ndarray | None = None) -> np.ndarray:
@@ -393,16 +698,17 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
         if za.shape[0] >= min_points:
             pairs.append((int(k), za, zb))
 
-    def fit(pair):
-        return fit_pair(pair[1], pair[2], cam, offset, min_points, pair[0], gap)
+    def fit(share):
+        return _fits([k for k, _, _ in share], [za for _, za, _ in share], [zb for _, _, zb in share], cam, offset,
+                     min_points, gap)
 
     if len(pairs) < THREADED_PAIRS:
-        return [f for f in map(fit, pairs) if f is not None]
-    # the compiled fit releases the GIL: two threads fit every other pair each (one task a thread: a
-    # task a pair cost more in waiting than the fits), each as alone; the fits in the pairs' order
+        return [f for f in fit(pairs) if f is not None]
+    # the compiled fits release the GIL: two threads fit every other pair each, one compiled call a
+    # thread (:func:`_fits`); the fits in the pairs' order
     pool = ThreadPoolExecutor(FIT_THREADS)
     try:
-        shares = list(pool.map(lambda first: [fit(p) for p in pairs[first::FIT_THREADS]], range(FIT_THREADS)))
+        shares = list(pool.map(lambda first: fit(pairs[first::FIT_THREADS]), range(FIT_THREADS)))
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     fits = [None] * len(pairs)
@@ -418,4 +724,5 @@ def _warm_up() -> None:
     za[:, 2], za[:, 3] = za[:, 0] - rng.uniform(5, 50, 30), za[:, 1]
     cam = (700.0, 700.0, 600.0, 180.0, 0.5)
     for offset in (True, False):
-        _bundle_adjust(za, za.copy(), cam, offset, iterations=1)
+        fit_pair(za, za.copy(), cam, offset)
+    fit_pair(za, za.copy(), cam, False, initial=np.eye(4))
