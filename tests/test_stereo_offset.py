@@ -125,7 +125,8 @@ def test_a_batch_of_pairs_fits_each_pair_as_alone():
     pixels = [matched_pixels(seq, k, k + 1) for k in steps]
     za, zb = [a for a, _ in pixels], [b for _, b in pixels]
     za[4], zb[4] = za[4][:5], zb[4][:5]  # too few points
-    batch = _fits(steps, za, zb, cam, True, 12, 1)
+    end = np.cumsum([a.shape[0] for a in za])
+    batch = _fits(steps, np.concatenate(za), np.concatenate(zb), end - [a.shape[0] for a in za], end, cam, True, 12, 1)
     assert batch[4] is None and sum(f is not None for f in batch) >= len(steps) - 1
     for k, a, b, f in zip(steps, za, zb, batch):
         alone = fit_pair(a, b, cam, offset=True, step=k)
@@ -161,6 +162,33 @@ def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch, extra_noise):
         assert a.step == b.step and a.beta == b.beta and a.beta_variance == b.beta_variance
         np.testing.assert_array_equal(a.b_T_a, b.b_T_a)
         np.testing.assert_array_equal(a.residuals, b.residuals)
+
+
+@pytest.mark.parametrize("extra_noise", [0.0, 0.5])
+def test_fit_pairs_fits_the_pixels_matched_pair_by_pair(extra_noise):
+    """fit_pairs (the tracks of all pairs matched in one compiled call, a SIMEX re-fit's noise drawn at
+    once) gives, bit for bit, what matching each pair (``matched_pixels``, the noise drawn pair by pair
+    in step order) and fitting it alone gives."""
+    from vislam.backend.run import two_view
+
+    seq = _scene(3, 0.5).sequence
+    K = seq.K
+    cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
+    steps = two_view.pair_steps(seq.num_steps, 2, 40)
+    fits = two_view.fit_pairs(seq, 2, offset=True, steps=steps, extra_noise=extra_noise, seed=7)
+    rng = np.random.default_rng(7) if extra_noise else None
+    alone = []
+    for k in steps:
+        za, zb = two_view.matched_pixels(seq, int(k), int(k) + 2, rng, extra_noise)
+        fit = fit_pair(za, zb, cam, offset=True, step=int(k), gap=2) if za.shape[0] >= 12 else None
+        alone += [fit] if fit is not None else []
+    assert len(fits) == len(alone) >= 30
+    for a, b in zip(fits, alone):
+        assert a.step == b.step and a.gap == b.gap == 2 and a.beta == b.beta and a.beta_variance == b.beta_variance
+        np.testing.assert_array_equal(a.b_T_a, b.b_T_a)
+        np.testing.assert_array_equal(a.residuals, b.residuals)
+        assert a.robust_scale() == dataclasses.replace(a, scale=None).robust_scale()
+        assert a.mean_square() == dataclasses.replace(a, sum_squares=None).mean_square()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

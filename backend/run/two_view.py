@@ -23,13 +23,13 @@ and the IMU's error against vision (``noise``: the fitted motion as an IMU-frame
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..compiled import jit, warms_up
 from ..data.sequence import Sequence
-from ..estimator.linalg import inverse3, solve_small
+from ..estimator.linalg import inverse3, median_inplace, solve_small
 from ..geometry import se3
 
 __all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps", "pooled_mean_square"]
@@ -63,6 +63,9 @@ class TwoViewFit:
     beta_variance: float  # its variance (px^2); nan when not fitted
     residuals: np.ndarray  # (n,8) pixels predicted - measured of the points kept
     dof: int  # residuals minus unknowns
+    # computed with the fit (:func:`_fit_batch`, numpy's numbers), else from the residuals when asked:
+    scale: float | None = field(default=None, repr=False)  # robust_scale()
+    sum_squares: float | None = field(default=None, repr=False)  # the residuals' sum of squares, all within TRIM_PX
 
     @property
     def points(self) -> int:
@@ -70,12 +73,16 @@ class TwoViewFit:
 
     def robust_scale(self) -> float:
         """1.4826 MAD of the residuals, scaled for the unknowns fitted (px per coordinate)."""
+        if self.scale is not None:
+            return self.scale
         r = self.residuals.ravel()
         return float(1.4826 * np.median(np.abs(r)) * np.sqrt(r.size / max(self.dof, 1)))
 
     def mean_square(self, trim: float = TRIM_PX) -> tuple[float, int]:
         """(sum of squared residuals within ``trim`` px, their degrees of freedom): a pooled RMS
         that keeps the heavy tail of real tracks, which the robust scale leaves out."""
+        if self.sum_squares is not None and trim >= TRIM_PX:  # every residual is within trim
+            return self.sum_squares, self.dof
         r = self.residuals.ravel()
         kept = np.abs(r) <= trim
         return float(np.sum(r[kept] ** 2)), int(kept.sum()) - (r.size - self.dof)
@@ -477,9 +484,9 @@ def _rows_within(r, limit):
 
 
 @jit
-def _fit_batch(za, zb, starts, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, initial):
+def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, initial):
     """The compiled part of :func:`fit_pair` for many step pairs in one call (the GIL released
-    throughout): pair k's matched pixels are ``za[starts[k]:starts[k+1]]``, ``zb[...]`` (n,4);
+    throughout): pair k's matched pixels are ``za[begin[k]:end[k]]``, ``zb[...]`` (n,4);
     ``initial`` (4,4) the motion to start from, or (0,0) for none. Per pair: the rows that agree,
     the first fit, the trimming, the second fit (or the first again), each fit's noise
     (:func:`_noise_of`) and the final residuals' bound; what needs S^-1 is left to the caller
@@ -489,8 +496,10 @@ def _fit_batch(za, zb, starts, fx, fy, cx, cy, baseline, offset, min_points, ite
     - T (m,4,4), beta (m,), S (m,g,g), sigma^2 (m,), dof (m,) of the final fit (dof: residuals
       minus unknowns, as ``TwoViewFit.dof``);
     - beta, S, sigma^2 of the first fit (status 2);
-    - the final residuals of pair k: ``residuals[rows[k]:rows[k+1]]`` (n_k,8)."""
-    m = starts.size - 1
+    - the final residuals of pair k: ``residuals[rows[k]:rows[k+1]]`` (n_k,8);
+    - their robust scale and sum of squares (m,) each (``TwoViewFit.robust_scale``, ``mean_square``:
+      numpy's median and pairwise sum, to the bit)."""
+    m = begin.size
     g = 7 if offset else 6
     with_initial = initial.shape[0] == 4
     start = initial if with_initial else np.eye(4)
@@ -503,12 +512,17 @@ def _fit_batch(za, zb, starts, fx, fy, cx, cy, baseline, offset, min_points, ite
     betas1 = np.zeros(m)
     Ss1 = np.zeros((m, g, g))
     sigma2s1 = np.zeros(m)
-    residuals = np.empty((za.shape[0], 8))
+    total = 0
+    for k in range(m):
+        total += end[k] - begin[k]
+    residuals = np.empty((total, 8))
     rows = np.zeros(m + 1, dtype=np.int64)
-    squares = np.empty(8 * max(za.shape[0], 1))
+    scales = np.zeros(m)
+    sums = np.zeros(m)
+    squares = np.empty(8 * max(total, 1))
     for k in range(m):
         rows[k + 1] = rows[k]
-        a0, a1 = starts[k], starts[k + 1]
+        a0, a1 = begin[k], end[k]
         agree = np.empty(a1 - a0, dtype=np.int64)
         n = 0
         for i in range(a0, a1):
@@ -578,8 +592,15 @@ def _fit_batch(za, zb, starts, fx, fy, cx, cy, baseline, offset, min_points, ite
         for i in range(n2):
             for j in range(8):
                 residuals[rows[k] + i, j] = r[i, j]
+                squares[8 * i + j] = r[i, j] * r[i, j]
         rows[k + 1] = rows[k] + n2
-    return status, Ts, betas, Ss, sigma2s, dofs, betas1, Ss1, sigma2s1, residuals, rows
+        sums[k] = _pairwise_sum(squares, 0, 8 * n2)
+        for i in range(n2):
+            for j in range(8):
+                squares[8 * i + j] = abs(r[i, j])
+        # 1.4826 MAD sqrt(size / dof), in TwoViewFit.robust_scale's order
+        scales[k] = 1.4826 * median_inplace(squares[:8 * n2]) * np.sqrt(r.size / max(dofs[k], 1))
+    return status, Ts, betas, Ss, sigma2s, dofs, betas1, Ss1, sigma2s1, residuals, rows, scales, sums
 
 
 def _usable_inverses(S: np.ndarray, beta: np.ndarray, sigma2: np.ndarray,
@@ -609,18 +630,16 @@ def _usable_inverses(S: np.ndarray, beta: np.ndarray, sigma2: np.ndarray,
     return S_inv, usable
 
 
-def _fits(steps: list[int], za: list[np.ndarray], zb: list[np.ndarray], cam, offset: bool, min_points: int,
-          gap: int, initial: np.ndarray | None = None) -> list[TwoViewFit | None]:
-    """:func:`fit_pair` of each step pair (``steps[k]``, ``za[k]``, ``zb[k]``): one compiled call for
-    them all (:func:`_fit_batch`), then numpy's inverse of the fits' S (:func:`_usable_inverses`)."""
-    if not steps:
+def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndarray, cam, offset: bool,
+          min_points: int, gap: int, initial: np.ndarray | None = None) -> list[TwoViewFit | None]:
+    """:func:`fit_pair` of each step pair k (``steps[k]``, pixels ``za[begin[k]:end[k]]``,
+    ``zb[...]``, (n,4) float64 C-ordered): one compiled call for them all (:func:`_fit_batch`), then
+    numpy's inverse of the fits' S (:func:`_usable_inverses`)."""
+    if len(steps) == 0:
         return []
     fx, fy, cx, cy, baseline = map(float, cam)
-    starts = np.zeros(len(za) + 1, dtype=np.int64)
-    np.cumsum([a.shape[0] for a in za], out=starts[1:])
-    status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows = _fit_batch(
-        np.ascontiguousarray(np.concatenate(za), dtype=float), np.ascontiguousarray(np.concatenate(zb), dtype=float),
-        starts, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
+    status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows, scales, sums = _fit_batch(
+        za, zb, begin, end, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
         np.zeros((0, 0)) if initial is None else np.ascontiguousarray(initial, dtype=float))
     good = status > 0
     S_inv, usable = _usable_inverses(S[good], beta[good], sigma2[good], offset)
@@ -629,13 +648,12 @@ def _fits(steps: list[int], za: list[np.ndarray], zb: list[np.ndarray], cam, off
     twice = status == 2  # the first fit must have been usable too
     ok[twice] &= _usable_inverses(S1[twice], beta1[twice], sigma21[twice], offset)[1]
     out: list[TwoViewFit | None] = [None] * status.size
-    inverse_of = np.flatnonzero(good)
-    for j, k in enumerate(inverse_of):
+    for j, k in enumerate(np.flatnonzero(good).tolist()):
         if ok[k]:
             s2 = float(sigma2[k])
-            out[k] = TwoViewFit(steps[k], gap, T[k], S_inv[j, :6, :6] * s2, float(beta[k]),
+            out[k] = TwoViewFit(int(steps[k]), gap, T[k], S_inv[j, :6, :6] * s2, float(beta[k]),
                                 float(S_inv[j, 6, 6]) * s2 if offset else float("nan"),
-                                residuals[rows[k]:rows[k + 1]], int(dof[k]))
+                                residuals[rows[k]:rows[k + 1]], int(dof[k]), float(scales[k]), float(sums[k]))
     return out
 
 
@@ -648,7 +666,9 @@ def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_poin
     ``min_points`` remain, a third of them is trimmed, or the fit is degenerate.
     ``cam`` = (fx, fy, cx, cy, baseline); ``initial``: the motion to start from (default: none, for
     the small motions of consecutive steps)."""
-    return _fits([step], [za], [zb], cam, offset, min_points, gap, initial)[0]
+    n = np.array([za.shape[0]])
+    return _fits([step], np.ascontiguousarray(za, dtype=float), np.ascontiguousarray(zb, dtype=float), n * 0, n,
+                 cam, offset, min_points, gap, initial)[0]
 
 
 def pair_steps(num_steps: int, gap: int, max_pairs: int, skip: np.ndarray | None = None) -> np.ndarray:
@@ -691,30 +711,70 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
     (px, ``numpy.random.default_rng(seed)``) is added to every pixel first (a SIMEX re-fit)."""
     K = seq.K
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
-    rng = np.random.default_rng(seed) if extra_noise > 0 else None
-    pairs = []
-    for k in pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps:
-        za, zb = matched_pixels(seq, int(k), int(k) + gap, rng, extra_noise)  # the noise drawn in step order
-        if za.shape[0] >= min_points:
-            pairs.append((int(k), za, zb))
+    ks = np.asarray(pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps, dtype=np.int64)
+    a, b, ptr = _matched_rows(seq.obs_ids, seq.obs_ptr, ks, gap)  # the tracks seen at both, in id order
+    za, zb = seq.obs_pixels[a], seq.obs_pixels[b]
+    if extra_noise > 0:  # drawn as pair by pair in step order: za's (m,4) then zb's (m,4) of each pair
+        noise = np.random.default_rng(seed).normal(0.0, extra_noise, (2 * a.size, 4))
+        at = np.arange(a.size) + np.repeat(ptr[:-1], np.diff(ptr))  # row i of pair k: 2 ptr[k] + (i - ptr[k])
+        za, zb = za + noise[at], zb + noise[at + np.repeat(np.diff(ptr), np.diff(ptr))]
+    keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
+    kept = np.zeros(keep.size + 1, dtype=np.int64)
+    np.cumsum(keep, out=kept[1:])
+    begin, end = kept[ptr[:-1]], kept[ptr[1:]]
+    used = np.flatnonzero(end - begin >= min_points)  # the pairs with enough points
+    za, zb, begin, end, ks = za[keep], zb[keep], begin[used], end[used], ks[used]
 
-    def fit(share):
-        return _fits([k for k, _, _ in share], [za for _, za, _ in share], [zb for _, _, zb in share], cam, offset,
-                     min_points, gap)
+    def fit(first: int, every: int = 1) -> list:
+        return _fits(ks[first::every], za, zb, np.ascontiguousarray(begin[first::every]),
+                     np.ascontiguousarray(end[first::every]), cam, offset, min_points, gap)
 
-    if len(pairs) < THREADED_PAIRS:
-        return [f for f in fit(pairs) if f is not None]
+    if used.size < THREADED_PAIRS:
+        return [f for f in fit(0) if f is not None]
     # the compiled fits release the GIL: two threads fit every other pair each, one compiled call a
     # thread (:func:`_fits`); the fits in the pairs' order
     pool = ThreadPoolExecutor(FIT_THREADS)
     try:
-        shares = list(pool.map(lambda first: fit(pairs[first::FIT_THREADS]), range(FIT_THREADS)))
+        shares = list(pool.map(lambda first: fit(first, FIT_THREADS), range(FIT_THREADS)))
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
-    fits = [None] * len(pairs)
+    fits = [None] * used.size
     for first, share in enumerate(shares):
         fits[first::FIT_THREADS] = share
     return [f for f in fits if f is not None]
+
+
+@jit
+def _matched_rows(ids, ptr, steps, gap):
+    """(a, b, pairs): for each k of ``steps``, the rows into the observation arrays (CSR: ``ids``
+    (L,), ``ptr`` (N+1,), ids strictly increasing within a step) of the tracks seen at both k and
+    k+``gap``, in id order (numpy's intersect1d of the two steps' ids); pair j's rows are
+    ``a[pairs[j]:pairs[j+1]]``, ``b[...]``."""
+    m = steps.size
+    bound = 0
+    for j in range(m):
+        k = steps[j]
+        bound += min(ptr[k + 1] - ptr[k], ptr[k + gap + 1] - ptr[k + gap])
+    a = np.empty(bound, dtype=np.int64)
+    b = np.empty(bound, dtype=np.int64)
+    pairs = np.zeros(m + 1, dtype=np.int64)
+    n = 0
+    for j in range(m):
+        k = steps[j]
+        i, i_end = ptr[k], ptr[k + 1]
+        l, l_end = ptr[k + gap], ptr[k + gap + 1]
+        while i < i_end and l < l_end:
+            if ids[i] < ids[l]:
+                i += 1
+            elif ids[i] > ids[l]:
+                l += 1
+            else:
+                a[n], b[n] = i, l
+                n += 1
+                i += 1
+                l += 1
+        pairs[j + 1] = n
+    return a[:n], b[:n], pairs
 
 
 @warms_up
@@ -726,3 +786,4 @@ def _warm_up() -> None:
     for offset in (True, False):
         fit_pair(za, za.copy(), cam, offset)
     fit_pair(za, za.copy(), cam, False, initial=np.eye(4))
+    _matched_rows(np.arange(3), np.array([0, 2, 3]), np.zeros(1, dtype=np.int64), 1)
