@@ -6,9 +6,11 @@ keys a kernel's cache to its own file only, and a kernel that calls one of anoth
 that one's machine code too: after a change of that module alone (a ``git pull`` into an
 editable install) it would run the old code. So the caches under ``backend/`` are dropped
 whenever a source there changed since they were written (:func:`drop_stale_caches`). A module that
-defines kernels registers a function calling each of them once on tiny arguments of the types
-the filter passes, every argument passed as the filter passes it (an omitted default is another
-signature, compiled again) (:func:`warms_up`); :func:`warm_up` runs every registered one that
+defines kernels registers a function calling each of them that a run calls from Python once on
+tiny arguments of the types the filter passes, every argument passed as the filter passes it (an
+omitted default is another signature, compiled again) (:func:`warms_up`); a kernel only other
+kernels call is compiled into their caches and is not loaded on its own (a velocity run's 15
+such kernels took about 40 ms of its start-up to load); :func:`warm_up` runs every registered one that
 has not run yet, so no step of a run pays for compiling, and reports the seconds apart from the
 run's timing. Kernels only a real IMU's run calls are registered as ``only="inertial"`` and
 warmed up only for such a run: a velocity run does not compile them.

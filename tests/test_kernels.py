@@ -515,7 +515,8 @@ print(json.dumps([before, counts(), reported, registered, done, len(at_setup), l
 def test_warm_up_compiles_what_the_filter_calls():
     """Every kernel signature a run needs is compiled (or loaded) by ``compiled.warm_up`` before the
     run's convention test, so neither the setup nor a step pays for it, and a velocity run warms up
-    none of the kernels registered for a real IMU's runs only; in a fresh process, as other
+    none of the kernels registered for a real IMU's runs only; a kernel that only other kernels call
+    is not loaded on its own (it is compiled into their caches); in a fresh process, as other
     tests call kernels too. The kernels are the jitted functions of ``backend.estimator.covariance``,
     ``.tracks``, ``.update``, ``.invariant`` and ``.linalg``, ``geometry.camera.triangulate_rows``,
     ``run.conventions._left_errors`` and ``run.timing._repeats_sorted``."""
@@ -533,10 +534,13 @@ def test_warm_up_compiles_what_the_filter_calls():
     assert decisions == 3  # each run decided its conventions
     assert inertial_only >= 1 and not inertial_done  # a velocity run compiles no kernel only a real IMU's run calls
     assert registered >= 8 and done == registered - inertial_only  # every other module's warm-up ran
-    for module in ("covariance", "tracks", "update", "invariant", "linalg"):
-        assert any(name.startswith(module + ".") for name in before)
-    assert len(before) >= 9 and all(n >= 1 for n in before.values())  # all loaded before the convention test
-    assert after == before
+    for module in ("covariance", "tracks", "update", "invariant"):
+        assert any(name.startswith(module + ".") and n >= 1 for name, n in before.items())
+    # linalg's kernels run inside the others only (compiled into their caches): not loaded on their own
+    assert any(name.startswith("linalg.") for name in before)
+    assert not any(n for name, n in before.items() if name.startswith("linalg."))
+    assert sum(n >= 1 for n in before.values()) >= 9  # loaded before the convention test
+    assert after == before  # and nothing more by the runs: none compiled or loaded a kernel mid-way
     assert reported == [True, True, True]  # each run reports the process's warm-up, apart from its timing
 
 

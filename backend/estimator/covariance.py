@@ -118,8 +118,13 @@ def repair_if_indefinite(P: np.ndarray, estimated: np.ndarray) -> float | None:
 
 @warms_up(only="landmarks")
 def _warm_up() -> None:
+    """The kernels a run calls from Python (``backend.compiled``: the others are compiled into their callers)."""
     P = np.eye(CORE + 6)
-    mirror_lower_inplace(P)
-    gather_symmetric(P, np.arange(CORE + 3, dtype=np.int64))
     gather_landmarks(P, np.arange(2, dtype=np.int64), CORE)  # core given, as StateHelper.marginalize passes it
     augment(P, np.zeros((3, 6)), np.ones((1, 3, 4)), 1.0)
+
+
+@warms_up(only="inertial")
+def _warm_up_clones() -> None:
+    """A real IMU's run also calls :func:`gather_symmetric` from Python (a clone leaves: ``StateHelper.drop_oldest_clone``)."""
+    gather_symmetric(np.eye(CORE + 12), np.r_[0:CORE, CORE + 6:CORE + 12])

@@ -408,6 +408,7 @@ class InvariantModel(ErrorModel):
 
 @warms_up(only="landmarks")
 def _warm_up() -> None:
+    """The kernels a run calls from Python (``backend.compiled``; :func:`observe` runs inside :func:`innovation`)."""
     D, k = CORE + 6, 2
     P = np.eye(D)
     slots = np.arange(k, dtype=np.int64)
@@ -417,7 +418,6 @@ def _warm_up() -> None:
     pose, _ = predict_step(np.eye(4), twist)
     retract_inplace(pose, points.copy(), np.full(D, 1e-3))
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
-    observe(points + 5.0, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels)
     # the arguments as the model passes them (core given: an omitted default would be another signature)
     innovation(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True, CORE)
     initialize(pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, True)

@@ -26,7 +26,7 @@ from llvmlite import binding as _llvm
 from numba import types
 from numba.extending import get_cython_function_address
 
-from ..compiled import jit, warms_up
+from ..compiled import jit
 
 _BLAS = ("dsyrk", "dtrsm", "dgemm")
 _LAPACK = ("dpotrf",)
@@ -148,18 +148,9 @@ def add_product_lower(P, Z, X):
            X.ctypes, ld[0:].ctypes, Z.ctypes, ld[1:].ctypes, alpha_beta[1:].ctypes, P.ctypes, ints[3:].ctypes)
 
 
-@warms_up(only="landmarks")
-def _warm_up() -> None:
-    P = np.eye(3)
-    A = np.ones((2, 3))
-    cholesky_upper_inplace(P.copy())
-    solve_lower_inplace(np.eye(3), A.copy())
-    downdate_lower(P.copy(), A)
-    add_product_lower(P.copy(), A.T.copy(), A.T.copy())
-    inverse3(np.eye(3), np.empty((3, 3)))
-    solve_small(np.eye(2), np.ones(2))
-    median_inplace(np.ones(2))
-    kth_smallest(np.ones(2), 0)
+# No warm-up here: no run calls these kernels from Python. Each is compiled into the kernels that call
+# it (their caches hold its machine code), and loading it on its own at start-up cost a run time
+# for nothing (``backend.compiled``).
 
 
 @jit

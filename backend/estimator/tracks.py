@@ -125,8 +125,7 @@ def plan_removal(mask, ended, outlier_run):
 def _warm_up() -> None:
     ids = np.arange(2, dtype=np.int64)
     counts = np.ones(2, dtype=np.int64)
-    plan_update(ids, ids, ids, counts, counts.copy(), True, False)
-    slots_of(ids, ids, ids)
+    plan_update(ids, ids, ids, counts, counts.copy(), True, False)  # slots_of runs inside it
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * 2)
     admit_landmarks(ids, pixels, np.zeros(2, dtype=np.bool_), 1.0, np.inf, 350.0, True, 6.0, 3, 25)
     mask = np.array([True, False])

@@ -407,6 +407,8 @@ def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots,
 
 @warms_up(only="landmarks")
 def _warm_up() -> None:
+    """The kernels a run calls from Python (``backend.compiled``): the RANSAC, the joint update and the
+    rejection counts run inside :func:`select_and_update_inplace`."""
     D, k = CORE + 6, 2
     P = np.eye(D)
     slots = np.arange(k, dtype=np.int64)
@@ -415,10 +417,6 @@ def _warm_up() -> None:
     residual = np.ones((k, 3))
     off_row = np.zeros(k)
     HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row, CORE)  # core given, as the models pass it
-    one_point_ransac(S, residual, off_row, np.ones(k, dtype=np.bool_), 1.0, 2.0)
-    inlier = np.array([True, False])
-    joint_update_inplace(P.copy(), HP, S, residual, off_row, inlier, ~inlier, 1.0, 1e9)
     counts = np.zeros(k, dtype=np.int64)
-    count_rejections_inplace(counts, slots, inlier, 3)
     select_and_update_inplace(P.copy(), HP, S, residual, off_row, nis, np.ones(k, dtype=np.bool_), slots, 9.0, 2.0,
                               1.0, counts, 10, counts.copy())
