@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
+
 from vislam.backend.compiled import FINGERPRINT, drop_stale_caches
 
 
@@ -172,3 +174,17 @@ def test_a_pool_worker_compiling_first_does_not_start_a_helper(monkeypatch):
     worker.join(10)
     assert status == "ok", detail
     assert detail == ["one", "two"]
+
+
+def test_numbas_llvm_lock_events_are_dropped():
+    """Importing the kernels' module unregisters numba's per-LLVM-call event callbacks (start-up: a
+    process loading its cached kernels makes thousands of LLVM calls); the kernels still run."""
+    from llvmlite.binding import ffi
+
+    from vislam.backend import compiled
+    from vislam.backend.geometry.camera import triangulate_rows
+
+    assert not any(getattr(a, "__module__", None) == "numba.core.base" for a, _ in ffi.lib._lock._cblist)
+    assert compiled._drop_llvm_lock_events() is False  # nothing left to drop
+    points, _ = triangulate_rows(np.array([[600.0, 180.0, 560.0, 180.0]] * 2), 700.0, 700.0, 600.0, 180.0, 0.5, 0.0)
+    np.testing.assert_allclose(points[:, 2], 700.0 * 0.5 / 40.0)  # depth = fx b / disparity
