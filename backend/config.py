@@ -122,6 +122,7 @@ class NoiseOptions(OptionTable):
 
     TABLE = "noise"
     pixel_sigma: Optional[float] = None  # px, per coordinate of z = [uL, vL, uR, vR]; unset: identified (N2)
+    pixel_variance_per_disparity: Optional[float] = None  # px^2 per px: sigma_i^2 = pixel_sigma^2 + this d_i (N5); unset: identified; 0: white
     linear_velocity_sigma: Optional[float] = None  # m/s; unset: identified from the data (N1, N3)
     angular_velocity_sigma: Optional[float] = None  # rad/s; unset: identified from the data (N1, N3)
     gyro_bias_sigma0: float = 0.005  # rad/s: prior standard deviation of the gyro bias
@@ -131,6 +132,8 @@ class NoiseOptions(OptionTable):
     def check(self) -> None:
         self.require_positive("gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
         self.require_positive("pixel_sigma", "linear_velocity_sigma", "angular_velocity_sigma", optional=True)
+        if self.pixel_variance_per_disparity is not None:
+            self.require_at_least(0.0, "pixel_variance_per_disparity")
 
 
 @dataclass
@@ -171,14 +174,18 @@ class DriftOptions(OptionTable):
 
     TABLE = "drift"
     track_drift: Choice = Choice.AUTO  # model drifting tracks; auto: by the test on the tracks (T1, backend.run.drift)
-    landmark_random_walk: float = 0.05  # m/sqrt(s): with track drift, each xyz landmark's position random-walks
+    landmark_random_walk: Optional[float] = None  # m/sqrt(s): with track drift, every xyz landmark random-walks this much; unset: by its depth from the pixel walk (R3)
+    pixel_walk: Optional[float] = None  # px^2 per step: a drifting track's pixel random walk at zero disparity (T3); unset: measured
+    pixel_walk_per_disparity: Optional[float] = None  # px^2 per step and px of disparity (T3); unset: measured
     reanchor_observations: int = 3  # with track drift, a landmark is re-triangulated after this many observations (0: never)
     reanchor_far_observations: int = 25  # ... this many when anchored with disparity < reanchor_far_disparity (0: never)
     reanchor_far_disparity: float = 6.0  # px
 
     def check(self) -> None:
-        self.require_at_least(0.0, "landmark_random_walk", "reanchor_observations", "reanchor_far_observations",
-                              "reanchor_far_disparity")
+        self.require_at_least(0.0, "reanchor_observations", "reanchor_far_observations", "reanchor_far_disparity")
+        for key in ("landmark_random_walk", "pixel_walk", "pixel_walk_per_disparity"):
+            if getattr(self, key) is not None:
+                self.require_at_least(0.0, key)
 
 
 @dataclass

@@ -91,6 +91,9 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     assert decided["pixel_noise"]["decided_by"] == "two-view fits" and decided["pixel_noise"]["sigma_px"] > 0
     assert summary["config"] == Config().with_values({
         "drift.track_drift": "yes", "noise.pixel_sigma": decided["pixel_noise"]["sigma_px"],
+        "noise.pixel_variance_per_disparity": decided["pixel_noise"]["variance_per_disparity_px2_per_px"],
+        "drift.pixel_walk": decided["track_drift"]["pixel_walk_px2_per_step"],
+        "drift.pixel_walk_per_disparity": decided["track_drift"]["pixel_walk_px2_per_step_per_px"],
         "estimator.estimate_gyro_bias": decided["gyro_bias"]["estimated"]}).as_dict()
     assert summary["config"]["estimator"]["mode"] == "slam"
     # the config written is loadable and reproduces the run's settings

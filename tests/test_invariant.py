@@ -24,7 +24,8 @@ from vislam.backend.geometry import se3
 from helpers import THREE_ROWS, numeric_jacobian, observation_model, slots_of
 from test_ekf import CAMERA, IMU_T_CAM, NOISE, bare_config, homogeneous, random_pose, random_spd, rel_err
 
-CONFIG = bare_config({"estimator.error_model": "invariant", "landmarks.parametrization": "xyz"})
+CONFIG = bare_config({"estimator.error_model": "invariant", "landmarks.parametrization": "xyz",
+                      "drift.landmark_random_walk": 0.05})  # a constant walk: test_prediction_without_noise_is_the_identity
 
 
 @pytest.fixture(autouse=True)

@@ -4,7 +4,8 @@ Each step is ``predict(dt, v, w)`` then ``update(ids, pixels)``:
 
 - predict: the mean by (P1) and the covariance by the error model (I2, or B1), with the IMU's
   white noise and the gyro bias' random walk; world-xyz landmarks of drifting tracks take a
-  random walk of ``drift.landmark_random_walk`` (m/sqrt s: P_mm += q^2 tau I);
+  random walk, each by its depth from the tracks' measured pixel walk (R3, T3 of
+  ``backend.run.drift``), or ``drift.landmark_random_walk`` (m/sqrt s: P_mm += q^2 tau I) when set;
 - update: the step's observations go to their landmarks (``backend.estimator.tracks``); tracks
   that ended leave the state for the map (A2) and, with drifting tracks, old landmarks are
   re-anchored (R1); the observations of landmarks in the state update pose and landmarks jointly
@@ -22,6 +23,7 @@ equation to the function that runs it and the test that checks it.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -31,6 +33,7 @@ from .. import chi2
 from ..compiled import warm_up, warm_up_seconds
 from ..config import Choice, Config, ErrorModel as ErrorModelKind, Mode
 from ..errors import FilterError
+from ..geometry import se3
 from ..geometry.camera import StereoCamera
 from .body import BodyModel
 from ..data.inertial import ImuSamples
@@ -43,6 +46,7 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
+from .update import whiten
 from .window import WindowStep, WindowUpdater, retract_clones, window_in_use
 from .zero_velocity import ZeroVelocityUpdater
 
@@ -216,10 +220,15 @@ class VisualInertialEKF:
             raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
                               "(vislam.OnlineRun, vislam.run_sequence)")
         self._pixel_var = noise.pixel_sigma**2
+        self._var_per_disparity = noise.pixel_variance_per_disparity or 0.0  # (N5): 0 = white pixel noise
         # drifting tracks: the point a track follows is not quite static (world xyz landmarks only)
         drifting = drift.track_drift != Choice.NO
         xyz = config.landmarks.parametrization == "xyz"
-        self._landmark_walk = drift.landmark_random_walk**2 if drifting and xyz else 0.0
+        walking = drifting and xyz
+        constant = drift.landmark_random_walk
+        self._landmark_walk = constant**2 if walking and constant is not None else 0.0  # m^2/s, every landmark
+        self._pixel_walk = ((drift.pixel_walk or 0.0, drift.pixel_walk_per_disparity or 0.0)
+                            if walking and constant is None else (0.0, 0.0))  # (R3) px^2 a step: at d = 0, per px of d
         self._gate = chi2.quantile(4, config.update.gate_probability)  # chi2(4) quantile (U4)
         self._reanchor = (drifting and not est.full_state
                           and (drift.reanchor_observations > 0 or drift.reanchor_far_observations > 0))
@@ -269,7 +278,7 @@ class VisualInertialEKF:
         self.step_index += 1
         twist, q = self._imu_twist(dt, linear_velocity, angular_velocity)
         transition = self.model.predict(self.state, twist, q, dt, self.config.noise.gyro_bias_random_walk**2 * dt)
-        StateHelper.propagate(self.state, transition, self._landmark_walk * dt)
+        StateHelper.propagate(self.state, transition, self._walk(dt))
 
     def propagate(self, imu: ImuSamples, t0: float, t1: float) -> None:
         """Move the inertial state from t0 to t1 by every IMU sample between (J3, J5, J6 of
@@ -283,7 +292,7 @@ class VisualInertialEKF:
         if self.window is not None:  # clones after the core, not landmarks (W2)
             StateHelper.propagate(self.state, CoreTransition(transition.prop.Phi, transition.prop.Q))
             return
-        StateHelper.propagate(self.state, transition, self._landmark_walk * (t1 - t0))
+        StateHelper.propagate(self.state, transition, self._walk(t1 - t0))
 
     @property
     def velocity(self) -> np.ndarray | None:
@@ -322,7 +331,26 @@ class VisualInertialEKF:
             transition = self.model.predict(self.state, twist, q, dt, bias_walk)
         else:
             transition = self.model.predict_frozen(self.state, twist, q, dt, bias_walk, weight[3:6])
-        StateHelper.propagate(self.state, transition, self._landmark_walk * dt)
+        StateHelper.propagate(self.state, transition, self._walk(dt))
+
+    def _walk(self, dt: float) -> float | np.ndarray:
+        """The landmarks' random walk over one step of ``dt`` s: a configured ``drift.landmark_random_walk``
+        q as q^2 dt for every landmark, else each landmark's from the tracks' pixel walk (T3),
+        q(d) = q_0 + q_d d px^2 a step, as a lateral walk at its depth z in the camera (fx b / z = d):
+
+            var = (z / fx)^2 q(fx b / z) = (z / fx)^2 q_0 + q_d b z / fx     m^2 a step, x y z each      (R3)
+
+        (an isotropic walk of the lateral size: along the ray a point's depth is far less certain anyway).
+        Returns a number or (n,) per landmark slot."""
+        if self._landmark_walk:
+            return self._landmark_walk * dt
+        q0, qd = self._pixel_walk
+        if not (q0 or qd) or not self.state.num_landmarks:
+            return 0.0
+        cam_T_world = self.model.cam_T_imu @ se3.inverse(self.state.mu)
+        z = np.abs(self.state.theta @ cam_T_world[2, :3] + cam_T_world[2, 3])
+        cam = self.camera
+        return (z / cam.fx) ** 2 * q0 + qd * cam.baseline * z / cam.fx
 
     # ------------------------------------------------------------------ update
     def update(self, ids: np.ndarray, pixels: np.ndarray) -> StepStats:
@@ -387,9 +415,15 @@ class VisualInertialEKF:
         """Gate, 1-point RANSAC, rescue and the joint update (U1-U5) in one compiled call, then the
         error model's correction; landmarks gated too often in a row are dropped."""
         st = self.state
-        inn = self.model.innovation(st, slots, pixels, self._pixel_var)
+        pixel_var = self._pixel_var
+        if self._var_per_disparity:  # (N5) each observation's variance, by whitening (U6)
+            obs_var = self._observation_variance(pixels)
+            pixel_var = float(np.median(obs_var))
+            inn = whiten(self.model.innovation(st, slots, pixels, pixel_var), obs_var, pixel_var)
+        else:
+            inn = self.model.innovation(st, slots, pixels, pixel_var)
         upd = self.config.update
-        result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, self._pixel_var,
+        result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, pixel_var,
                                     upd.persistent_outlier_steps)
         use = result.used
         if result.status:  # numerically degenerate step: the prior is kept
@@ -401,21 +435,26 @@ class VisualInertialEKF:
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(inn.nis[use].sum())
         if self.track_likelihood:
-            stats.log_likelihood, stats.tested = self._log_likelihood(inn)
+            stats.log_likelihood, stats.tested = self._log_likelihood(inn, pixel_var)
         bad = st.gated_run >= upd.max_consecutive_gated
         if bad.any():
             stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
-    def _log_likelihood(self, inn) -> tuple[float, int]:
+    def _observation_variance(self, pixels: np.ndarray) -> np.ndarray:
+        """(N5) sigma_i^2 = pixel_sigma^2 + b d_i (k,) of observations ``pixels`` (k,4), d = uL - uR."""
+        return self._pixel_var + self._var_per_disparity * np.maximum(pixels[:, 0] - pixels[:, 2], 0.0)
+
+    def _log_likelihood(self, inn, pixel_var: float) -> tuple[float, int]:
         """(L1) the prior innovations' log-likelihood, observation by observation (their 4 rows: the
         3x3 block of S and the off row's sigma^2), heavy-tailed so that a gross outlier does not decide
         a comparison yet an overconfident model still pays for its residuals (a multivariate Student-t
         of ``LIKELIHOOD_NU`` degrees of freedom and scale S_ii; constants dropped):
 
-            sum_i -1/2 ((nu + 4) log(1 + NIS_i / nu) + log det S_ii + log sigma^2)
+            sum_i -1/2 ((nu + 4) log(1 + NIS_i / nu) + log det S_ii + log sigma_i^2)
 
-        over the observations in front of the camera."""
+        over the observations in front of the camera (a whitened innovation, U6, in its own units:
+        det S_ii = det S'_ii (sigma_i^2 / pixel_var)^3)."""
         front = np.flatnonzero(inn.in_front)
         if not front.size:
             return 0.0, 0
@@ -425,7 +464,13 @@ class VisualInertialEKF:
         ok = sign > 0
         nu = LIKELIHOOD_NU
         nis = inn.nis[front][ok]
-        total = -0.5 * float(np.sum((nu + 4.0) * np.log1p(nis / nu) + logdet[ok] + np.log(self._pixel_var)))
+        if inn.variance is None:
+            log_var = np.full(ok.sum(), np.log(pixel_var))
+            logdet = logdet[ok]
+        else:
+            log_var = np.log(inn.variance[front][ok])
+            logdet = logdet[ok] + 3.0 * (log_var - np.log(pixel_var))
+        total = -0.5 * float(np.sum((nu + 4.0) * np.log1p(nis / nu) + logdet + log_var))
         return total, int(ok.sum())
 
     # ------------------------------------------------------------------ landmarks
@@ -444,8 +489,11 @@ class VisualInertialEKF:
         if ok.size < ids.size:
             ids, pixels = ids[ok], pixels[ok]
         sigma = self.config.noise.pixel_sigma if lm.unbiased_triangulation else 0.0
-        StateHelper.augment(self.state, ids, self.model.initialize(self.state, pixels, sigma), self._pixel_var,
-                            counts, limits)
+        new = self.model.initialize(self.state, pixels, sigma)
+        if self._var_per_disparity:  # (N5) each landmark from its own pixels' variance: J_z scaled to the reference
+            scale = np.sqrt(self._observation_variance(pixels) / self._pixel_var)
+            new = dataclasses.replace(new, J_z=np.ascontiguousarray(new.J_z * scale[:, None, None]))
+        StateHelper.augment(self.state, ids, new, self._pixel_var, counts, limits)
         stats.initialized = ids.size
 
     def _remove(self, mask: np.ndarray, to_map: bool, ended: np.ndarray | None = None) -> np.ndarray:

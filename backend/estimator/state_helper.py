@@ -107,14 +107,17 @@ class StateHelper:
         state.P = 0.5 * (cov + cov.T)
 
     @staticmethod
-    def propagate(state: FilterState, transition: Transition | None, landmark_walk_var: float = 0.0) -> None:
+    def propagate(state: FilterState, transition: Transition | None,
+                  landmark_walk_var: float | np.ndarray = 0.0) -> None:
         """P by the model's ``transition`` (None: poses held fixed, P of the core unchanged), then
-        the landmarks' random walk: ``landmark_walk_var`` added to each landmark row's variance."""
+        the landmarks' random walk: ``landmark_walk_var`` (a number, or (n,) per landmark slot)
+        added to each landmark row's variance."""
         if transition is not None:
             state.P = transition.apply(state.P)
-        if landmark_walk_var and state.num_landmarks:
+        if state.num_landmarks and np.any(landmark_walk_var):
             diag = np.arange(state.core, state.P.shape[0])
-            state.P[diag, diag] += landmark_walk_var
+            walk = np.asarray(landmark_walk_var, dtype=float)
+            state.P[diag, diag] += np.repeat(walk, 3) if walk.ndim else walk
 
     @staticmethod
     def update(state: FilterState, inn: Innovation, slots: np.ndarray, gate: float, ransac_threshold_px: float,

@@ -35,6 +35,9 @@ join the update, whose factor over [inliers; rescued] is [[L, 0], [X_ok^T, L_o]]
 L_o L_o^T = S_oo - X_ok^T X_ok, so S is factored once.                                          (U3)
 
 :func:`select_and_update_inplace` does U4, U5, U3 and U2 in one call.
+
+Observations of unequal noise (N5: a variance per observation) enter by whitening (U6,
+:func:`whiten`): each observation's rows scaled to the one variance the compiled update takes.
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ class Innovation:
     S: np.ndarray  # (3k,3k) H P H^T + R
     nis: np.ndarray  # (k,) (U4), 4 dof
     in_front: np.ndarray  # (k,) bool
+    variance: np.ndarray | None = None  # (k,) each observation's own pixel variance, once whitened (U6)
 
 
 @jit
@@ -136,11 +140,41 @@ def innovation_covariance(P, H_x, H_m, slots, pixel_var, residual, off_row, core
             S[r2, r] = s
     for r in range(m):
         S[r, r] += pixel_var
+    return HP, S, block_nis(S, residual, off_row, pixel_var)
+
+
+@jit
+def block_nis(S, residual, off_row, pixel_var):
+    """(U4) the NIS (k,) of each observation: its 3-row block of S and off_row^2 / sigma^2."""
+    k = residual.shape[0]
     nis = np.empty(k)
     for i in range(k):
         o = 3 * i
         nis[i] = _nis3(S[o:o + 3, o:o + 3], residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
-    return HP, S, nis
+    return nis
+
+
+def whiten(inn: Innovation, obs_var: np.ndarray, ref_var: float) -> Innovation:
+    """(U6) observations of their own pixel variances ``obs_var`` (k,) (N5) as observations of the
+    one variance ``ref_var`` the compiled update takes: ``inn`` was formed with R = ref_var I, so
+
+        S_true = S + diag(obs_var_i - ref_var)   (3 rows each),   w_i = sqrt(ref_var / obs_var_i),
+        r' = w r,  off' = w off,  H' = w H,  (HP)' = w HP,  S' = W S_true W = H' P H'^T + ref_var I,
+
+    an exact change of the measurement's units: the gain, dx and P's update are those of R_i =
+    obs_var_i I, and the NIS (chi-square gate, U4) is unchanged by it. The 1-point RANSAC's
+    threshold (U5) then counts in units of sqrt(ref_var): an observation's error is judged against
+    its own noise. Returns a new Innovation (``variance`` set)."""
+    w = np.sqrt(ref_var / obs_var)
+    w3 = np.repeat(w, 3)
+    S = inn.S.copy()
+    S[np.diag_indices_from(S)] += np.repeat(obs_var - ref_var, 3)
+    S *= w3[:, None]
+    S *= w3[None, :]
+    residual = inn.residual * w[:, None]
+    off_row = inn.off_row * w
+    return Innovation(residual, off_row, inn.H_x * w3[:, None], inn.H_m * w[:, None, None], inn.HP * w3[:, None], S,
+                      block_nis(S, residual, off_row, ref_var), inn.in_front, obs_var)
 
 
 @jit
@@ -408,7 +442,7 @@ def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots,
 @warms_up(only="landmarks")
 def _warm_up() -> None:
     """The kernels a run calls from Python (``backend.compiled``): the RANSAC, the joint update and the
-    rejection counts run inside :func:`select_and_update_inplace`."""
+    rejection counts run inside :func:`select_and_update_inplace`; :func:`block_nis` also in :func:`whiten`."""
     D, k = CORE + 6, 2
     P = np.eye(D)
     slots = np.arange(k, dtype=np.int64)
@@ -417,6 +451,7 @@ def _warm_up() -> None:
     residual = np.ones((k, 3))
     off_row = np.zeros(k)
     HP, S, nis = innovation_covariance(P, H_x, H_m, slots, 1.0, residual, off_row, CORE)  # core given, as the models pass it
+    block_nis(S, residual, off_row, 1.0)  # whiten (U6) calls it from Python
     counts = np.zeros(k, dtype=np.int64)
     select_and_update_inplace(P.copy(), HP, S, residual, off_row, nis, np.ones(k, dtype=np.bool_), slots, 9.0, 2.0,
                               1.0, counts, 10, counts.copy())

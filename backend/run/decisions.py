@@ -8,8 +8,9 @@ each by a test whose numbers it keeps:
 3. two-view fits of step pairs at gaps 1-3 (D2, ``backend.run.two_view``), from which
    - the stereo pair's disparity offset (D1, D3, ``backend.run.stereo_offset``), removed only if
      dead reckoning's reprojection (C1) does not get worse;
-   - whether the tracks drift (T1, ``backend.run.drift``);
-   - the pixel noise (N2, ``backend.run.noise``), over the gaps the filter's landmarks live through;
+   - whether the tracks drift (T1, ``backend.run.drift``) and how fast (T3);
+   - the pixel noise (N2, ``backend.run.noise``) of consecutive frames (over the gaps the filter's
+     landmarks live through where drift has no measured walk), and its growth with disparity (N5);
    - the IMU against vision (N3): the lever arm and velocity offset of the IMU's velocities,
      removed when significant and dead reckoning agrees, and the IMU's noise per axis;
 4. the IMU noise: configured, else against vision (N3) where enough step pairs exist, else the
@@ -34,10 +35,10 @@ import numpy as np
 from ..config import Choice, Config, Mode
 from ..data.sequence import Sequence
 from .conventions import ConventionDecision, MatchedPairs, decide_conventions, matched_pairs, reprojection_error
-from .drift import DriftDecision, decide_track_drift
+from .drift import NOISE_MIN_POINTS, DriftDecision, decide_track_drift
 from .noise import (
-    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, estimate_white_noise, gap_statistics, hold_error, imu_vs_vision,
-    pixel_noise,
+    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise, gap_statistics,
+    hold_error, imu_vs_vision, pixel_noise, with_disparity_noise,
 )
 from .stereo_offset import StereoOffset, offset_from_fits
 from .timing import repeated_steps
@@ -48,8 +49,6 @@ __all__ = ["Decisions", "GyroBias", "decide"]
 #: Two-view fits per gap: gap 1 serves the offset and the IMU test, gaps 2-3 the drift test.
 PAIRS_GAP1 = 300
 PAIRS_LONGER = 100
-#: The noise and drift tests take pairs down to this many points (the offset needs 12).
-NOISE_MIN_POINTS = 5
 #: A correction must not make dead reckoning's reprojection (C1) worse by more than this factor.
 GUARD_TOLERANCE = 1.05
 
@@ -85,9 +84,14 @@ class Decisions:
         return self.conventions.imu_T_cam
 
     def config_for(self, config: Config) -> Config:
-        """``config`` with the decided values the filter reads (pixel noise, drift, gyro bias)."""
+        """``config`` with the decided values the filter reads (pixel noise, drift and its walk, gyro bias)."""
         values = {"noise.pixel_sigma": self.pixels.sigma,
+                  "noise.pixel_variance_per_disparity": self.pixels.variance_per_disparity,
                   "drift.track_drift": Choice.YES if self.drift.drifting else Choice.NO,
+                  "drift.pixel_walk": self.drift.walk if config.drift.pixel_walk is None else config.drift.pixel_walk,
+                  "drift.pixel_walk_per_disparity": (self.drift.walk_per_disparity
+                                                     if config.drift.pixel_walk_per_disparity is None
+                                                     else config.drift.pixel_walk_per_disparity),
                   "estimator.estimate_gyro_bias": self.gyro_bias.estimated}
         return config.with_values(values)
 
@@ -210,10 +214,14 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
             offset = StereoOffset(0.0, 0.0, dict(offset.estimate, rejected=(
                 f"an estimated offset of {offset.estimate['beta_mean_px']:+.2f} px made dead reckoning's reprojection "
                 f"worse ({numbers['without']:.2f} -> {numbers['with']:.2f} px), so it is not removed")), offset.source)
-    drift = decide_track_drift(config, fits, seq.tracker)
+    drift = decide_track_drift(config, seq, fits)
     gaps = gap_statistics(fits)
-    reanchor = config.drift.reanchor_observations
-    pixels = pixel_noise(seq, gaps, min(max(reanchor, 1), 3) if drift.drifting else 1, config.noise.pixel_sigma)
+    # the white noise of consecutive frames; drift beyond it is the walk's (T3), or, where no walk was
+    # measured (or a constant one is configured), the RMS over the gaps a landmark lives through
+    walk_measured = (drift.walk > 0 or drift.walk_per_disparity > 0) and config.drift.landmark_random_walk is None
+    lives = min(max(config.drift.reanchor_observations, 1), 3)
+    pixels = pixel_noise(seq, gaps, lives if drift.drifting and not walk_measured else 1, config.noise.pixel_sigma)
+    pixels = with_disparity_noise(pixels, disparity_noise(fits.get(1, [])), config.noise.pixel_variance_per_disparity)
     lin, ang = (seq.linear_velocity, seq.angular_velocity) if imu_velocities is None else imu_velocities
     white_lin, white_ang = estimate_white_noise(np.asarray(lin)), estimate_white_noise(np.asarray(ang))
     vision = imu_vs_vision(fits.get(1, []), seq, conventions.imu_T_cam, conventions.velocity_index) if vision_used else None

@@ -11,6 +11,20 @@ through keeps the heavy tail of real tracks that a robust scale leaves out:
 Without such pairs (too few tracks a step) the stereo rows give a floorless fallback, the robust
 std of (vL - vR) / sqrt 2 (on a rectified pair both rows see the same point).
 
+Pixel noise by disparity (N5). Some trackers' errors grow with a point's nearness (the course
+files': their gap-1 residuals' variance grows about linearly with the disparity, the image motion
+explaining nothing once disparity is in; vislam's own tracker and synthetic tracks show no
+growth). Each point of a gap-1 fit estimates its own variance, y_i = (sum of its squared residuals
+within ``TRIM_PX``) n / dof (its share of the fit's degrees of freedom), and an ordinary least
+squares line with heteroscedasticity-consistent (HC0) standard errors tells the growth:
+
+    y_i = a + b d_i + e_i,   growth  <=>  b > DISPARITY_Z SE(b)                                   (N5)
+
+(an intercept below its own standard error is held at that standard error, the slope refitted). The filter then gives observation i
+the variance sigma_i^2 = f (a + b d_i) per coordinate, f = sigma_px^2 / (a + b dbar) (N2 at the
+fits' mean disparity dbar, so that the drift allowance the pooled gaps add is kept as a share):
+``noise.pixel_sigma`` = sqrt(f a), ``noise.pixel_variance_per_disparity`` = f b.
+
 IMU white noise (N1): per axis from the second differences of the velocity samples,
 
     sigma = 1.4826 MAD(x_{k+1} - 2 x_k + x_{k-1}) / sqrt(6),
@@ -39,7 +53,7 @@ velocities by a visible amount (``backend.run.decisions`` also checks it against
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,8 +62,8 @@ from ..data.sequence import Sequence
 from ..geometry import se3
 from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
 
-__all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "ImuVsVision", "imu_vs_vision",
-           "ImuNoiseDecision", "VelocityCorrection"]
+__all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "DisparityNoise", "disparity_noise", "point_variances",
+           "with_disparity_noise", "ImuVsVision", "imu_vs_vision", "ImuNoiseDecision", "VelocityCorrection"]
 
 #: Prior standard deviations of the lever arm (m) and of the velocity offset (m/s) in (N3).
 LEVER_PRIOR_M = 2.0
@@ -101,19 +115,42 @@ def rows_sigma(seq: Sequence, max_row_px: float = 2.0) -> float:
 class PixelNoise:
     """The pixel noise used (N2), with the measurements behind it."""
 
-    sigma: float  # px per coordinate, used
+    sigma: float  # px per coordinate, used (at zero disparity where variance_per_disparity > 0)
     source: str  # "configured" | "two-view fits" | "stereo rows"
     gaps: tuple = ()  # (gap, pairs, robust scale px, RMS px) per gap measured
     rows_px: float = float("nan")  # the stereo rows' robust std
     used_gaps: int = 0  # the RMS pooled over gaps 1 .. used_gaps
+    variance_per_disparity: float = 0.0  # px^2 per px of disparity (N5): sigma_i^2 = sigma^2 + this d_i
+    disparity: "DisparityNoise | None" = None  # the test (N5) behind it
+    pooled_sigma: float = float("nan")  # (N2) over the fits' points, before the disparity model
+
+    def variance(self, disparity: np.ndarray) -> np.ndarray:
+        """sigma_i^2 (N5) of observations of ``disparity`` (n,) px."""
+        return self.sigma**2 + self.variance_per_disparity * np.maximum(np.asarray(disparity, dtype=float), 0.0)
 
     def as_dict(self) -> dict:
         return {"sigma_px": self.sigma, "decided_by": self.source, "stereo_rows_px": self.rows_px,
-                "pooled_over_gaps": self.used_gaps,
+                "pooled_over_gaps": self.used_gaps, "pooled_sigma_px": self.pooled_sigma,
+                "variance_per_disparity_px2_per_px": self.variance_per_disparity,
+                "disparity_test": None if self.disparity is None else self.disparity.as_dict(),
                 "two_view": [{"gap": g, "pairs": n, "robust_px": s, "rms_px": r} for g, n, s, r in self.gaps]}
 
     def describe(self) -> str:
+        text = self._describe_sigma()
+        if self.disparity is not None:
+            text += "; " + self.disparity.describe(self)
+        return text
+
+    def _describe_sigma(self) -> str:
+        if self.variance_per_disparity > 0 and self.source != "configured":
+            rms = ", ".join(f"{r:.2f}" for g, n, s, r in self.gaps if g <= self.used_gaps)
+            return (f"pixel noise: sigma_i^2 = {self.sigma:.3g}^2 + {self.variance_per_disparity:.3g} d_i px^2 "
+                    f"(disparity d_i px, N5; {self.pooled_sigma:.3g} px pooled over step gaps 1-{self.used_gaps}: "
+                    f"{rms} px; stereo rows {self.rows_px:.2f} px)")
         if self.source == "configured":
+            if self.variance_per_disparity > 0:
+                return (f"pixel noise: sigma_i^2 = {self.sigma:.3g}^2 + {self.variance_per_disparity:.3g} d_i px^2 "
+                        "(configured)")
             return f"pixel noise: {self.sigma:.3g} px (configured)"
         if self.source == "stereo rows":
             return (f"pixel noise: {self.sigma:.3g} px, the stereo rows' spread (too few tracks seen twice for "
@@ -155,6 +192,90 @@ def pixel_noise(seq: Sequence, gaps: tuple, used_gaps: int, configured: float | 
     if np.isfinite(rows) and rows > 0:
         return PixelNoise(rows, "stereo rows", gaps, rows, used_gaps)
     return PixelNoise(1.0, NO_OBSERVATIONS, gaps, rows, used_gaps)
+
+
+#: (N5): the variance grows with disparity when the slope exceeds this many standard errors ...
+DISPARITY_Z = 4.0
+#: ... over at least this many points of gap-1 fits.
+DISPARITY_MIN_POINTS = 200
+
+
+@dataclass(frozen=True)
+class DisparityNoise:
+    """(N5): the gap-1 fits' per-point variance against the disparity, y = a + b d."""
+
+    intercept: float  # a, px^2
+    slope: float  # b, px^2 per px
+    slope_se: float  # HC0 standard error of b
+    points: int
+    mean_disparity: float  # dbar, px
+    growth: bool  # b > DISPARITY_Z SE(b)
+
+    def as_dict(self) -> dict:
+        return {"intercept_px2": self.intercept, "slope_px2_per_px": self.slope, "slope_se": self.slope_se,
+                "points": self.points, "mean_disparity_px": self.mean_disparity, "grows": self.growth}
+
+    def describe(self, pixels: "PixelNoise | None" = None) -> str:
+        verdict = "grows" if self.growth else "does not grow"
+        used = "" if self.growth or pixels is None else "; one sigma for every observation"
+        return (f"its variance {verdict} with disparity (gap-1 residuals: {self.intercept:.3g} + {self.slope:.3g} d px^2, "
+                f"slope {self.slope / self.slope_se if self.slope_se > 0 else float('inf'):.1f} standard errors, "
+                f"{self.points} points{used})")
+
+
+def point_variances(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(y (n,), d (n,)): each fitted point's variance estimate, the sum of its squared residuals
+    within ``trim`` times its share n / dof of the fit's degrees of freedom, and its disparity (px)."""
+    ys, ds = [], []
+    for f in fits:
+        if f.disparity is None or f.dof <= 0:
+            continue
+        r = f.residuals
+        ys.append(np.sum(np.where(np.abs(r) <= trim, r, 0.0) ** 2, axis=1) * (r.shape[0] / f.dof))
+        ds.append(f.disparity)
+    if not ys:
+        return np.zeros(0), np.zeros(0)
+    return np.concatenate(ys), np.concatenate(ds)
+
+
+def disparity_noise(fits: list[TwoViewFit], trim: float = TRIM_PX) -> DisparityNoise | None:
+    """(N5) from gap-1 fits that carry their points' disparities; None with fewer than
+    ``DISPARITY_MIN_POINTS`` points."""
+    y, d = point_variances(fits, trim)
+    if y.size < DISPARITY_MIN_POINTS:
+        return None
+    A = np.column_stack([np.ones_like(d), d])
+    coef, se = _ols_hc0(A, y)
+    a, b, b_se = float(coef[0]), float(coef[1]), float(se[1])
+    if a < se[0]:  # an intercept within its standard error of zero or below: the line through (0, SE(a))
+        a = float(se[0])
+        coef, se = _ols_hc0(d[:, None], y - a)
+        b, b_se = float(coef[0]), float(se[0])
+    growth = bool(b > 0.0 and b > DISPARITY_Z * b_se)
+    return DisparityNoise(a, b, b_se, int(y.size), float(d.mean()), growth)
+
+
+def _ols_hc0(A: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares coefficients of y (n,) on the columns of A (n,p) and their heteroscedasticity-
+    consistent (HC0, White's sandwich) standard errors."""
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    e = y - A @ coef
+    bread = np.linalg.inv(A.T @ A)
+    cov = bread @ ((A * (e**2)[:, None]).T @ A) @ bread
+    return coef, np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def with_disparity_noise(pixels: PixelNoise, test: DisparityNoise | None, configured: float | None) -> PixelNoise:
+    """(N5) applied to the pooled noise ``pixels`` (N2): the configured slope wins (with the pixel
+    sigma as given or pooled); else, where the test shows growth, sigma_i^2 = f (a + b d_i) with
+    f = sigma_px^2 / (a + b dbar)."""
+    base = replace(pixels, disparity=test, pooled_sigma=pixels.sigma)
+    if configured is not None:
+        return replace(base, variance_per_disparity=float(configured))
+    if test is None or not test.growth or pixels.source != "two-view fits":
+        return base
+    f = pixels.sigma**2 / (test.intercept + test.slope * test.mean_disparity)
+    return replace(base, sigma=float(np.sqrt(f * test.intercept)), variance_per_disparity=float(f * test.slope))
 
 
 # ------------------------------------------------------------------------------------------ IMU

@@ -66,6 +66,7 @@ class TwoViewFit:
     # computed with the fit (:func:`_fit_batch`, numpy's numbers), else from the residuals when asked:
     scale: float | None = field(default=None, repr=False)  # robust_scale()
     sum_squares: float | None = field(default=None, repr=False)  # the residuals' sum of squares, all within TRIM_PX
+    disparity: np.ndarray | None = field(default=None, repr=False)  # (n,) px, each kept point's uL - uR at k (N5, T3)
 
     @property
     def points(self) -> int:
@@ -498,7 +499,8 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
     - beta, S, sigma^2 of the first fit (status 2);
     - the final residuals of pair k: ``residuals[rows[k]:rows[k+1]]`` (n_k,8);
     - their robust scale and sum of squares (m,) each (``TwoViewFit.robust_scale``, ``mean_square``:
-      numpy's median and pairwise sum, to the bit)."""
+      numpy's median and pairwise sum, to the bit);
+    - the disparity uL - uR at k of each final residual row's point (total,)."""
     m = begin.size
     g = 7 if offset else 6
     with_initial = initial.shape[0] == 4
@@ -516,6 +518,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
     for k in range(m):
         total += end[k] - begin[k]
     residuals = np.empty((total, 8))
+    disparities = np.empty(total)
     rows = np.zeros(m + 1, dtype=np.int64)
     scales = np.zeros(m)
     sums = np.zeros(m)
@@ -549,6 +552,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
             kept += keep[i]
         if kept < max(min_points, 2 * n / 3):
             continue
+        final = A  # the final fit's points at k
         if kept == n and not with_initial:
             status[k] = 1  # the same points from the same start: the same fit
         else:
@@ -580,6 +584,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
             if not within:
                 continue
             status[k] = 2
+            final = A2
         n2 = r.shape[0]
         for i in range(4):
             for j in range(4):
@@ -590,6 +595,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
                 Ss[k, i, j] = S[i, j]
         dofs[k] = r.size - 3 * n2 - g
         for i in range(n2):
+            disparities[rows[k] + i] = final[i, 0] - final[i, 2]
             for j in range(8):
                 residuals[rows[k] + i, j] = r[i, j]
                 squares[8 * i + j] = r[i, j] * r[i, j]
@@ -600,7 +606,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
                 squares[8 * i + j] = abs(r[i, j])
         # 1.4826 MAD sqrt(size / dof), in TwoViewFit.robust_scale's order
         scales[k] = 1.4826 * median_inplace(squares[:8 * n2]) * np.sqrt(r.size / max(dofs[k], 1))
-    return status, Ts, betas, Ss, sigma2s, dofs, betas1, Ss1, sigma2s1, residuals, rows, scales, sums
+    return status, Ts, betas, Ss, sigma2s, dofs, betas1, Ss1, sigma2s1, residuals, rows, scales, sums, disparities
 
 
 def _usable_inverses(S: np.ndarray, beta: np.ndarray, sigma2: np.ndarray,
@@ -638,7 +644,7 @@ def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndar
     if len(steps) == 0:
         return []
     fx, fy, cx, cy, baseline = map(float, cam)
-    status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows, scales, sums = _fit_batch(
+    status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows, scales, sums, disparities = _fit_batch(
         za, zb, begin, end, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
         np.zeros((0, 0)) if initial is None else np.ascontiguousarray(initial, dtype=float))
     good = status > 0
@@ -653,7 +659,8 @@ def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndar
             s2 = float(sigma2[k])
             out[k] = TwoViewFit(int(steps[k]), gap, T[k], S_inv[j, :6, :6] * s2, float(beta[k]),
                                 float(S_inv[j, 6, 6]) * s2 if offset else float("nan"),
-                                residuals[rows[k]:rows[k + 1]], int(dof[k]), float(scales[k]), float(sums[k]))
+                                residuals[rows[k]:rows[k + 1]], int(dof[k]), float(scales[k]), float(sums[k]),
+                                disparities[rows[k]:rows[k + 1]])
     return out
 
 
@@ -704,11 +711,13 @@ def matched_pixels(seq: Sequence, a: int, b: int, rng: np.random.Generator | Non
 
 def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = False, min_points: int = 12,
               skip: np.ndarray | None = None, steps: np.ndarray | None = None, extra_noise: float = 0.0,
-              seed: int = 0) -> list[TwoViewFit]:
+              seed: int = 0, walk: float = 0.0) -> list[TwoViewFit]:
     """The fits (D2) of up to ``max_pairs`` step pairs (k, k+``gap``) spread over ``seq`` (see
     :func:`pair_steps`; or exactly the pairs starting at ``steps``), each from the points seen in
     both with a disparity above ``MIN_DISPARITY``. ``extra_noise`` > 0: white noise of that sigma
-    (px, ``numpy.random.default_rng(seed)``) is added to every pixel first (a SIMEX re-fit)."""
+    (px, ``numpy.random.default_rng(seed)``) is added to every pixel first (a SIMEX re-fit);
+    ``walk`` > 0: a displacement e ~ N(0, walk I2) px^2 is added to both images' pixels of every
+    point at k+``gap`` (the walk's re-fit, T4 of ``backend.run.drift``)."""
     K = seq.K
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     ks = np.asarray(pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps, dtype=np.int64)
@@ -718,6 +727,9 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
         noise = np.random.default_rng(seed).normal(0.0, extra_noise, (2 * a.size, 4))
         at = np.arange(a.size) + np.repeat(ptr[:-1], np.diff(ptr))  # row i of pair k: 2 ptr[k] + (i - ptr[k])
         za, zb = za + noise[at], zb + noise[at + np.repeat(np.diff(ptr), np.diff(ptr))]
+    if walk > 0:  # the same move of a point's left and right pixels: its disparity stays
+        e = np.random.default_rng(seed).normal(0.0, np.sqrt(walk), (zb.shape[0], 2))
+        zb = zb + np.hstack([e, e])
     keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
     kept = np.zeros(keep.size + 1, dtype=np.int64)
     np.cumsum(keep, out=kept[1:])

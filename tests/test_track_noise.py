@@ -1,0 +1,203 @@
+"""The error model of real tracks, decided on the tracks: pixel noise growing with disparity (N5 of
+``backend.run.noise``), the tracks' pixel random walk and its calibration (T3, T4 of
+``backend.run.drift``), each landmark's walk by its depth (R3 of ``backend.estimator.ekf``) and
+observations of unequal noise in the compiled update (U6 of ``backend.estimator.update``).
+
+Each recovers what is planted in a synthetic scene, or equals the textbook formula it replaces."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vislam.backend.config import Config
+from vislam.backend.estimator import update
+from vislam.backend.estimator.ekf import VisualInertialEKF
+from vislam.backend.run.decisions import decide
+from vislam.backend.run.noise import disparity_noise, with_disparity_noise, pixel_noise, gap_statistics
+from vislam.backend.run.two_view import fit_pairs
+from vislam.synth.scene import SceneConfig, make_scene
+from vislam.synth.track_errors import TrackErrors
+from test_ekf import CAMERA, IMU_T_CAM, NOISE, bare_config
+from test_kernels import SIGMA2, _dense_H, _problem
+
+
+def _scene(scenario="street", seed=3, steps=300, **errors):
+    return make_scene(SceneConfig(scenario=scenario, steps=steps, seed=seed, track_errors=TrackErrors(**errors)))
+
+
+# ---------------------------------------------------------------------------------------------- T3, T4
+@pytest.mark.parametrize("scenario", ["street", "aerial"])
+@pytest.mark.parametrize("walk", [0.2, 0.4])
+def test_the_walk_of_random_walk_tracks_is_found(scenario, walk):
+    """(T1-T4): tracks whose pixels random-walk walk^2 px^2 a step are found drifting, and the walk
+    measured at their median disparity is within 25 % of the planted one, on streets and aerial
+    scenes alike (whose two-view fits absorb different shares of a walk: T4 measures it, 3.5-4.5
+    on streets, 2.5-3 on aerial scenes)."""
+    seq = _scene(scenario, pixel_sigma=0.3, drift_walk=walk).sequence
+    drift = decide(seq, Config()).drift
+    assert drift.drifting and drift.source == "test"
+    d = np.median(seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2])
+    q = drift.walk + drift.walk_per_disparity * d
+    assert q == pytest.approx(walk**2, rel=0.25)
+    assert (3.5 <= drift.walk_growth <= 4.5) if scenario == "street" else (2.3 <= drift.walk_growth <= 3.2)
+
+
+def test_tracks_without_drift_get_no_walk():
+    """White noise alone: no drift decided (T1), no walk, and the filter's pixel noise is the gap-1 one."""
+    decisions = decide(_scene(pixel_sigma=0.5).sequence, Config())
+    assert not decisions.drift.drifting
+    assert decisions.drift.walk == 0.0 and decisions.drift.walk_per_disparity == 0.0
+    config = decisions.config_for(Config())
+    assert config.drift.pixel_walk == 0.0 and config.drift.pixel_walk_per_disparity == 0.0
+    assert decisions.pixels.used_gaps == 1
+
+
+def test_a_measured_walk_replaces_the_pooled_pixel_noise():
+    """With a measured walk (T3) the pixel noise is the gap-1 one (the walk carries the growth beyond
+    it); with a configured constant walk it is pooled over the gaps a landmark lives through."""
+    seq = _scene(pixel_sigma=0.3, drift_walk=0.3).sequence
+    measured = decide(seq, Config())
+    assert measured.drift.walk > 0 and measured.pixels.used_gaps == 1
+    constant = decide(seq, Config().with_assignments(["drift.landmark_random_walk=0.05"]))
+    assert constant.pixels.used_gaps == 3 and constant.pixels.sigma > measured.pixels.sigma
+    assert "0.05 m/sqrt(s) (configured)" in constant.describe(Config().with_assignments(["drift.landmark_random_walk=0.05"]))
+
+
+# ---------------------------------------------------------------------------------------------- N5
+def _with_disparity_noise(seq, per_disparity: float, seed: int = 0):
+    """``seq`` with white noise of variance per_disparity * d added to each coordinate of every
+    observation of disparity d (each observation's own draw)."""
+    rng = np.random.default_rng(seed)
+    z = seq.obs_pixels.copy()
+    d = np.maximum(z[:, 0] - z[:, 2], 0.0)
+    z += rng.normal(size=z.shape) * np.sqrt(per_disparity * d)[:, None]
+    return dataclasses.replace(seq, obs_pixels=z)
+
+
+def test_pixel_noise_growing_with_disparity_is_found():
+    """(N5): noise of variance 0.04 + 0.01 d px^2 per coordinate is found growing, its slope within
+    25 % and its intercept within 0.02 px^2; white noise alone is found not growing; the filter's
+    sigma_i^2 = f (a + b d_i) averages the pooled noise at the fits' mean disparity."""
+    base = _scene(pixel_sigma=0.2).sequence
+    white = disparity_noise(fit_pairs(base, 1, 300, offset=True, min_points=5))
+    assert white is not None and not white.growth
+    seq = _with_disparity_noise(base, 0.01)
+    fits = fit_pairs(seq, 1, 300, offset=True, min_points=5)
+    test = disparity_noise(fits)
+    assert test.growth and test.slope > 10 * test.slope_se
+    assert test.slope == pytest.approx(0.01, rel=0.25)
+    assert test.intercept == pytest.approx(0.04, abs=0.02)
+    pooled = pixel_noise(seq, gap_statistics({1: fits}), 1, None)
+    pixels = with_disparity_noise(pooled, test, None)
+    assert pixels.variance(np.array([test.mean_disparity]))[0] == pytest.approx(pooled.sigma**2, rel=1e-9)
+    assert pixels.variance_per_disparity > 0 and pixels.sigma < pooled.sigma
+    decisions = decide(seq, Config())
+    assert decisions.pixels.variance_per_disparity > 0
+    assert decisions.config_for(Config()).noise.pixel_variance_per_disparity == decisions.pixels.variance_per_disparity
+    assert "grows with disparity" in decisions.describe()
+
+
+def test_configured_pixel_noise_is_white_unless_its_slope_is_configured():
+    """A configured pixel sigma is used alone; a configured slope is used with it."""
+    seq = _with_disparity_noise(_scene(pixel_sigma=0.2).sequence, 0.01)
+    alone = decide(seq, Config().with_assignments(["noise.pixel_sigma=0.5"]))
+    assert alone.pixels.sigma == 0.5 and alone.pixels.variance_per_disparity == 0.0
+    both = decide(seq, Config().with_assignments(["noise.pixel_sigma=0.5", "noise.pixel_variance_per_disparity=0.02"]))
+    assert both.pixels.sigma == 0.5 and both.pixels.variance_per_disparity == 0.02
+
+
+# ---------------------------------------------------------------------------------------------- U6
+def test_whitening_gives_the_update_with_each_observations_own_variance():
+    """(U6): an innovation formed with R = ref I and whitened to obs_var gives the textbook update
+    with R_i = obs_var_i I (P, dx) and the NIS r^T S_ii^-1 r + off^2 / obs_var_i of S = H P H^T + R."""
+    rng = np.random.default_rng(4)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=10, k=7)
+    D = P.shape[0]
+    H = _dense_H(H_x, H_m, slots, D)
+    residual = rng.normal(size=(slots.size, 3)) * 2.0
+    off_row = rng.normal(size=slots.size)
+    obs_var = SIGMA2 * rng.uniform(0.3, 4.0, slots.size)
+    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    inn = update.whiten(update.Innovation(residual, off_row, H_x, H_m, HP, S, nis, np.ones(slots.size, bool)),
+                        obs_var, SIGMA2)
+    R = np.diag(np.repeat(obs_var, 3))
+    S_true = H @ P @ H.T + R
+    for i in range(slots.size):
+        b = slice(3 * i, 3 * i + 3)
+        expected = residual[i] @ np.linalg.solve(S_true[b, b], residual[i]) + off_row[i] ** 2 / obs_var[i]
+        assert inn.nis[i] == pytest.approx(expected, rel=1e-10)
+    out = P.copy()
+    everyone = np.ones(slots.size, dtype=bool)
+    status, dx, used = update.joint_update_inplace(out, inn.HP, inn.S, inn.residual, inn.off_row, everyone,
+                                                   ~everyone, SIGMA2, 1e9)
+    assert status == 0 and used.all()
+    K = np.linalg.solve(S_true, H @ P).T
+    np.testing.assert_allclose(out, P - K @ S_true @ K.T, rtol=0, atol=1e-10 * np.abs(P).max())
+    np.testing.assert_allclose(dx, K @ residual.ravel(), rtol=1e-9, atol=1e-12)
+
+
+def test_the_likelihood_of_a_whitened_innovation_is_that_of_its_own_variances():
+    """(L1 with U6): the log-likelihood of a whitened innovation equals the formula on S_true's
+    blocks and each observation's own variance."""
+    rng = np.random.default_rng(5)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=10, k=6)
+    H = _dense_H(H_x, H_m, slots, P.shape[0])
+    residual = rng.normal(size=(slots.size, 3)) * 2.0
+    off_row = rng.normal(size=slots.size)
+    obs_var = SIGMA2 * rng.uniform(0.3, 4.0, slots.size)
+    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
+    inn = update.whiten(update.Innovation(residual, off_row, H_x, H_m, HP, S, nis, np.ones(slots.size, bool)),
+                        obs_var, SIGMA2)
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config(), NOISE)
+    total, tested = ekf._log_likelihood(inn, SIGMA2)
+    S_true = H @ P @ H.T + np.diag(np.repeat(obs_var, 3))
+    nu = 4.0
+    expected = 0.0
+    for i in range(slots.size):
+        b = slice(3 * i, 3 * i + 3)
+        n = residual[i] @ np.linalg.solve(S_true[b, b], residual[i]) + off_row[i] ** 2 / obs_var[i]
+        expected += -0.5 * ((nu + 4) * np.log1p(n / nu) + np.linalg.slogdet(S_true[b, b])[1] + np.log(obs_var[i]))
+    assert tested == slots.size and total == pytest.approx(expected, rel=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------- R3
+def _points_at_depths(depths):
+    """Stereo pixels (n,4) of points straight ahead of the camera at ``depths`` (m), a little apart."""
+    fx, cx, cy, b = CAMERA.fx, CAMERA.cx, CAMERA.cy, CAMERA.baseline
+    z = np.asarray(depths, dtype=float)
+    u = cx + 40.0 * np.arange(z.size)
+    return np.column_stack([u, np.full(z.size, cy), u - fx * b / z, np.full(z.size, cy)])
+
+
+def test_a_landmarks_walk_follows_its_depth():
+    """(R3): one step later a landmark's variance has grown by (z/fx)^2 q_0 + q_d b z / fx per axis
+    more than without the walk (z its depth in the camera); a configured constant walk q adds
+    q^2 dt to every landmark alike."""
+    depths = [4.0, 15.0, 60.0]
+    pixels = _points_at_depths(depths)
+    ids = np.arange(len(depths))
+    q0, qd, dt = 0.05, 0.004, 0.1
+    common = {"drift.track_drift": "yes", "drift.reanchor_observations": 0, "drift.reanchor_far_observations": 0,
+              "estimator.error_model": "body", "landmarks.unbiased_triangulation": False}
+
+    def landmark_variances(values: dict) -> np.ndarray:
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config({**common, **values}), NOISE)
+        ekf.update(ids, pixels)
+        ekf.predict(dt, np.zeros(3), np.zeros(3))
+        c = ekf.state.core
+        return np.diag(ekf.state.P)[c:].reshape(-1, 3)
+
+    still = landmark_variances({"drift.pixel_walk": 0.0, "drift.pixel_walk_per_disparity": 0.0})
+    walked = landmark_variances({"drift.pixel_walk": q0, "drift.pixel_walk_per_disparity": qd})
+    cam_T_world = np.linalg.inv(IMU_T_CAM)  # the first pose is the world
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config(common), NOISE)
+    ekf.update(ids, pixels)
+    z = ekf.state.theta @ cam_T_world[2, :3] + cam_T_world[2, 3]
+    np.testing.assert_allclose(z, depths, rtol=1e-9)  # the landmarks are where the pixels put them
+    expected = (z / CAMERA.fx) ** 2 * q0 + qd * CAMERA.baseline * z / CAMERA.fx
+    np.testing.assert_allclose(walked - still, np.repeat(expected[:, None], 3, axis=1), rtol=1e-6)
+    constant = landmark_variances({"drift.landmark_random_walk": 0.05})
+    np.testing.assert_allclose(constant - still, 0.05**2 * dt, rtol=1e-6)
