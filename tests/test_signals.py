@@ -7,6 +7,7 @@ output and no temporary name left, and no worker process alive afterwards."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -189,3 +190,25 @@ def test_a_stop_another_thread_receives_waits_for_the_held_block():
                 done.append("the held work")
         assert console.interrupted_text() == "interrupted (SIGTERM)"
     assert done == ["the held work"]
+
+
+def test_a_finished_run_leaves_no_process_behind(tmp_path):
+    """A run that ends by itself has ended and reaped every process it started (the output and
+    compile helpers, multiprocessing's resource tracker) by the time it exits: the moment it has
+    exited, its process group (its own session) is empty, with no orphan still running or waiting to
+    be reaped."""
+    data = street_file(tmp_path, 200)
+    proc = subprocess.Popen([sys.executable, "-m", "vislam.tools.cli", "run", str(data), "--out", "out", "--quiet"],
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    seen: set[int] = set()
+    while proc.poll() is None:
+        seen |= children(proc.pid)
+        time.sleep(0.02)
+    assert proc.returncode == 0, proc.stderr.read()
+    assert seen, "no helper process was seen: the case no longer tests what a run leaves"
+    try:
+        os.killpg(proc.pid, 0)
+        left = True
+    except ProcessLookupError:
+        left = False
+    assert not left, "a process of the run's group outlived it"

@@ -115,7 +115,21 @@ def entry() -> None:  # pragma: no cover - the console script; tests call main()
             stream.flush()
         except (OSError, ValueError):  # the reader of a pipe left: as a shell reports it
             rc = rc or EXIT_BROKEN_PIPE
+    _stop_resource_tracker()
     os._exit(rc)
+
+
+def _stop_resource_tracker() -> None:
+    """Stop and reap multiprocessing's resource tracker where the command's helper processes started
+    one: it ends when its pipe closes, which leaving by ``os._exit`` would leave to after the command,
+    an orphan outliving it for a moment (its own ``_stop``, what the interpreter's exit would call)."""
+    tracker = sys.modules.get("multiprocessing.resource_tracker")
+    stop = getattr(getattr(tracker, "_resource_tracker", None), "_stop", None)
+    if stop is not None:
+        try:
+            stop()
+        except Exception:  # noqa: BLE001 - a tracker already gone, or an interpreter that differs: nothing to stop
+            pass
 
 
 if __name__ == "__main__":  # pragma: no cover
