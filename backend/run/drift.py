@@ -98,9 +98,11 @@ class DriftDecision:
             d = config.drift
             if d.landmark_random_walk is not None:
                 walk = f"random walk {d.landmark_random_walk:g} m/sqrt(s) (configured)"
-            else:
+            elif np.isfinite(self.walk_growth):
                 walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
                         f"(T3, disparity d px; the fits show 1/{self.walk_growth:.2f} of a walk, T4)")
+            else:
+                walk = "no random walk (too few step pairs to measure one, T3)"
             if config.estimator.full_state:
                 text += f"; {walk}, no re-anchoring (estimator.full_state keeps every landmark)"
             else:

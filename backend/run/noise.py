@@ -143,10 +143,9 @@ class PixelNoise:
 
     def _describe_sigma(self) -> str:
         if self.variance_per_disparity > 0 and self.source != "configured":
-            rms = ", ".join(f"{r:.2f}" for g, n, s, r in self.gaps if g <= self.used_gaps)
             return (f"pixel noise: sigma_i^2 = {self.sigma:.3g}^2 + {self.variance_per_disparity:.3g} d_i px^2 "
-                    f"(disparity d_i px, N5; {self.pooled_sigma:.3g} px pooled over step gaps 1-{self.used_gaps}: "
-                    f"{rms} px; stereo rows {self.rows_px:.2f} px)")
+                    f"(disparity d_i px, N5; {self.pooled_sigma:.3g} px {self._over_gaps()}; stereo rows "
+                    f"{self.rows_px:.2f} px)")
         if self.source == "configured":
             if self.variance_per_disparity > 0:
                 return (f"pixel noise: sigma_i^2 = {self.sigma:.3g}^2 + {self.variance_per_disparity:.3g} d_i px^2 "
@@ -157,9 +156,15 @@ class PixelNoise:
                     "two-view fits)")
         if self.source == NO_OBSERVATIONS:
             return f"pixel noise: {self.sigma:.3g} px (nothing to measure it from: no track seen twice, no stereo row)"
+        return f"pixel noise: {self.sigma:.3g} px, the RMS of two-view fit residuals {self._over_gaps()}; stereo rows " \
+               f"{self.rows_px:.2f} px"
+
+    def _over_gaps(self) -> str:
+        """Which gaps the pooled RMS (N2) is over, with each gap's RMS."""
         rms = ", ".join(f"{r:.2f}" for g, n, s, r in self.gaps if g <= self.used_gaps)
-        return (f"pixel noise: {self.sigma:.3g} px, the RMS of two-view fit residuals over step gaps 1-{self.used_gaps} "
-                f"({rms} px; stereo rows {self.rows_px:.2f} px)")
+        if self.used_gaps <= 1:
+            return f"of consecutive steps ({rms} px)"
+        return f"pooled over step gaps 1-{self.used_gaps} ({rms} px)"
 
 
 def gap_statistics(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple:
