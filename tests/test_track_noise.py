@@ -110,21 +110,27 @@ def test_configured_pixel_noise_is_white_unless_its_slope_is_configured():
 
 
 # ---------------------------------------------------------------------------------------------- U6
-def test_whitening_gives_the_update_with_each_observations_own_variance():
-    """(U6): an innovation formed with R = ref I and whitened to obs_var gives the textbook update
-    with R_i = obs_var_i I (P, dx) and the NIS r^T S_ii^-1 r + off^2 / obs_var_i of S = H P H^T + R."""
-    rng = np.random.default_rng(4)
-    P, slots, H_x, H_m = _problem(rng, n_landmarks=10, k=7)
-    D = P.shape[0]
-    H = _dense_H(H_x, H_m, slots, D)
+def _whitened_problem(seed: int, k: int):
+    """(P, dense H (3k,D), residual (k,3), off_row (k,), each observation's variance (k,), the
+    innovation formed with R = SIGMA2 I and whitened to those variances) of a random problem."""
+    rng = np.random.default_rng(seed)
+    P, slots, H_x, H_m = _problem(rng, n_landmarks=10, k=k)
+    H = _dense_H(H_x, H_m, slots, P.shape[0])
     residual = rng.normal(size=(slots.size, 3)) * 2.0
     off_row = rng.normal(size=slots.size)
     obs_var = SIGMA2 * rng.uniform(0.3, 4.0, slots.size)
     HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
     inn = update.whiten(update.Innovation(residual, off_row, H_x, H_m, HP, S, nis, np.ones(slots.size, bool)),
                         obs_var, SIGMA2)
-    R = np.diag(np.repeat(obs_var, 3))
-    S_true = H @ P @ H.T + R
+    return P, H, residual, off_row, obs_var, inn
+
+
+def test_whitening_gives_the_update_with_each_observations_own_variance():
+    """(U6): an innovation formed with R = ref I and whitened to obs_var gives the textbook update
+    with R_i = obs_var_i I (P, dx) and the NIS r^T S_ii^-1 r + off^2 / obs_var_i of S = H P H^T + R."""
+    P, H, residual, off_row, obs_var, inn = _whitened_problem(4, k=7)
+    slots = np.arange(residual.shape[0])
+    S_true = H @ P @ H.T + np.diag(np.repeat(obs_var, 3))
     for i in range(slots.size):
         b = slice(3 * i, 3 * i + 3)
         expected = residual[i] @ np.linalg.solve(S_true[b, b], residual[i]) + off_row[i] ** 2 / obs_var[i]
@@ -142,15 +148,8 @@ def test_whitening_gives_the_update_with_each_observations_own_variance():
 def test_the_likelihood_of_a_whitened_innovation_is_that_of_its_own_variances():
     """(L1 with U6): the log-likelihood of a whitened innovation equals the formula on S_true's
     blocks and each observation's own variance."""
-    rng = np.random.default_rng(5)
-    P, slots, H_x, H_m = _problem(rng, n_landmarks=10, k=6)
-    H = _dense_H(H_x, H_m, slots, P.shape[0])
-    residual = rng.normal(size=(slots.size, 3)) * 2.0
-    off_row = rng.normal(size=slots.size)
-    obs_var = SIGMA2 * rng.uniform(0.3, 4.0, slots.size)
-    HP, S, nis = update.innovation_covariance(P, H_x, H_m, slots, SIGMA2, residual, off_row)
-    inn = update.whiten(update.Innovation(residual, off_row, H_x, H_m, HP, S, nis, np.ones(slots.size, bool)),
-                        obs_var, SIGMA2)
+    P, H, residual, off_row, obs_var, inn = _whitened_problem(5, k=6)
+    slots = np.arange(residual.shape[0])
     ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config(), NOISE)
     total, tested = ekf._log_likelihood(inn, SIGMA2)
     S_true = H @ P @ H.T + np.diag(np.repeat(obs_var, 3))
