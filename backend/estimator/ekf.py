@@ -46,7 +46,7 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
-from .update import whiten
+from .update import pixel_variance, whiten
 from .window import WindowStep, WindowUpdater, retract_clones, window_in_use
 from .zero_velocity import ZeroVelocityUpdater
 
@@ -443,7 +443,7 @@ class VisualInertialEKF:
 
     def _observation_variance(self, pixels: np.ndarray) -> np.ndarray:
         """(N5) sigma_i^2 = pixel_sigma^2 + b d_i (k,) of observations ``pixels`` (k,4), d = uL - uR."""
-        return self._pixel_var + self._var_per_disparity * np.maximum(pixels[:, 0] - pixels[:, 2], 0.0)
+        return pixel_variance(self._pixel_var, self._var_per_disparity, pixels[:, 0] - pixels[:, 2])
 
     def _log_likelihood(self, inn, pixel_var: float) -> tuple[float, int]:
         """(L1) the prior innovations' log-likelihood, observation by observation (their 4 rows: the

@@ -154,6 +154,12 @@ def block_nis(S, residual, off_row, pixel_var):
     return nis
 
 
+def pixel_variance(sigma2: float, per_disparity: float, disparity: np.ndarray) -> np.ndarray:
+    """(N5 of ``backend.run.noise``) each observation's pixel variance sigma^2 + b d (px^2), for
+    disparities ``disparity`` (k,) px (a negative one counted as 0)."""
+    return sigma2 + per_disparity * np.maximum(np.asarray(disparity, dtype=float), 0.0)
+
+
 def whiten(inn: Innovation, obs_var: np.ndarray, ref_var: float) -> Innovation:
     """(U6) observations of their own pixel variances ``obs_var`` (k,) (N5) as observations of the
     one variance ``ref_var`` the compiled update takes: ``inn`` was formed with R = ref_var I, so

@@ -59,6 +59,7 @@ import numpy as np
 
 from ..chi2 import quantile as chi2_quantile
 from ..data.sequence import Sequence
+from ..estimator.update import pixel_variance
 from ..geometry import se3
 from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
 
@@ -126,7 +127,7 @@ class PixelNoise:
 
     def variance(self, disparity: np.ndarray) -> np.ndarray:
         """sigma_i^2 (N5) of observations of ``disparity`` (n,) px."""
-        return self.sigma**2 + self.variance_per_disparity * np.maximum(np.asarray(disparity, dtype=float), 0.0)
+        return pixel_variance(self.sigma**2, self.variance_per_disparity, disparity)
 
     def as_dict(self) -> dict:
         return {"sigma_px": self.sigma, "decided_by": self.source, "stereo_rows_px": self.rows_px,
