@@ -126,9 +126,9 @@ def _predict_all(T, beta, p, fx, fy, cx, cy, fb, jac):
 
 
 @jit
-def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
-    """(D2) for one point (u, v, d) at k: its 8 predicted pixels into ``pred``; with ``jac`` d/dp
-    (8,3) and d/d(delta, beta) (8,7) into ``Jp``, ``Jg``; ``work`` (4,4,3) scratch."""
+def _predict_point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred):
+    """(D2) the 8 predicted pixels of the point (u, v, d) at k into ``pred``; returns what its
+    Jacobians reuse: (depth, x (the point at k), q = R x + t (at k+h), z = max(q2, 1e-6))."""
     depth = fb / p2
     x0 = (p0 - cx) * depth / fx
     x1 = (p1 - cy) * depth / fy
@@ -141,6 +141,14 @@ def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
     v = fy * q1 / z + cy
     pred[0], pred[1], pred[2], pred[3] = p0, p1, p0 - p2 - beta, p1
     pred[4], pred[5], pred[6], pred[7] = u, v, u - fb / z - beta, v
+    return depth, x0, x1, x2, q0, q1, q2, z
+
+
+@jit
+def _point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, Jp, Jg, jac, work):
+    """(D2) for one point (u, v, d) at k: its 8 predicted pixels into ``pred``; with ``jac`` d/dp
+    (8,3) and d/d(delta, beta) (8,7) into ``Jp``, ``Jg``; ``work`` (4,4,3) scratch."""
+    depth, x0, x1, x2, q0, q1, q2, z = _predict_point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred)
     if not jac:
         return
     Jp[:] = 0.0
@@ -198,18 +206,7 @@ def _point_jacobians(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, A, G):
     The products skip only the structural zeros of P, D and q^ (x * 0 added to a sum changes
     nothing), each remaining sum in :func:`_point`'s order: the numbers are :func:`_point`'s, bit
     for bit."""
-    depth = fb / p2
-    x0 = (p0 - cx) * depth / fx
-    x1 = (p1 - cy) * depth / fy
-    x2 = depth
-    q0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3]
-    q1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3]
-    q2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3]
-    z = max(q2, 1e-6)
-    u = fx * q0 / z + cx
-    v = fy * q1 / z + cy
-    pred[0], pred[1], pred[2], pred[3] = p0, p1, p0 - p2 - beta, p1
-    pred[4], pred[5], pred[6], pred[7] = u, v, u - fb / z - beta, v
+    depth, x0, x1, x2, q0, q1, q2, z = _predict_point(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred)
     iz = 1.0 / z
     P00 = fx * iz
     P02 = -fx * q0 * iz * iz
