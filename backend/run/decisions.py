@@ -88,10 +88,7 @@ class Decisions:
         values = {"noise.pixel_sigma": self.pixels.sigma,
                   "noise.pixel_variance_per_disparity": self.pixels.variance_per_disparity,
                   "drift.track_drift": Choice.YES if self.drift.drifting else Choice.NO,
-                  "drift.pixel_walk": self.drift.walk if config.drift.pixel_walk is None else config.drift.pixel_walk,
-                  "drift.pixel_walk_per_disparity": (self.drift.walk_per_disparity
-                                                     if config.drift.pixel_walk_per_disparity is None
-                                                     else config.drift.pixel_walk_per_disparity),
+                  "drift.pixel_walk": self.drift.walk, "drift.pixel_walk_per_disparity": self.drift.walk_per_disparity,
                   "estimator.estimate_gyro_bias": self.gyro_bias.estimated}
         return config.with_values(values)
 

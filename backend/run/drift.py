@@ -46,7 +46,7 @@ import numpy as np
 
 from ..config import Choice, Config
 from ..data.sequence import Sequence
-from .noise import point_variances
+from .noise import variance_line
 from .two_view import TwoViewFit, fit_pairs, pooled_mean_square
 
 __all__ = ["DriftDecision", "drift_test", "drift_walk", "walk_growth", "decide_track_drift"]
@@ -98,6 +98,10 @@ class DriftDecision:
             d = config.drift
             if d.landmark_random_walk is not None:
                 walk = f"random walk {d.landmark_random_walk:g} m/sqrt(s) (configured)"
+            elif d.pixel_walk is not None or d.pixel_walk_per_disparity is not None:
+                both = d.pixel_walk is not None and d.pixel_walk_per_disparity is not None
+                walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
+                        f"({'configured' if both else 'configured where set, the rest measured, T3'})")
             elif np.isfinite(self.walk_growth):
                 walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
                         f"(T3, disparity d px; the fits show 1/{self.walk_growth:.2f} of a walk, T4)")
@@ -131,15 +135,6 @@ def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, 
     return float(ratio), float(se), tuple(scales)
 
 
-def _line(fits: list[TwoViewFit]) -> tuple[float, float] | None:
-    """(a, b) of the least-squares line y = a + b d over the fits' points, None with fewer than 3 points."""
-    y, d = point_variances(fits)
-    if y.size < 3:
-        return None
-    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones_like(d), d]), y, rcond=None)
-    return float(coef[0]), float(coef[1])
-
-
 def walk_growth(seq: Sequence, fits: list[TwoViewFit], seed: int = 0) -> float:
     """(T4) v / (m_v - m_0) over up to ``WALK_PAIRS`` of the pairs ``fits`` (one gap), fitted again
     with e ~ N(0, v I2) added to both images' pixels of every point at their later step, v their
@@ -150,10 +145,10 @@ def walk_growth(seq: Sequence, fits: list[TwoViewFit], seed: int = 0) -> float:
     v = pooled_mean_square(chosen)[0]
     walked = fit_pairs(seq, chosen[0].gap, len(chosen), offset=True, min_points=NOISE_MIN_POINTS,
                        steps=np.array([f.step for f in chosen], dtype=np.int64), seed=seed, walk=v)
-    steps = {f.step for f in walked}
-    base = [f for f in chosen if f.step in steps]
     if not walked:
         return float("nan")
+    steps = {f.step for f in walked}
+    base = [f for f in chosen if f.step in steps]
     grown = pooled_mean_square(walked)[0] - pooled_mean_square(base)[0]
     return float(v / grown) if grown > 0 else float("nan")
 
@@ -165,18 +160,20 @@ def drift_walk(seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple
     if 1 not in gaps or len(gaps) < 2:
         return 0.0, 0.0, float("nan")
     h = gaps[-1]
-    first, last = _line(fits_by_gap[1]), _line(fits_by_gap[h])
+    first, last = variance_line(fits_by_gap[1])[0], variance_line(fits_by_gap[h])[0]
     growth = walk_growth(seq, fits_by_gap[h])
-    if first is None or last is None or not np.isfinite(growth):
+    if not (np.all(np.isfinite(first)) and np.all(np.isfinite(last)) and np.isfinite(growth)):
         return 0.0, 0.0, growth
-    return (growth * max(0.0, last[0] - first[0]) / (h - 1), growth * max(0.0, last[1] - first[1]) / (h - 1), growth)
+    q0, qd = growth * np.maximum(0.0, last - first) / (h - 1)
+    return float(q0), float(qd), growth
 
 
 def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> DriftDecision:
     """``drift.track_drift``: "yes"/"no" as configured; "auto" by the test (T1), and drifting when the
     test cannot tell (the safe side: re-anchoring costs a little accuracy on clean tracks, while
     unmodelled drift makes the filter overconfident; the walk is then 0, nothing having measured it).
-    The walk (T3, T4) is measured for a drifting sequence whenever the fits allow."""
+    The walk (T3, T4) is measured for a drifting sequence whenever the fits allow; ``drift.pixel_walk``
+    and ``drift.pixel_walk_per_disparity``, where configured, are used instead."""
     ratio, se, scales = drift_test(fits_by_gap)
     setting = config.drift.track_drift
     if setting != Choice.AUTO:
@@ -185,5 +182,12 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
         drifting, source = True, "not testable"
     else:
         drifting, source = bool(ratio > 1.0 + DRIFT_Z * se), "test"
-    walk, per_disparity, growth = drift_walk(seq, fits_by_gap) if drifting else (0.0, 0.0, float("nan"))
+    d = config.drift
+    walk, per_disparity, growth = 0.0, 0.0, float("nan")
+    if drifting and (d.pixel_walk is None or d.pixel_walk_per_disparity is None):
+        walk, per_disparity, growth = drift_walk(seq, fits_by_gap)
+    if d.pixel_walk is not None:  # configured values win over the measured ones
+        walk = d.pixel_walk
+    if d.pixel_walk_per_disparity is not None:
+        per_disparity = d.pixel_walk_per_disparity
     return DriftDecision(drifting, source, ratio, se, scales, seq.tracker, walk, per_disparity, growth)

@@ -63,8 +63,8 @@ from ..estimator.update import pixel_variance
 from ..geometry import se3
 from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
 
-__all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "DisparityNoise", "disparity_noise", "point_variances",
-           "with_disparity_noise", "ImuVsVision", "imu_vs_vision", "ImuNoiseDecision", "VelocityCorrection"]
+__all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "DisparityNoise", "disparity_noise",
+           "point_variances", "variance_line", "with_disparity_noise", "ImuVsVision", "imu_vs_vision", "ImuNoiseDecision", "VelocityCorrection"]
 
 #: Prior standard deviations of the lever arm (m) and of the velocity offset (m/s) in (N3).
 LEVER_PRIOR_M = 2.0
@@ -244,14 +244,23 @@ def point_variances(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[np.n
     return np.concatenate(ys), np.concatenate(ds)
 
 
+def variance_line(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The least-squares line y = a + b d of the fits' points' variances on their disparities
+    (:func:`point_variances`): ((a, b), their HC0 standard errors, y (n,), d (n,)); nans with
+    fewer than 3 points."""
+    y, d = point_variances(fits, trim)
+    if y.size < 3:
+        return np.full(2, np.nan), np.full(2, np.nan), y, d
+    coef, se = _ols_hc0(np.column_stack([np.ones_like(d), d]), y)
+    return coef, se, y, d
+
+
 def disparity_noise(fits: list[TwoViewFit], trim: float = TRIM_PX) -> DisparityNoise | None:
     """(N5) from gap-1 fits that carry their points' disparities; None with fewer than
     ``DISPARITY_MIN_POINTS`` points."""
-    y, d = point_variances(fits, trim)
+    coef, se, y, d = variance_line(fits, trim)
     if y.size < DISPARITY_MIN_POINTS:
         return None
-    A = np.column_stack([np.ones_like(d), d])
-    coef, se = _ols_hc0(A, y)
     a, b, b_se = float(coef[0]), float(coef[1]), float(se[1])
     if a < se[0]:  # an intercept within its standard error of zero or below: the line through (0, SE(a))
         a = float(se[0])
