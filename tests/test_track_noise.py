@@ -200,3 +200,19 @@ def test_a_landmarks_walk_follows_its_depth():
     np.testing.assert_allclose(walked - still, np.repeat(expected[:, None], 3, axis=1), rtol=1e-6)
     constant = landmark_variances({"drift.landmark_random_walk": 0.05})
     np.testing.assert_allclose(constant - still, 0.05**2 * dt, rtol=1e-6)
+
+
+def test_a_configured_walk_wins_and_is_said_to_be():
+    """``drift.pixel_walk`` / ``drift.pixel_walk_per_disparity`` set: the filter takes them as given,
+    the one left unset is measured, and the record says which."""
+    seq = _scene(pixel_sigma=0.3, drift_walk=0.3).sequence
+    measured = decide(seq, Config()).drift
+    config = Config().with_assignments(["drift.pixel_walk=0.02"])
+    part = decide(seq, config)
+    assert part.drift.walk == 0.02 and part.drift.walk_per_disparity == measured.walk_per_disparity
+    assert part.drift.walk_configured == (True, False)
+    assert part.config_for(config).drift.pixel_walk == 0.02
+    assert "configured where set" in part.describe(part.config_for(config))
+    both = decide(seq, Config().with_assignments(["drift.pixel_walk=0.02", "drift.pixel_walk_per_disparity=0"]))
+    assert (both.drift.walk, both.drift.walk_per_disparity) == (0.02, 0.0) and not np.isfinite(both.drift.walk_growth)
+    assert "a step (configured)" in both.describe(both.config_for(Config()))

@@ -75,12 +75,13 @@ class DriftDecision:
     walk: float = 0.0  # (T3) px^2 per step of a track's pixel random walk at zero disparity
     walk_per_disparity: float = 0.0  # (T3) px^2 per step and px of disparity
     walk_growth: float = float("nan")  # (T4) the walk's share the fits show: v / (m_v - m_0)
+    walk_configured: tuple = (False, False)  # (walk, walk_per_disparity) taken from the configuration
 
     def as_dict(self) -> dict:
         return {"drifting": self.drifting, "decided_by": self.source, "ratio": self.ratio, "ratio_se": self.ratio_se,
                 "rms_by_gap": [{"gap": g, "pairs": n, "rms_px": s} for g, n, s in self.scales],
                 "pixel_walk_px2_per_step": self.walk, "pixel_walk_px2_per_step_per_px": self.walk_per_disparity,
-                "walk_growth_factor": self.walk_growth,
+                "walk_growth_factor": self.walk_growth, "walk_configured": list(self.walk_configured),
                 "tracker_key": self.tracker}
 
     def describe(self, config: Config | None = None) -> str:
@@ -98,10 +99,9 @@ class DriftDecision:
             d = config.drift
             if d.landmark_random_walk is not None:
                 walk = f"random walk {d.landmark_random_walk:g} m/sqrt(s) (configured)"
-            elif d.pixel_walk is not None or d.pixel_walk_per_disparity is not None:
-                both = d.pixel_walk is not None and d.pixel_walk_per_disparity is not None
+            elif any(self.walk_configured):
                 walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
-                        f"({'configured' if both else 'configured where set, the rest measured, T3'})")
+                        f"({'configured' if all(self.walk_configured) else 'configured where set, the rest measured, T3'})")
             elif np.isfinite(self.walk_growth):
                 walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
                         f"(T3, disparity d px; the fits show 1/{self.walk_growth:.2f} of a walk, T4)")
@@ -190,4 +190,5 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
         walk = d.pixel_walk
     if d.pixel_walk_per_disparity is not None:
         per_disparity = d.pixel_walk_per_disparity
-    return DriftDecision(drifting, source, ratio, se, scales, seq.tracker, walk, per_disparity, growth)
+    return DriftDecision(drifting, source, ratio, se, scales, seq.tracker, walk, per_disparity, growth,
+                         (d.pixel_walk is not None, d.pixel_walk_per_disparity is not None))
