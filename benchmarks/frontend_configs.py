@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from kitti_frames import noisy_copy  # noqa: E402
+from rendered_honesty import observation_errors, stray_share  # noqa: E402
 
 from vislam.backend.config import Config  # noqa: E402
 from vislam.backend.data.tum import read_tum  # noqa: E402
@@ -71,35 +72,6 @@ def ate_pair(seq, gt_t, gt_poses) -> tuple[float, float]:
     slam = trajectory_errors(r.time_stamps[:n], r.world_T_imu[:n], gt_t[:n], gt_poses[:n]).ate_rmse
     dr = trajectory_errors(r.time_stamps[:n], r.dead_reckoning[:n], gt_t[:n], gt_poses[:n]).ate_rmse
     return slam, dr
-
-
-def stray_share(seq, depths, world_T_cam, K, baseline) -> float:
-    """Share of tracks whose left or right pixel is > 2 px from its true point at some frame."""
-    fb = K[0, 0] * baseline
-    points, worst = {}, {}
-    for k in range(seq.num_steps):
-        ids, pixels = seq.observations(k)
-        cam_T_world = se3.inverse(world_T_cam[k])
-        for i, z in zip(ids.tolist(), pixels):
-            if i not in points:
-                u0, v0 = int(z[0]), int(z[1])
-                block = depths[k][v0:v0 + 2, u0:u0 + 2]
-                inv = np.where(np.isfinite(block), 1.0 / block, 0.0).ravel()
-                w = inv[np.argmin(np.abs(fb * inv - (z[0] - z[2])))]  # the side whose disparity the track has
-                if w <= 0:
-                    points[i] = None
-                    continue
-                d = 1.0 / w
-                p = np.array([(z[0] - K[0, 2]) * d / K[0, 0], (z[1] - K[1, 2]) * d / K[1, 1], d])
-                points[i] = world_T_cam[k][:3, :3] @ p + world_T_cam[k][:3, 3]
-            if points[i] is None:
-                continue
-            p = cam_T_world[:3, :3] @ points[i] + cam_T_world[:3, 3]
-            uL, v = K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]
-            e = max(np.hypot(uL - z[0], v - z[1]), np.hypot(uL - fb / p[2] - z[2], v - z[3]))
-            worst[i] = max(worst.get(i, 0.0), e)
-    values = np.array(list(worst.values()))
-    return float(np.mean(values > 2.0)) if values.size else float("nan")
 
 
 def main() -> int:
@@ -143,7 +115,7 @@ def main() -> int:
                 ratios.append(slam / dr)
             tracks = track_directory(street_stereo, street_imu, config)
             slam, dr = ate_pair(tracks, truth.time_stamps, scene.world_T_imu_true)
-            stray = stray_share(tracks, depths, world_T_cam, K, baseline)
+            stray = stray_share(observation_errors(tracks, depths, world_T_cam, K, baseline))
             label = name if not values else f"{name} ({', '.join(f'{k}={v}' for k, v in values.items())})"
             print(f"| {label} | {ratios[0]:.2f} | {np.median(ratios[1:]):.2f} | {slam / dr:.3f} | {100 * stray:.1f} % "
                   f"| {weighted_median_length(kitti):.0f} / {weighted_median_length(tracks):.0f} |", flush=True)
