@@ -46,7 +46,9 @@ from .two_view import fit_pairs
 
 __all__ = ["Decisions", "GyroBias", "decide"]
 
-#: Two-view fits per gap: gap 1 serves the offset and the IMU test, gaps 2-3 the drift test.
+#: Two-view fits per gap: gap 1 serves the offset and the IMU test, the longer gaps the drift test
+#: (T1, T3); gaps up to 3 are those the pixel noise may pool over (N2), the longest sees slow drift.
+DRIFT_GAPS = (1, 2, 3, 10)
 PAIRS_GAP1 = 300
 PAIRS_LONGER = 100
 #: A correction must not make dead reckoning's reprojection (C1) worse by more than this factor.
@@ -200,7 +202,7 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
     repeated = repeated_steps(seq)
     vision_used = config.estimator.mode != Mode.DEAD_RECKONING
     fits = {gap: fit_pairs(seq, gap, PAIRS_GAP1 if gap == 1 else PAIRS_LONGER, offset=True,
-                           min_points=NOISE_MIN_POINTS, skip=repeated) for gap in (1, 2, 3)} if vision_used else {}
+                           min_points=NOISE_MIN_POINTS, skip=repeated) for gap in DRIFT_GAPS} if vision_used else {}
     # the stereo offset (D1-D3) from the gap-1 fits with enough points, kept only if dead reckoning agrees
     offset = offset_from_fits(seq, conventions.imu_T_cam, _offset_model(config), fits.get(1, []))
     if offset.active:

@@ -5,13 +5,17 @@ so white pixel noise leaves residuals of the same scale whatever the gap h; a tr
 wander (a tracker that slides off its feature) leaves residuals that grow with h. Real drift is
 heavy-tailed (most tracks hold, a few slide fast), so the test compares the pooled RMS of the
 residuals (within ``TRIM_PX``: the tail included, gross mismatches not), not a robust scale that
-would ignore the few, at the largest gap measured with the one at gap 1:
+would ignore the few, at each longer gap h measured (``backend.run.decisions.DRIFT_GAPS``) with the
+one at gap 1:
 
-    ratio = RMS(h_max) / RMS(1),   drift  <=>  ratio > 1 + DRIFT_Z SE(ratio)                        (T1)
+    ratio_h = RMS(h) / RMS(1),   drift  <=>  max_h (ratio_h - 1) / SE(ratio_h) > DRIFT_Z             (T1)
 
 with SE by the delta method over the pairs (each pair's mean square, weighted by its degrees of
-freedom). Significance alone decides: the walk below is as large as the growth measured, so a
-barely significant drift costs a barely visible walk.
+freedom). Tracks drift at different paces: the course files' residuals grow within 2-3 steps and
+then slowly (0027: RMS 0.36, 0.44, 0.49, 0.55 px at gaps 1, 2, 3, 10), vislam's tracker on rendered
+streets only over longer lives (0.17, 0.16, 0.17, 0.20 px): a long gap sees a slow drift that
+gaps up to 3 hide. Significance alone decides: the walk below is as large as the growth measured,
+so a barely significant drift costs a barely visible walk.
 
 How fast (T3). Each point of a fit estimates its own variance, y_i = (sum of its squared
 residuals) n / dof (N5 of ``backend.run.noise``), and a line y = a_h + b_h d over the points'
@@ -19,16 +23,18 @@ disparities d gives, per gap, the part of the error that is the same for every p
 the part that grows with nearness (b_h d). A pixel random walk of variance q(d) per step and
 coordinate grows the residuals' mean square by q(d) / ``WALK_GROWTH`` per step of gap, so
 
-    q(d) = WALK_GROWTH (max(0, a_H - a_1) + max(0, b_H - b_1) d) / (H - 1)    px^2 per step        (T3)
+    q_H(d) = WALK_GROWTH_H (max(0, a_H - a_1) + max(0, b_H - b_1) d) / (H - 1)    px^2 per step    (T3)
 
-(H = h_max). ``WALK_GROWTH`` says how much of a walk the two-view fit absorbs into the points and
+at the shortest gap H whose growth is significant (T1): the pace over the first steps of a
+landmark's life, where the filter's walk starts again at each re-anchoring (the course files' growth
+slows down after 2-3 steps; on rendered streets only the long gap sees any). ``WALK_GROWTH`` says how much of a walk the two-view fit absorbs into the points and
 the motion, which depends on the scene's geometry (synthetic streets 4.0, aerial scenes 2.7): it
 is measured on the drive itself by re-fitting up to ``WALK_PAIRS`` of its gap-H pairs with a known
 walk added (simulation-extrapolation, as the stereo offset's SIMEX refit): a displacement e ~
 N(0, v I2) common to both images of each point at k+H, v the pairs' own mean square, grows their
 mean square by m_v - m_0, so
 
-    WALK_GROWTH = v / (m_v - m_0)                                                                  (T4)
+    WALK_GROWTH_H = v / (m_v - m_0)                                                                (T4)
 
 (the test ``test_track_noise.py::test_the_walk_of_random_walk_tracks_is_found`` recovers planted
 walks with it on streets and aerial scenes).
@@ -49,7 +55,7 @@ from ..data.sequence import Sequence
 from .noise import variance_line
 from .two_view import TwoViewFit, fit_pairs, pooled_mean_square
 
-__all__ = ["DriftDecision", "drift_test", "drift_walk", "walk_growth", "decide_track_drift"]
+__all__ = ["DriftDecision", "Walk", "growth_tests", "drift_test", "drift_walk", "walk_growth", "decide_track_drift"]
 
 #: (T1): the residual scale must grow by more than this many standard errors between gap 1 and the largest gap.
 DRIFT_Z = 4.0
@@ -68,26 +74,29 @@ class DriftDecision:
 
     drifting: bool
     source: str  # "test" | "configured" | "not testable"
-    ratio: float = float("nan")  # s(h_max) / s(1)
+    ratio: float = float("nan")  # s(h) / s(1) at the gap h where the growth is most significant
     ratio_se: float = float("nan")
+    gap: int = 0  # that gap h
     scales: tuple = ()  # (gap, pairs, pooled RMS px) per gap
     tracker: str = ""  # what the file says made the tracks (informs only)
     walk: float = 0.0  # (T3) px^2 per step of a track's pixel random walk at zero disparity
     walk_per_disparity: float = 0.0  # (T3) px^2 per step and px of disparity
     walk_growth: float = float("nan")  # (T4) the walk's share the fits show: v / (m_v - m_0)
+    walk_gap: int = 0  # (T3) the gap H whose growth gave the walk (0: none measured)
     walk_configured: tuple = (False, False)  # (walk, walk_per_disparity) taken from the configuration
 
     def as_dict(self) -> dict:
         return {"drifting": self.drifting, "decided_by": self.source, "ratio": self.ratio, "ratio_se": self.ratio_se,
-                "rms_by_gap": [{"gap": g, "pairs": n, "rms_px": s} for g, n, s in self.scales],
+                "ratio_gap": self.gap, "rms_by_gap": [{"gap": g, "pairs": n, "rms_px": s} for g, n, s in self.scales],
                 "pixel_walk_px2_per_step": self.walk, "pixel_walk_px2_per_step_per_px": self.walk_per_disparity,
-                "walk_growth_factor": self.walk_growth, "walk_configured": list(self.walk_configured),
+                "walk_growth_factor": self.walk_growth, "walk_gap": self.walk_gap,
+                "walk_configured": list(self.walk_configured),
                 "tracker_key": self.tracker}
 
     def describe(self, config: Config | None = None) -> str:
         scales = ", ".join(f"gap {g}: {s:.2f}" for g, n, s in self.scales)
         if self.source == "test":
-            why = (f"RMS of two-view residuals {scales} px, ratio {self.ratio:.2f} +- {self.ratio_se:.2f}")
+            why = (f"RMS of two-view residuals {scales} px, ratio {self.ratio:.2f} +- {self.ratio_se:.2f} at gap {self.gap}")
         elif self.source == "configured":
             why = "configured"
         else:
@@ -104,7 +113,8 @@ class DriftDecision:
                         f"({'configured' if all(self.walk_configured) else 'configured where set, the rest measured, T3'})")
             elif np.isfinite(self.walk_growth):
                 walk = (f"pixel random walk {self.walk:.3g} + {self.walk_per_disparity:.3g} d px^2 a step "
-                        f"(T3, disparity d px; the fits show 1/{self.walk_growth:.2f} of a walk, T4)")
+                        f"(T3, disparity d px, from gaps 1 and {self.walk_gap}; the fits show 1/{self.walk_growth:.2f} "
+                        "of a walk, T4)")
             else:
                 walk = "no random walk (too few step pairs to measure one, T3)"
             if config.estimator.full_state:
@@ -115,9 +125,9 @@ class DriftDecision:
         return text
 
 
-def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, tuple]:
-    """(T1): (ratio, its standard error, (gap, pairs, pooled RMS px) per gap); nan ratio when gap 1
-    or the largest gap has fewer than ``MIN_PAIRS`` fits."""
+def growth_tests(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[dict[int, tuple[float, float]], tuple]:
+    """(T1) per longer gap h: (ratio_h, its standard error), where gap 1 and h have ``MIN_PAIRS``
+    fits or more (empty otherwise); and (gap, pairs, pooled RMS px) per gap with fits."""
     scales = []
     pooled = {}
     for gap in sorted(fits_by_gap):
@@ -126,13 +136,31 @@ def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, 
             pooled[gap] = (pooled_mean_square(fits), len(fits))
             scales.append((gap, len(fits), float(np.sqrt(pooled[gap][0][0]))))
     gaps = [g for g in pooled if pooled[g][1] >= MIN_PAIRS]
-    if 1 not in gaps or len(gaps) < 2:
-        return float("nan"), float("nan"), tuple(scales)
+    if 1 not in gaps:
+        return {}, tuple(scales)
     (m1, s1), _ = pooled[1]
-    (mh, sh), _ = pooled[max(gaps)]
-    ratio = np.sqrt(mh / m1)
-    se = 0.5 * ratio * np.hypot(s1 / m1, sh / mh)
-    return float(ratio), float(se), tuple(scales)
+    tests = {}
+    for h in gaps[1:]:
+        (mh, sh), _ = pooled[h]
+        ratio = np.sqrt(mh / m1)
+        tests[h] = (float(ratio), float(0.5 * ratio * np.hypot(s1 / m1, sh / mh)))
+    return tests, tuple(scales)
+
+
+def _z(test: tuple[float, float]) -> float:
+    ratio, se = test
+    return (ratio - 1.0) / se if se > 0 else -np.inf
+
+
+def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, int, tuple]:
+    """(T1): (ratio, its standard error, the gap h of the most significant growth, (gap, pairs,
+    pooled RMS px) per gap); nan ratio (gap 0) when gap 1 or every longer gap has fewer than
+    ``MIN_PAIRS`` fits."""
+    tests, scales = growth_tests(fits_by_gap)
+    if not tests:
+        return float("nan"), float("nan"), 0, scales
+    h = max(tests, key=lambda g: _z(tests[g]))
+    return tests[h][0], tests[h][1], h, scales
 
 
 def walk_growth(seq: Sequence, fits: list[TwoViewFit], seed: int = 0) -> float:
@@ -153,19 +181,29 @@ def walk_growth(seq: Sequence, fits: list[TwoViewFit], seed: int = 0) -> float:
     return float(v / grown) if grown > 0 else float("nan")
 
 
-def drift_walk(seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, float]:
-    """(T3, T4): (walk at zero disparity px^2/step, walk per px of disparity px^2/step/px, the growth
-    factor) from gap 1 and the largest gap with ``MIN_PAIRS`` fits; zeros (and nan) when not measurable."""
-    gaps = sorted(g for g, fits in fits_by_gap.items() if len(fits) >= MIN_PAIRS)
-    if 1 not in gaps or len(gaps) < 2:
-        return 0.0, 0.0, float("nan")
-    h = gaps[-1]
-    first, last = variance_line(fits_by_gap[1])[0], variance_line(fits_by_gap[h])[0]
-    growth = walk_growth(seq, fits_by_gap[h])
-    if not (np.all(np.isfinite(first)) and np.all(np.isfinite(last)) and np.isfinite(growth)):
-        return 0.0, 0.0, growth
-    q0, qd = growth * np.maximum(0.0, last - first) / (h - 1)
-    return float(q0), float(qd), growth
+@dataclass(frozen=True)
+class Walk:
+    """(T3, T4): a drifting track's pixel random walk q(d) = walk + per_disparity d px^2 a step."""
+
+    walk: float = 0.0  # px^2 per step at zero disparity
+    per_disparity: float = 0.0  # px^2 per step and px of disparity
+    growth: float = float("nan")  # (T4) WALK_GROWTH_H of the gap used
+    gap: int = 0  # the gap H it was measured at (0: not measurable)
+
+
+def drift_walk(seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> Walk:
+    """(T3, T4) from gap 1 and the shortest longer gap whose growth is significant (T1); zero (gap 0)
+    when none is, or its walk cannot be measured."""
+    tests, _ = growth_tests(fits_by_gap)
+    significant = sorted(h for h, test in tests.items() if _z(test) > DRIFT_Z)
+    first = variance_line(fits_by_gap[1])[0] if significant else None
+    for h in significant:
+        last = variance_line(fits_by_gap[h])[0]
+        growth = walk_growth(seq, fits_by_gap[h])
+        if np.all(np.isfinite(first)) and np.all(np.isfinite(last)) and np.isfinite(growth):
+            q0, qd = growth * np.maximum(0.0, last - first) / (h - 1)
+            return Walk(float(q0), float(qd), growth, h)
+    return Walk()
 
 
 def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> DriftDecision:
@@ -174,7 +212,7 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
     unmodelled drift makes the filter overconfident; the walk is then 0, nothing having measured it).
     The walk (T3, T4) is measured for a drifting sequence whenever the fits allow; ``drift.pixel_walk``
     and ``drift.pixel_walk_per_disparity``, where configured, are used instead."""
-    ratio, se, scales = drift_test(fits_by_gap)
+    ratio, se, gap, scales = drift_test(fits_by_gap)
     setting = config.drift.track_drift
     if setting != Choice.AUTO:
         drifting, source = setting == Choice.YES, "configured"
@@ -183,12 +221,10 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
     else:
         drifting, source = bool(ratio > 1.0 + DRIFT_Z * se), "test"
     d = config.drift
-    walk, per_disparity, growth = 0.0, 0.0, float("nan")
+    measured = Walk()
     if drifting and (d.pixel_walk is None or d.pixel_walk_per_disparity is None):
-        walk, per_disparity, growth = drift_walk(seq, fits_by_gap)
-    if d.pixel_walk is not None:  # configured values win over the measured ones
-        walk = d.pixel_walk
-    if d.pixel_walk_per_disparity is not None:
-        per_disparity = d.pixel_walk_per_disparity
-    return DriftDecision(drifting, source, ratio, se, scales, seq.tracker, walk, per_disparity, growth,
-                         (d.pixel_walk is not None, d.pixel_walk_per_disparity is not None))
+        measured = drift_walk(seq, fits_by_gap)
+    walk = measured.walk if d.pixel_walk is None else d.pixel_walk  # configured values win over the measured ones
+    per_disparity = measured.per_disparity if d.pixel_walk_per_disparity is None else d.pixel_walk_per_disparity
+    return DriftDecision(drifting, source, ratio, se, gap, scales, seq.tracker, walk, per_disparity, measured.growth,
+                         measured.gap, (d.pixel_walk is not None, d.pixel_walk_per_disparity is not None))
