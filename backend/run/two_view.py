@@ -368,11 +368,8 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
         if (not offset or abs(dg[6]) < 1e-4) and small:
             break
     res = np.empty((n, 8))
-    Jp = np.zeros((8, 3))
-    Jg = np.zeros((8, 7))
-    work = np.empty((4, 4, 3))
     for i in range(n):
-        _point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, Jp, Jg, False, work)
+        _predict_point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred)
         for j in range(8):
             res[i, j] = pred[j] - z[i, j]
     return True, T, beta, S, res
