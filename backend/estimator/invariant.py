@@ -259,7 +259,8 @@ def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline
     cam_T_world = se3.small_matmul(cam_T_imu, se3.inverse(world_T_imu))
     points = np.empty((slots.size, 3))
     for i in range(slots.size):
-        points[i] = theta[slots[i]]
+        for a in range(3):
+            points[i, a] = theta[slots[i], a]
     residual, off_row, H_x, H_m, in_front = observe(points, cam_T_world, fx, fy, cx, cy, baseline, pixels)
     if not pose:
         H_x[:] = 0.0

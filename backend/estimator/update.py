@@ -148,9 +148,13 @@ def block_nis(S, residual, off_row, pixel_var):
     """(U4) the NIS (k,) of each observation: its 3-row block of S and off_row^2 / sigma^2."""
     k = residual.shape[0]
     nis = np.empty(k)
+    Sb = np.empty((3, 3))  # the block, C-ordered as _rescue_test's (one compiled _nis3)
     for i in range(k):
         o = 3 * i
-        nis[i] = _nis3(S[o:o + 3, o:o + 3], residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
+        for a in range(3):
+            for b in range(3):
+                Sb[a, b] = S[o + a, o + b]
+        nis[i] = _nis3(Sb, residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
     return nis
 
 
@@ -219,7 +223,9 @@ def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
     a = np.empty((m, 3))
     for jj in range(m):
         o = 3 * idx[jj]
-        a[jj] = _solve3(S[o:o + 3, o:o + 3], residual[idx[jj]])
+        x = _solve3(S[o:o + 3, o:o + 3], residual[idx[jj]])
+        for t in range(3):
+            a[jj, t] = x[t]
     err = np.empty((m, m))
     for ii in range(m):
         oi = 3 * idx[ii]
@@ -287,7 +293,9 @@ def _gather_rows(M, rows):
     """M[rows] as a new C-ordered array."""
     out = np.empty((rows.size, M.shape[1]))
     for a in range(rows.size):
-        out[a] = M[rows[a]]
+        row = M[rows[a]]
+        for c in range(M.shape[1]):
+            out[a, c] = row[c]
     return out
 
 

@@ -233,7 +233,8 @@ def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
     put_block(T, 0, 0, R)
-    T[:3, 3] = small_matmul(J, np.ascontiguousarray(xi[:3]))
+    t = small_matmul(J, np.ascontiguousarray(xi[:3]))
+    T[0, 3], T[1, 3], T[2, 3] = t[0], t[1], t[2]
     return T, J
 
 
