@@ -1,7 +1,8 @@
 """Compiled kernels (numba): the decorator every kernel uses, and their warm-up.
 
 Kernels are compiled on first use and cached beside their source (``cache=True``): the first run
-after an install compiles for about 20 s on 2 cores; later processes load the cache in ~0.3 s. numba
+after an install compiles for about 30 s of CPU (a velocity run's kernels in one process, LLVM at
+-O2), shared by two processes (below); later processes load the cache in ~0.3 s. numba
 keys a kernel's cache to its own file only, and a kernel that calls one of another module holds
 that one's machine code too: after a change of that module alone (a ``git pull`` into an
 editable install) it would run the old code. So the caches under ``backend/`` are dropped
@@ -16,11 +17,17 @@ run's timing. Kernels only a real IMU's run calls are registered as ``only="iner
 warmed up only for such a run: a velocity run does not compile them.
 
 When nothing is cached yet (the first run after an install or a change), a helper process
-compiles modules beside this one, the helper going down one list from the largest source and
-this process up it from the smallest (compiling grows a process's memory, and the run's holds its
-data too), each claiming the next module not yet claimed (a file created exclusively; no lock to
-leak); the caches it writes are then loaded here. numba compiles in one thread, so on
-2 cores this nearly halves the wait: ece276a_0027's first run 29.5 -> 19 s (BENCHMARKS.md). A stop
+compiles modules beside this one, both going down one list of the modules by source size, the
+helper from the largest (the two-view fits, ~10 s alone) and this process from the second (the
+invariant model, then the update: the invariant model's kernels call the update's and the SE(3)
+functions, so those are compiled in one process, not in both), each then claiming the next module
+not yet claimed (a file created exclusively; no lock to leak); the caches the helper writes are
+then loaded here. Against the helper from the largest down and this process from the smallest up
+(``/usr/bin/time``, every cache removed, a 2-core machine shared with other work): EuRoC's slice (a
+window run) peaked at 352 MB against 403 and took 35 s of CPU against 38; ece276a_0027 peaked at
+341 MB against 307 (this process then compiles the estimator's larger modules besides holding the
+data) and took 33-37 s of CPU against 32-35, 18.4 s wall against 20.8 when both cores were free.
+numba compiles in one thread, so on 2 idle cores the helper nearly halves the wait. A stop
 (Ctrl-C, SIGTERM) ends the helper with the run.
 """
 
@@ -269,15 +276,15 @@ def _compile_in_helper(modules: list[str], claims: str, inertial: bool, window: 
 
 def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool, window: bool = False) -> None:
     """Compile the modules of ``todo`` here and in one helper process, each claiming the next module of
-    one list (the helper from its largest, this process from its smallest); the helper's modules are
-    left for the caller, whose warm-ups then load its caches."""
+    one list by size (the helper from its first, this process from its second); the helper's modules
+    are left for the caller, whose warm-ups then load its caches."""
     modules = _by_size(todo)
     claims = tempfile.mkdtemp(prefix="vislam-compile-")
     helper = multiprocessing.get_context("spawn").Process(
         target=_compile_in_helper, args=(modules, claims, inertial, window), name="vislam-compile", daemon=True)
     try:
         helper.start()
-        for name in reversed(modules):  # the helper takes the largest first, this process the smallest
+        for name in modules[1:] + modules[:1]:  # the helper starts at the first
             if _claim(claims, name):
                 for function in todo:
                     if function.__module__ == name:
