@@ -37,6 +37,9 @@ import importlib
 import multiprocessing
 import os
 import shutil
+import signal
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -274,16 +277,29 @@ def _compile_in_helper(modules: list[str], claims: str, inertial: bool, window: 
                     f()
 
 
+def _helper_main(argv: list[str]) -> None:
+    """The helper's entry: ``argv`` = [claims, inertial 0/1, window 0/1, module ...]. Ctrl-C is the
+    run's to handle (it ends the helper with SIGTERM), so the helper ignores SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    claims, inertial, window, *modules = argv
+    _compile_in_helper(modules, claims, inertial == "1", window == "1")
+
+
 def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool, window: bool = False) -> None:
     """Compile the modules of ``todo`` here and in one helper process, each claiming the next module of
     one list by size (the helper from its first, this process from its second); the helper's modules
-    are left for the caller, whose warm-ups then load its caches."""
+    are left for the caller, whose warm-ups then load its caches. The helper is a new interpreter
+    that imports this module alone (``sys.executable -c``, the caller's ``sys.path``), not a
+    multiprocessing child: a spawned child would run the caller's main script again, which a script
+    without an ``if __name__ == "__main__"`` guard does from its top (its data loaded twice, and the
+    child's own warm-up refused)."""
     modules = _by_size(todo)
     claims = tempfile.mkdtemp(prefix="vislam-compile-")
-    helper = multiprocessing.get_context("spawn").Process(
-        target=_compile_in_helper, args=(modules, claims, inertial, window), name="vislam-compile", daemon=True)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    code = f"import sys; from {__name__} import _helper_main; _helper_main(sys.argv[1:])"
+    helper = subprocess.Popen([sys.executable, "-c", code, claims, str(int(inertial)), str(int(window)), *modules],
+                              env=env, stdin=subprocess.DEVNULL)
     try:
-        helper.start()
         for name in modules[1:] + modules[:1]:  # the helper starts at the first
             if _claim(claims, name):
                 for function in todo:
@@ -291,9 +307,9 @@ def _compile_with_a_helper(todo: list[Callable[[], None]], inertial: bool, windo
                         with signals.held():
                             function()
                         _done.add(function)
-        helper.join()
+        helper.wait()
     finally:
-        if helper.is_alive():  # a stop: the helper goes with the run
+        if helper.poll() is None:  # a stop: the helper goes with the run
             helper.terminate()
-            helper.join()
+            helper.wait()
         shutil.rmtree(claims, ignore_errors=True)

@@ -93,18 +93,64 @@ def test_a_first_compile_shares_the_modules_with_a_helper_process(tmp_path, monk
     assert mine == {m for m, p in by_module.items() if p == [os.getpid()]}  # the helper's are left to the caller
 
 
+def _children() -> list[int]:
+    """The processes whose parent is this one (Linux's /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == os.getpid() and fields[0] != "Z":
+                out.append(int(entry))
+    return out
+
+
 def test_a_stop_during_a_first_compile_ends_the_helper(tmp_path, monkeypatch):
     """Ctrl-C or SIGTERM (a KeyboardInterrupt here) while this process compiles: the helper process
     is ended with it, none is left behind."""
-    import multiprocessing
-
     import pytest
 
     compiled, names = _probes(tmp_path, monkeypatch)
     monkeypatch.setenv("PROBE_FAIL", " ".join(names))  # whichever module this process takes first
+    before = set(_children())
     with pytest.raises(KeyboardInterrupt):
         compiled._compile_with_a_helper(list(compiled._registered), inertial=False)
-    assert multiprocessing.active_children() == []
+    assert set(_children()) <= before
+
+
+_SCRIPT = """
+import os
+with open(os.environ["PROBE_TOP"], "a") as top:  # a script's top level, no __main__ guard
+    top.write(f"{os.getpid()}\\n")
+from vislam.backend import compiled
+import vislam_probe_0, vislam_probe_1, vislam_probe_2
+compiled._compile_with_a_helper(list(compiled._registered), inertial=False)
+"""
+
+
+def test_a_script_without_a_main_guard_runs_once_while_a_helper_compiles(tmp_path):
+    """A user's script calling the API at its top level (no ``if __name__ == "__main__"``) on a first
+    run: its top runs once, in its own process, while the modules are still shared with a helper
+    process (a multiprocessing child would run the script's top again)."""
+    import subprocess
+    import sys
+
+    for i in range(3):
+        (tmp_path / f"vislam_probe_{i}.py").write_text(_PROBE.format(seconds=0.5 + 0.1 * i))
+    (tmp_path / "script.py").write_text(_SCRIPT)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path)] + sys.path), PROBE_LOG=str(tmp_path / "log.txt"),
+               PROBE_TOP=str(tmp_path / "top.txt"), PROBE_MAIN="0")
+    done = subprocess.run([sys.executable, str(tmp_path / "script.py")], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    tops = (tmp_path / "top.txt").read_text().split()
+    assert len(tops) == 1 and "Error" not in done.stderr
+    lines = [line.split() for line in (tmp_path / "log.txt").read_text().splitlines()]
+    assert sorted(m for m, _ in lines) == [f"vislam_probe_{i}" for i in range(3)]  # each module once
+    assert len({pid for _, pid in lines}) == 2 and tops[0] in {pid for _, pid in lines}  # the script and a helper
 
 
 def test_a_helper_is_used_until_a_whole_warm_up_wrote_its_caches(tmp_path, monkeypatch):
