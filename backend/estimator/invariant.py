@@ -118,13 +118,21 @@ def predict_step(world_T_imu, twist):
     """One prediction's mean and noise map: mu_next = mu exp(tau u^) (P1 of
     ``backend.estimator.propagation``) and G_pose = Ad(mu_next) J_r(twist) of (I2); its rotation
     rows R_phi = G_pose[3:6]. Returns (mu_next (4,4), G_pose (6,6))."""
-    step = se3.exp_se3(twist)
+    step, J_r = se3.exp_se3_and_right_jacobian(twist)
     mu = np.empty((4, 4))
     for i in range(4):
         for j in range(4):
             mu[i, j] = world_T_imu[i, 0] * step[0, j] + world_T_imu[i, 1] * step[1, j] \
                 + world_T_imu[i, 2] * step[2, j] + world_T_imu[i, 3] * step[3, j]
-    return mu, se3.small_matmul(se3.adjoint(mu), se3.right_jacobian_se3(twist))
+    A = se3.adjoint(mu)
+    G_pose = np.empty((6, 6))
+    for i in range(6):
+        for j in range(6):
+            s = 0.0
+            for k in range(6):
+                s += A[i, k] * J_r[k, j]
+            G_pose[i, j] = s
+    return mu, G_pose
 
 
 @dataclass

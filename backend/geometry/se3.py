@@ -12,7 +12,14 @@ ones multiply O(t^4) terms, so the matrices stay at machine precision).
 
 The functions marked *jitable* are written in the subset of numpy that numba compiles
 (``numba.extending.register_jitable``): Python calls them as they are, and the filter's compiled
-kernels call the very same functions, so each operation is stated once.
+kernels call the very same functions, so each operation is stated once. The others that compiled
+kernels call (:func:`hat3`, :func:`inverse`, :func:`exp_se3`, :func:`exp_se3_and_left_jacobian`,
+:func:`exp_se3_and_right_jacobian`, :func:`adjoint`, :func:`left_jacobian_se3`,
+:func:`right_jacobian_se3`, the products) state the maths in numpy for Python and get scalar loops
+in compiled code (``numba.extending.overload``), with the same operations in the same order
+(tests/test_se3.py compares the two): numba compiles every array expression, slice assignment and
+small helper again into each kernel calling it, which took predict_step's chain of helpers about
+4.5 s of CPU to compile against about 2 s for the loops.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import types
 from numba.extending import overload, register_jitable
 
 _SMALL_ANGLE = 0.1
@@ -133,8 +141,8 @@ def _norm3(w: np.ndarray) -> float:
 
 
 @register_jitable
-def hat3(w: np.ndarray) -> np.ndarray:
-    """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3) (jitable)."""
+def _hat3_any(w: np.ndarray) -> np.ndarray:
+    """:func:`hat3` of any shape (..., 3) (jitable)."""
     w = np.asarray(w, dtype=np.float64)
     W = np.zeros(w.shape[:-1] + (3, 3))
     W[..., 0, 1] = -w[..., 2]
@@ -144,6 +152,31 @@ def hat3(w: np.ndarray) -> np.ndarray:
     W[..., 2, 0] = -w[..., 1]
     W[..., 2, 1] = w[..., 0]
     return W
+
+
+def hat3(w: np.ndarray) -> np.ndarray:
+    """Skew matrix w^ with w^ v = w x v (Barfoot eq. 7.7); (..., 3) -> (..., 3, 3). Compiled code
+    gets element assignments for one 3-vector (the ellipsis-indexed assignments of :func:`_hat3_any`
+    compile numba's broadcasting machinery)."""
+    return _hat3_any(w)
+
+
+@overload(hat3)
+def _hat3_compiled(w):
+    if isinstance(w, types.Array) and w.ndim == 1:
+        def hat(w):
+            W = np.zeros((3, 3))
+            W[0, 1] = -w[2]
+            W[0, 2] = w[1]
+            W[1, 0] = w[2]
+            W[1, 2] = -w[0]
+            W[2, 0] = -w[1]
+            W[2, 1] = w[0]
+            return W
+    else:
+        def hat(w):
+            return _hat3_any(w)
+    return hat
 
 
 def vee3(W: np.ndarray) -> np.ndarray:
@@ -225,10 +258,10 @@ def _exp_so3_and_left_jacobian_compiled(w):
     return exp_and_jacobian
 
 
-@register_jitable
 def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(exp(xi^), J_l(theta)): exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)
-    and the SO(3) left Jacobian it was built with (jitable)."""
+    and the SO(3) left Jacobian it was built with; xi (6,) -> ((4,4), (3,3)). Compiled code gets
+    :func:`_exp_se3_scalar`."""
     xi = np.asarray(xi, dtype=np.float64)
     R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
@@ -238,10 +271,76 @@ def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T, J
 
 
-@register_jitable
 def exp_se3(xi: np.ndarray) -> np.ndarray:
-    """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39) (jitable)."""
+    """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39); xi (6,) -> (4,4).
+    Compiled code gets :func:`_exp_se3_scalar`."""
     return exp_se3_and_left_jacobian(xi)[0]
+
+
+def exp_se3_and_right_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(exp(xi^) (4,4), J_r(xi) (6,6)) of a twist xi (6,) (Barfoot eqs. 7.39, 7.87), from one set of
+    coefficients in compiled code."""
+    return exp_se3(xi), right_jacobian_se3(xi)
+
+
+@register_jitable
+def _exp_se3_fill(T: np.ndarray, J: np.ndarray, r0: float, r1: float, r2: float, w0: float, w1: float, w2: float,
+                  t2: float, a: float, b: float, c: float) -> None:
+    """T (4,4) <- exp(xi^) and J (3,3) <- J_l(theta) of xi = (r0, r1, r2, w0, w1, w2) by scalar loops
+    (jitable), t2 = |theta|^2 and a, b, c of :func:`_coefficients`: exp(theta^) = I + a W + b W^2,
+    J_l(theta) = I + b W + c W^2 (Barfoot eqs. 7.14, 7.37; W = theta^, W^2 = theta theta^T - t2 I),
+    translation J_l(theta) rho (7.39)."""
+    wv = (w0, w1, w2)
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    for i in range(3):
+        for j in range(3):
+            ww = wv[i] * wv[j] - (t2 if i == j else 0.0)
+            d = 1.0 if i == j else 0.0
+            T[i, j] = d + a * W[i][j] + b * ww
+            J[i, j] = d + b * W[i][j] + c * ww
+    for i in range(3):
+        T[i, 3] = J[i, 0] * r0 + J[i, 1] * r1 + J[i, 2] * r2
+        T[3, i] = 0.0
+    T[3, 3] = 1.0
+
+
+@overload(exp_se3_and_left_jacobian)
+def _exp_se3_and_left_jacobian_compiled(xi):
+    def exp_and_jacobian(xi):
+        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        a, b, c, _, _, _ = _coefficients(np.sqrt(t2))
+        T, J = np.empty((4, 4)), np.empty((3, 3))
+        _exp_se3_fill(T, J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, a, b, c)
+        return T, J
+    return exp_and_jacobian
+
+
+@overload(exp_se3)
+def _exp_se3_compiled(xi):
+    def exp(xi):
+        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        a, b, c, _, _, _ = _coefficients(np.sqrt(t2))
+        T, J = np.empty((4, 4)), np.empty((3, 3))
+        _exp_se3_fill(T, J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, a, b, c)
+        return T
+    return exp
+
+
+@overload(exp_se3_and_right_jacobian)
+def _exp_se3_and_right_jacobian_compiled(xi):
+    def exp_and_right(xi):
+        r0, r1, r2 = float(xi[0]), float(xi[1]), float(xi[2])
+        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        a, b, c, _, e, f = _coefficients(np.sqrt(t2))
+        T, Jl = np.empty((4, 4)), np.empty((3, 3))
+        _exp_se3_fill(T, Jl, r0, r1, r2, w0, w1, w2, t2, a, b, c)
+        J = np.zeros((6, 6))
+        _left_jacobian_se3_into(J, -r0, -r1, -r2, -w0, -w1, -w2, t2, b, c, e, f)  # J_r(xi) = J_l(-xi)
+        return T, J
+    return exp_and_right
 
 
 def exp_se3_batch(xi: np.ndarray) -> np.ndarray:
@@ -279,9 +378,9 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     return np.concatenate([_inv_left_jacobian_so3(theta) @ T[:3, 3], theta])
 
 
-@register_jitable
 def adjoint(T: np.ndarray) -> np.ndarray:
-    """Ad(T) = [[R, p^ R], [0, R]] (Barfoot eq. 7.48) (jitable)."""
+    """Ad(T) = [[R, p^ R], [0, R]] (Barfoot eq. 7.48); (4,4) -> (6,6). Compiled code gets the
+    scalar loop of :func:`_adjoint_compiled`."""
     T = np.asarray(T, dtype=np.float64)
     R = np.ascontiguousarray(T[:3, :3])
     A = np.zeros((6, 6))
@@ -291,9 +390,23 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return A
 
 
-@register_jitable
+@overload(adjoint)
+def _adjoint_compiled(T):
+    def ad(T):
+        p0, p1, p2 = float(T[0, 3]), float(T[1, 3]), float(T[2, 3])
+        H = ((0.0, -p2, p1), (p2, 0.0, -p0), (-p1, p0, 0.0))  # p^
+        A = np.zeros((6, 6))
+        for i in range(3):
+            for j in range(3):
+                A[i, j] = T[i, j]
+                A[3 + i, 3 + j] = T[i, j]
+                A[i, 3 + j] = H[i][0] * T[0, j] + H[i][1] * T[1, j] + H[i][2] * T[2, j]
+        return A
+    return ad
+
+
 def _q_matrix(xi: np.ndarray) -> np.ndarray:
-    """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86) (jitable)."""
+    """Q(rho, theta), the upper-right block of the SE(3) left Jacobian (Barfoot eq. 7.86); (6,) -> (3,3)."""
     P, W = hat3(xi[:3]), hat3(xi[3:])
     _, _, c, _, e, f = _coefficients(_norm3(xi[3:]))
     WP, PW, WW = small_matmul(W, P), small_matmul(P, W), small_matmul(W, W)
@@ -306,9 +419,9 @@ def _q_matrix(xi: np.ndarray) -> np.ndarray:
     )
 
 
-@register_jitable
 def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
-    """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85) (jitable)."""
+    """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85); (6,) -> (6,6). Compiled code
+    gets :func:`_left_jacobian_se3_scalar`."""
     xi = np.asarray(xi, dtype=np.float64)
     J = np.zeros((6, 6))
     Jl = left_jacobian_so3(xi[3:])
@@ -318,15 +431,74 @@ def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
     return J
 
 
-@register_jitable
 def right_jacobian_se3(xi: np.ndarray) -> np.ndarray:
-    """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87) (jitable)."""
+    """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87);
+    (6,) -> (6,6). Compiled code gets :func:`_left_jacobian_se3_scalar` of -xi."""
     return left_jacobian_se3(-np.asarray(xi, dtype=np.float64))
 
 
 @register_jitable
-def inverse(T: np.ndarray) -> np.ndarray:
-    """Rigid inverse [[R^T, -R^T p], [0, 1]]; (..., 4, 4) -> (..., 4, 4) (jitable)."""
+def _left_jacobian_se3_into(J: np.ndarray, r0: float, r1: float, r2: float, w0: float, w1: float, w2: float,
+                            t2: float, b: float, c: float, e: float, f: float) -> None:
+    """J (6,6) <- J_l(xi) of xi = (r0, r1, r2, w0, w1, w2), t2 = |theta|^2 and the coefficients b, c,
+    e, f of :func:`_coefficients`, by loops over 3x3 blocks (jitable): J_l(theta) = I + b W + c W^2
+    (Barfoot eq. 7.37) on the diagonal, Q = P/2 + c (WP + PW + WPW) + e (W^2 P + PW^2 - 3 WPW)
+    + f (WPW^2 + W^2 PW) (7.86) above it, P = rho^, W = theta^; the lower-left block is left as is."""
+    wv = (w0, w1, w2)
+    Wt = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    Pt = ((0.0, -r2, r1), (r2, 0.0, -r0), (-r1, r0, 0.0))
+    M = np.empty((10, 3, 3))  # WP, PW, WW, WPW, WWP, PWW, WPWW, WWPW, P, W
+    for i in range(3):
+        for j in range(3):
+            ww = wv[i] * wv[j] - (t2 if i == j else 0.0)
+            d = 1.0 if i == j else 0.0
+            v = d + b * Wt[i][j] + c * ww
+            J[i, j] = v
+            J[3 + i, 3 + j] = v
+            M[8, i, j] = Pt[i][j]
+            M[9, i, j] = Wt[i][j]
+    left = (9, 8, 9, 0, 2, 1, 3, 2)
+    right = (8, 9, 9, 9, 8, 9, 9, 1)
+    for n in range(8):
+        for i in range(3):
+            for j in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += M[left[n], i, k] * M[right[n], k, j]
+                M[n, i, j] = s
+    for i in range(3):
+        for j in range(3):
+            J[i, 3 + j] = (0.5 * M[8, i, j] + c * (M[0, i, j] + M[1, i, j] + M[3, i, j])
+                           + e * (M[4, i, j] + M[5, i, j] - 3.0 * M[3, i, j]) + f * (M[6, i, j] + M[7, i, j]))
+
+
+@overload(left_jacobian_se3)
+def _left_jacobian_se3_compiled(xi):
+    def left(xi):
+        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        _, b, c, _, e, f = _coefficients(np.sqrt(t2))
+        J = np.zeros((6, 6))
+        _left_jacobian_se3_into(J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, b, c, e, f)
+        return J
+    return left
+
+
+@overload(right_jacobian_se3)
+def _right_jacobian_se3_compiled(xi):
+    def right(xi):
+        w0, w1, w2 = -float(xi[3]), -float(xi[4]), -float(xi[5])
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        _, b, c, _, e, f = _coefficients(np.sqrt(t2))
+        J = np.zeros((6, 6))
+        _left_jacobian_se3_into(J, -float(xi[0]), -float(xi[1]), -float(xi[2]), w0, w1, w2, t2, b, c, e, f)
+        return J
+    return right
+
+
+@register_jitable
+def _inverse_any(T: np.ndarray) -> np.ndarray:
+    """:func:`inverse` of any shape (..., 4, 4) (jitable)."""
     T = np.asarray(T, dtype=np.float64)
     out = np.zeros(T.shape)
     for i in range(3):
@@ -335,6 +507,29 @@ def inverse(T: np.ndarray) -> np.ndarray:
         out[..., i, 3] = -(T[..., 0, i] * T[..., 0, 3] + T[..., 1, i] * T[..., 1, 3] + T[..., 2, i] * T[..., 2, 3])
     out[..., 3, 3] = 1.0
     return out
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Rigid inverse [[R^T, -R^T p], [0, 1]]; (..., 4, 4) -> (..., 4, 4). Compiled code gets element
+    assignments for one (4,4) pose."""
+    return _inverse_any(T)
+
+
+@overload(inverse)
+def _inverse_compiled(T):
+    if isinstance(T, types.Array) and T.ndim == 2:
+        def inv(T):
+            out = np.zeros((4, 4))
+            for i in range(3):
+                for j in range(3):
+                    out[i, j] = T[j, i]
+                out[i, 3] = -(T[0, i] * T[0, 3] + T[1, i] * T[1, 3] + T[2, i] * T[2, 3])
+            out[3, 3] = 1.0
+            return out
+    else:
+        def inv(T):
+            return _inverse_any(T)
+    return inv
 
 
 def odot(s: np.ndarray) -> np.ndarray:
