@@ -303,7 +303,7 @@ def test_initialize_invariant_is_triangulation_then_augmentation(pose):
     if pose:
         J_xi[:, :3] = np.tile(np.eye(3), (5, 1))
     expected = covariance.augment(P, J_xi, np.ascontiguousarray(J_z), SIGMA2)
-    points, J_xi_out, J_z_out = invariant.initialize(pixels, mu, imu_T_cam, camera.fx, camera.fy, camera.cx,
+    points, J_xi_out, J_z_out = invariant.initialize(pixels, mu @ imu_T_cam, camera.fx, camera.fy, camera.cx,
                                                      camera.cy, camera.baseline, 1.3, pose)
     np.testing.assert_allclose(points, theta, rtol=0, atol=1e-11)
     np.testing.assert_array_equal(J_xi_out, J_xi)

@@ -278,14 +278,15 @@ def innovation(P, theta, slots, world_T_imu, cam_T_imu, fx, fy, cx, cy, baseline
 
 # ---------------------------------------------------------------- initialization (I4)
 @jit
-def initialize(pixels, world_T_imu, imu_T_cam, fx, fy, cx, cy, baseline, sigma, pose):
-    """New world-xyz landmarks from stereo pixels (n,4), in one call: m = world_T_imu imu_T_cam
-    triangulate(z) (the unscented mean for sigma > 0, S3 of ``backend.geometry.camera``),
-    J_z = world_R_cam d triangulate/dz and (I4) J_xi = [I 0] (zero when ``pose`` is False: poses
-    held fixed). Returns (m (n,3), J_xi (3n,6), J_z (n,3,4)) for (A1)."""
+def initialize(pixels, world_T_cam, fx, fy, cx, cy, baseline, sigma, pose):
+    """New world-xyz landmarks from stereo pixels (n,4), in one call: m = world_T_cam triangulate(z)
+    (world_T_cam (4,4) = world_T_imu imu_T_cam; the unscented mean for sigma > 0, S3 of
+    ``backend.geometry.camera``), J_z = world_R_cam d triangulate/dz and (I4) J_xi = [I 0] (zero
+    when ``pose`` is False: poses held fixed). Returns (m (n,3), J_xi (3n,6), J_z (n,3,4)) for (A1).
+    The caller multiplies world_T_cam with numpy (a matrix product in a kernel compiles numba's
+    BLAS call, about 0.5 s, for this one product)."""
     n = pixels.shape[0]
     p_cam, dp_dz = triangulate_rows(pixels, fx, fy, cx, cy, baseline, sigma)
-    world_T_cam = world_T_imu @ imu_T_cam
     points = np.empty((n, 3))
     J_z = np.empty((n, 3, 4))
     J_xi = np.zeros((3 * n, 6))
@@ -399,7 +400,7 @@ class InvariantModel(ErrorModel):
 
     def initialize(self, state, pixels, sigma) -> NewLandmarks:
         cam = self.camera
-        theta, J_xi, J_z = initialize(pixels, state.mu, self.imu_T_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
+        theta, J_xi, J_z = initialize(pixels, state.mu @ self.imu_T_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline,
                                       sigma, self.estimate_pose)
         return NewLandmarks(theta, None, J_xi, J_z)
 
@@ -429,5 +430,5 @@ def _warm_up() -> None:
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
     # the arguments as the model passes them (core given: an omitted default would be another signature)
     innovation(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True, CORE)
-    initialize(pixels, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, True)
+    initialize(pixels, np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, 1.0, True)
     world_covariances(P, slots, points, CORE)

@@ -82,7 +82,7 @@ _dtrsm = types.ExternalFunction("vislam_dtrsm", types.void(_p, _p, _p, _p, _p, _
 _dgemm = types.ExternalFunction("vislam_dgemm", types.void(_p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p, _p))
 _dpotrf = types.ExternalFunction("vislam_dpotrf", types.void(_p, _p, _p, _p, _p))
 
-_U, _L, _N, _T = ord("U"), ord("L"), ord("N"), ord("T")
+_U, _L, _N, _T, _R = ord("U"), ord("L"), ord("N"), ord("T"), ord("R")  # ord() in a kernel compiles unicode code
 
 
 @jit
@@ -108,7 +108,7 @@ def solve_lower_inplace(U, B):
     if n == 0 or k == 0:
         return
     # Fortran sees B as B^T and U's upper triangle as the lower triangle of L: B^T <- B^T L^-T
-    ch = np.array([ord("R"), _L, _T, _N], dtype=np.uint8)  # side, uplo, transa, diag
+    ch = np.array([_R, _L, _T, _N], dtype=np.uint8)  # side, uplo, transa, diag
     ints = np.array([k, n, n, k], dtype=np.int32)  # m, n of B^T; lda; ldb
     one = np.array([1.0])
     _dtrsm(ch[0:].ctypes, ch[1:].ctypes, ch[2:].ctypes, ch[3:].ctypes, ints[0:].ctypes, ints[1:].ctypes,

@@ -38,11 +38,16 @@ def slots_of(ids, ids_sorted, ids_order):
     """State slots of ``ids`` (-1 where not in the state), for the state's ids sorted (``ids_sorted``)
     and their slots (``ids_order``)."""
     n = ids_sorted.size
-    slots = np.full(ids.size, -1, dtype=np.int64)
+    slots = np.empty(ids.size, dtype=np.int64)
     for j in range(ids.size):
-        pos = np.searchsorted(ids_sorted, ids[j])
-        if pos < n and ids_sorted[pos] == ids[j]:
-            slots[j] = ids_order[pos]
+        lo, hi = 0, n  # bisection: the first position with ids_sorted[pos] >= ids[j]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if ids_sorted[mid] < ids[j]:
+                lo = mid + 1
+            else:
+                hi = mid
+        slots[j] = ids_order[lo] if lo < n and ids_sorted[lo] == ids[j] else -1
     return slots
 
 
@@ -107,11 +112,22 @@ def plan_removal(mask, ended, outlier_run):
     ones, the new slot of each old one (-1: removed), and the removed ones whose tracks go on (not
     ``ended``, an empty array meaning none ended) with a RANSAC rejection run to keep."""
     n = mask.size
-    removed = np.flatnonzero(mask)
-    keep = np.flatnonzero(~mask)
-    remap = np.full(n, -1, dtype=np.int64)
-    for i in range(keep.size):
-        remap[keep[i]] = i
+    r = 0
+    for i in range(n):
+        if mask[i]:
+            r += 1
+    removed = np.empty(r, dtype=np.int64)
+    keep = np.empty(n - r, dtype=np.int64)
+    remap = np.empty(n, dtype=np.int64)
+    r = 0
+    for i in range(n):
+        if mask[i]:
+            removed[r] = i
+            remap[i] = -1
+            r += 1
+        else:
+            keep[i - r] = i
+            remap[i] = i - r
     counted = np.empty(removed.size, dtype=np.int64)
     c = 0
     for s in removed:

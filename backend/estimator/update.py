@@ -432,19 +432,28 @@ def select_and_update_inplace(P, HP, S, residual, off_row, nis, in_front, slots,
     Returns (status, dx, used) as :func:`joint_update_inplace`; on status != 0 nothing is used."""
     k = slots.size
     use = np.empty(k, dtype=np.bool_)
+    n_use = 0
     for j in range(k):
         use[j] = in_front[j] and nis[j] <= gate
+        if use[j]:
+            n_use += 1
     rest = np.zeros(k, dtype=np.bool_)
-    if ransac_threshold > 0 and use.sum() >= 3:
+    if ransac_threshold > 0 and n_use >= 3:
         inlier = one_point_ransac(S, residual, off_row, use, pixel_var, ransac_threshold)
         for j in range(k):
             rest[j] = use[j] and not inlier[j]
         if persistent_steps:
-            rest &= ~count_rejections_inplace(outlier_run, slots, rest, persistent_steps)
+            persistent = count_rejections_inplace(outlier_run, slots, rest, persistent_steps)
+            for j in range(k):
+                rest[j] = rest[j] and not persistent[j]
         use = inlier
     status = 0
     dx = np.zeros(P.shape[0])
-    if use.any():
+    n_use = 0
+    for j in range(k):
+        if use[j]:
+            n_use += 1
+    if n_use:
         status, dx, use = joint_update_inplace(P, HP, S, residual, off_row, use, rest, pixel_var, gate)
         if status:
             use[:] = False
