@@ -757,3 +757,30 @@ def test_plan_removal_index_arrays():
     np.testing.assert_array_equal(remap, [-1, 0, -1, -1, 1])
     np.testing.assert_array_equal(counted, [2])  # slot 0 ended, slot 3 has no run
     np.testing.assert_array_equal(tracks.plan_removal(mask, np.zeros(0, dtype=bool), runs)[3], [0, 2])
+
+
+def test_slots_of_and_plan_removal_match_numpy():
+    """tracks.slots_of (a bisection) and plan_removal (counted index arrays) give what numpy's
+    searchsorted and flatnonzero give, on random ids and masks, empty ones included."""
+    rng = np.random.default_rng(7)
+    for n, m in [(0, 0), (0, 4), (5, 0), (1, 3), (40, 25), (300, 200)]:
+        ids_sorted = np.sort(rng.choice(1000, n, replace=False)).astype(np.int64)
+        order = rng.permutation(n).astype(np.int64)
+        ids = np.concatenate([rng.choice(ids_sorted, min(m, n)), rng.integers(-5, 1005, m)]).astype(np.int64)
+        pos = np.minimum(np.searchsorted(ids_sorted, ids), max(n - 1, 0))
+        found = (ids_sorted[pos] == ids) if n else np.zeros(ids.size, dtype=bool)
+        expected = np.where(found, order[pos] if n else -1, -1)
+        np.testing.assert_array_equal(tracks.slots_of(ids, ids_sorted, order), expected)
+
+        mask = rng.random(n) < 0.3
+        ended = rng.random(n) < 0.5
+        run = rng.integers(0, 3, n).astype(np.int64)
+        for ended_arg in (ended, np.zeros(0, dtype=np.bool_)):
+            removed, keep, remap, counted = tracks.plan_removal(mask, ended_arg, run)
+            np.testing.assert_array_equal(removed, np.flatnonzero(mask))
+            np.testing.assert_array_equal(keep, np.flatnonzero(~mask))
+            expected_remap = np.full(n, -1)
+            expected_remap[~mask] = np.arange(keep.size)
+            np.testing.assert_array_equal(remap, expected_remap)
+            goes_on = ~ended_arg[removed] if ended_arg.size else np.ones(removed.size, dtype=bool)
+            np.testing.assert_array_equal(counted, removed[(run[removed] > 0) & goes_on])
