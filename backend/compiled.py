@@ -1,7 +1,7 @@
 """Compiled kernels (numba): the decorator every kernel uses, and their warm-up.
 
 Kernels are compiled on first use and cached beside their source (``cache=True``): the first run
-after an install compiles for about 30 s of CPU (a velocity run's kernels in one process, LLVM at
+after an install compiles for about 25 s of CPU (a velocity run's kernels in one process, LLVM at
 -O2), shared by two processes (below); later processes load the cache in ~0.3 s. numba
 keys a kernel's cache to its own file only, and a kernel that calls one of another module holds
 that one's machine code too: after a change of that module alone (a ``git pull`` into an
