@@ -155,15 +155,21 @@ def _z(test: tuple[float, float]) -> float:
     return (ratio - 1.0) / se if se > 0 else -np.inf
 
 
+def _most_significant(tests: dict[int, tuple[float, float]]) -> tuple[float, float, int]:
+    """(ratio, its standard error, gap) of the most significant of :func:`growth_tests`' tests;
+    (nan, nan, 0) without any."""
+    if not tests:
+        return float("nan"), float("nan"), 0
+    h = max(tests, key=lambda g: _z(tests[g]))
+    return tests[h][0], tests[h][1], h
+
+
 def drift_test(fits_by_gap: dict[int, list[TwoViewFit]]) -> tuple[float, float, int, tuple]:
     """(T1): (ratio, its standard error, the gap h of the most significant growth, (gap, pairs,
     pooled RMS px) per gap); nan ratio (gap 0) when gap 1 or every longer gap has fewer than
     ``MIN_PAIRS`` fits."""
     tests, scales = growth_tests(fits_by_gap)
-    if not tests:
-        return float("nan"), float("nan"), 0, scales
-    h = max(tests, key=lambda g: _z(tests[g]))
-    return tests[h][0], tests[h][1], h, scales
+    return (*_most_significant(tests), scales)
 
 
 def walk_growth(seq: Sequence, fits: list[TwoViewFit], seed: int = 0) -> float:
@@ -194,16 +200,22 @@ class Walk:
     gap: int = 0  # the gap H it was measured at (0: not measurable)
 
 
-def drift_walk(seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]]) -> Walk:
-    """(T3, T4) from gap 1 and the shortest longer gap whose growth is significant (T1); zero (gap 0)
-    when none is, or its walk cannot be measured."""
-    tests, _ = growth_tests(fits_by_gap)
+def drift_walk(seq: Sequence, fits_by_gap: dict[int, list[TwoViewFit]], tests: dict[int, tuple[float, float]]) -> Walk:
+    """(T3, T4) from gap 1 and the shortest longer gap whose growth is significant in ``tests``
+    (:func:`growth_tests` of ``fits_by_gap``, T1); zero (gap 0) when none is, or its walk cannot be
+    measured."""
     significant = sorted(h for h, test in tests.items() if _z(test) > DRIFT_Z)
-    first = variance_line(fits_by_gap[1])[0] if significant else None
+    if not significant:
+        return Walk()
+    first = variance_line(fits_by_gap[1])[0]
+    if not np.all(np.isfinite(first)):
+        return Walk()
     for h in significant:
         last = variance_line(fits_by_gap[h])[0]
+        if not np.all(np.isfinite(last)):
+            continue
         growth = walk_growth(seq, fits_by_gap[h])
-        if np.all(np.isfinite(first)) and np.all(np.isfinite(last)) and np.isfinite(growth):
+        if np.isfinite(growth):
             q0, qd = growth * np.maximum(0.0, last - first) / (h - 1)
             return Walk(float(q0), float(qd), growth, h)
     return Walk()
@@ -215,7 +227,8 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
     unmodelled drift makes the filter overconfident; the walk is then 0, nothing having measured it).
     The walk (T3, T4) is measured for a drifting sequence whenever the fits allow; ``drift.pixel_walk``
     and ``drift.pixel_walk_per_disparity``, where configured, are used instead."""
-    ratio, se, gap, scales = drift_test(fits_by_gap)
+    tests, scales = growth_tests(fits_by_gap)
+    ratio, se, gap = _most_significant(tests)
     setting = config.drift.track_drift
     if setting != Choice.AUTO:
         drifting, source = setting == Choice.YES, "configured"
@@ -226,7 +239,7 @@ def decide_track_drift(config: Config, seq: Sequence, fits_by_gap: dict[int, lis
     d = config.drift
     measured = Walk()
     if drifting and (d.pixel_walk is None or d.pixel_walk_per_disparity is None):
-        measured = drift_walk(seq, fits_by_gap)
+        measured = drift_walk(seq, fits_by_gap, tests)
     walk = measured.walk if d.pixel_walk is None else d.pixel_walk  # configured values win over the measured ones
     per_disparity = measured.per_disparity if d.pixel_walk_per_disparity is None else d.pixel_walk_per_disparity
     return DriftDecision(drifting, source, ratio, se, gap, scales, seq.tracker, walk, per_disparity, measured.growth,
