@@ -141,7 +141,7 @@ def _norm3(w: np.ndarray) -> float:
 
 
 @register_jitable
-def _hat3_any(w: np.ndarray) -> np.ndarray:
+def _hat3_any(w):
     """:func:`hat3` of any shape (..., 3) (jitable)."""
     w = np.asarray(w, dtype=np.float64)
     W = np.zeros(w.shape[:-1] + (3, 3))
@@ -161,22 +161,28 @@ def hat3(w: np.ndarray) -> np.ndarray:
     return _hat3_any(w)
 
 
+def _by_shape(arg, ndim: int, one, general):
+    """An overload's implementation: ``one`` (element loops) for an array argument of ``ndim``
+    dimensions, else ``general`` (the jitable any-shape version). numba takes either as the
+    implementation only with the overloaded function's argument names, unannotated."""
+    return one if isinstance(arg, types.Array) and arg.ndim == ndim else general
+
+
+def _hat3_one(w):
+    """:func:`hat3` of one 3-vector by element assignments (compiled code's)."""
+    W = np.zeros((3, 3))
+    W[0, 1] = -w[2]
+    W[0, 2] = w[1]
+    W[1, 0] = w[2]
+    W[1, 2] = -w[0]
+    W[2, 0] = -w[1]
+    W[2, 1] = w[0]
+    return W
+
+
 @overload(hat3)
 def _hat3_compiled(w):
-    if isinstance(w, types.Array) and w.ndim == 1:
-        def hat(w):
-            W = np.zeros((3, 3))
-            W[0, 1] = -w[2]
-            W[0, 2] = w[1]
-            W[1, 0] = w[2]
-            W[1, 2] = -w[0]
-            W[2, 0] = -w[1]
-            W[2, 1] = w[0]
-            return W
-    else:
-        def hat(w):
-            return _hat3_any(w)
-    return hat
+    return _by_shape(w, 1, _hat3_one, _hat3_any)
 
 
 def vee3(W: np.ndarray) -> np.ndarray:
@@ -261,7 +267,7 @@ def _exp_so3_and_left_jacobian_compiled(w):
 def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(exp(xi^), J_l(theta)): exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39)
     and the SO(3) left Jacobian it was built with; xi (6,) -> ((4,4), (3,3)). Compiled code gets
-    :func:`_exp_se3_scalar`."""
+    :func:`_exp_se3_fill`."""
     xi = np.asarray(xi, dtype=np.float64)
     R, J = exp_so3_and_left_jacobian(xi[3:])
     T = np.eye(4)
@@ -273,7 +279,7 @@ def exp_se3_and_left_jacobian(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def exp_se3(xi: np.ndarray) -> np.ndarray:
     """exp(xi^) = [[exp(theta^), J_l(theta) rho], [0, 1]] (Barfoot eq. 7.39); xi (6,) -> (4,4).
-    Compiled code gets :func:`_exp_se3_scalar`."""
+    Compiled code gets :func:`_exp_se3_fill`."""
     return exp_se3_and_left_jacobian(xi)[0]
 
 
@@ -421,7 +427,7 @@ def _q_matrix(xi: np.ndarray) -> np.ndarray:
 
 def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
     """J_l(xi) = [[J_l(theta), Q], [0, J_l(theta)]] (Barfoot eq. 7.85); (6,) -> (6,6). Compiled code
-    gets :func:`_left_jacobian_se3_scalar`."""
+    gets :func:`_left_jacobian_se3_into`."""
     xi = np.asarray(xi, dtype=np.float64)
     J = np.zeros((6, 6))
     Jl = left_jacobian_so3(xi[3:])
@@ -433,7 +439,7 @@ def left_jacobian_se3(xi: np.ndarray) -> np.ndarray:
 
 def right_jacobian_se3(xi: np.ndarray) -> np.ndarray:
     """J_r(xi) = J_l(-xi), so exp((xi + d)^) ~ exp(xi^) exp((J_r(xi) d)^) (Barfoot eq. 7.87);
-    (6,) -> (6,6). Compiled code gets :func:`_left_jacobian_se3_scalar` of -xi."""
+    (6,) -> (6,6). Compiled code gets :func:`_left_jacobian_se3_into` of -xi."""
     return left_jacobian_se3(-np.asarray(xi, dtype=np.float64))
 
 
@@ -497,7 +503,7 @@ def _right_jacobian_se3_compiled(xi):
 
 
 @register_jitable
-def _inverse_any(T: np.ndarray) -> np.ndarray:
+def _inverse_any(T):
     """:func:`inverse` of any shape (..., 4, 4) (jitable)."""
     T = np.asarray(T, dtype=np.float64)
     out = np.zeros(T.shape)
@@ -515,21 +521,20 @@ def inverse(T: np.ndarray) -> np.ndarray:
     return _inverse_any(T)
 
 
+def _inverse_one(T):
+    """:func:`inverse` of one (4,4) pose by element assignments (compiled code's)."""
+    out = np.zeros((4, 4))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = T[j, i]
+        out[i, 3] = -(T[0, i] * T[0, 3] + T[1, i] * T[1, 3] + T[2, i] * T[2, 3])
+    out[3, 3] = 1.0
+    return out
+
+
 @overload(inverse)
 def _inverse_compiled(T):
-    if isinstance(T, types.Array) and T.ndim == 2:
-        def inv(T):
-            out = np.zeros((4, 4))
-            for i in range(3):
-                for j in range(3):
-                    out[i, j] = T[j, i]
-                out[i, 3] = -(T[0, i] * T[0, 3] + T[1, i] * T[1, 3] + T[2, i] * T[2, 3])
-            out[3, 3] = 1.0
-            return out
-    else:
-        def inv(T):
-            return _inverse_any(T)
-    return inv
+    return _by_shape(T, 2, _inverse_one, _inverse_any)
 
 
 def odot(s: np.ndarray) -> np.ndarray:
