@@ -105,6 +105,8 @@ class EstimatorOptions(OptionTable):
     error_model: ErrorModel = ErrorModel.INVARIANT
     full_state: bool = False  # keep every landmark in the state (course formulation) instead of marginalizing ended tracks
     max_state_mib: float = 256.0  # refuse full_state when the dense covariance would exceed this (~1900 landmarks)
+    estimate_stereo_offset: bool = False  # the residual disparity offset (noise.stereo_offset_sigma) estimated
+    # (O1-O3); false: a consider state, its uncertainty carried into the poses and landmarks, its mean held (O4)
     estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk) ...
     gyro_bias_min_observations: float = 10.0  # ... only with at least this many stereo observations per step on average
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
@@ -128,12 +130,15 @@ class NoiseOptions(OptionTable):
     gyro_bias_sigma0: float = 0.005  # rad/s: prior standard deviation of the gyro bias
     gyro_bias_random_walk: float = 2e-4  # rad/s/sqrt(s)
     initial_pose_sigma: float = 1e-6  # the world frame is the first pose
+    stereo_offset_sigma: Optional[float] = None  # px: prior sigma of the residual disparity offset the filter
+    # estimates (O1 of backend.estimator.offset); unset: from the stereo offset's decision; 0: not estimated
 
     def check(self) -> None:
         self.require_positive("gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
         self.require_positive("pixel_sigma", "linear_velocity_sigma", "angular_velocity_sigma", optional=True)
-        if self.pixel_variance_per_disparity is not None:
-            self.require_at_least(0.0, "pixel_variance_per_disparity")
+        for key in ("pixel_variance_per_disparity", "stereo_offset_sigma"):
+            if getattr(self, key) is not None:
+                self.require_at_least(0.0, key)
 
 
 @dataclass

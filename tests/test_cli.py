@@ -94,7 +94,8 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
         "noise.pixel_variance_per_disparity": decided["pixel_noise"]["variance_per_disparity_px2_per_px"],
         "drift.pixel_walk": decided["track_drift"]["pixel_walk_px2_per_step"],
         "drift.pixel_walk_per_disparity": decided["track_drift"]["pixel_walk_px2_per_step_per_px"],
-        "estimator.estimate_gyro_bias": decided["gyro_bias"]["estimated"]}).as_dict()
+        "estimator.estimate_gyro_bias": decided["gyro_bias"]["estimated"],
+        "noise.stereo_offset_sigma": decided["stereo_offset"]["state_prior_sigma_px"]}).as_dict()
     assert summary["config"]["estimator"]["mode"] == "slam"
     # the config written is loadable and reproduces the run's settings
     assert Config.load(out / "config.toml").as_dict() == summary["config"]

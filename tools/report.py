@@ -74,6 +74,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
         "mean_nis_per_observation": stats.mean_nis,
         "expected_nis_per_observation": stats.nis_expected,
         "gyro_bias_final": result.gyro_bias,
+        "disparity_offset_final": None if result.disparity_offset is None else result.disparity_offset.as_dict(),
         **({"accel_bias_final": result.accel_biases[-1], "velocity_final": result.velocity[-1]} if result.inertial else {}),
         "timing": {
             "run_seconds": stats.total_seconds,

@@ -35,7 +35,7 @@ import numpy as np
 from ..geometry import se3
 from ..geometry.camera import dpi_dq, pi
 from . import landmarks
-from .layout import BIAS, CORE, POSE, SQRT_HALF, landmark_rows
+from .layout import BIAS, POSE, SQRT_HALF, landmark_rows
 from .model import ErrorModel
 from .state import FilterState
 from .state_helper import CoreTransition, NewLandmarks
@@ -58,9 +58,9 @@ class BodyModel(ErrorModel):
         self.predict_mean_only(state, step)
         if not self.estimate_pose:
             return None
-        Phi = np.eye(CORE)
+        Phi = np.eye(state.core)  # the disparity offset's row, where estimated, is constant
         Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
-        q_var = np.zeros(CORE)
+        q_var = np.zeros(state.core)
         q_var[POSE] = q * q
         if self.estimate_bias:
             Phi[POSE, BIAS] = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
@@ -122,7 +122,7 @@ class BodyModel(ErrorModel):
         if self.estimate_pose:
             state.mu = state.mu @ se3.exp_se3(dx[POSE])
             state.gyro_bias = state.gyro_bias + dx[BIAS]
-        state.theta += dx[CORE:].reshape(-1, 3)
+        state.theta += dx[state.core:].reshape(-1, 3)
 
     def world_landmarks(self, state, slots):
         idx = landmark_rows(state.core, slots)

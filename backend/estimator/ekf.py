@@ -40,8 +40,9 @@ from ..data.inertial import ImuSamples
 from .health import HealthMonitor
 from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
-from .layout import BIAS, CORE, POSE, state_dimension
+from .layout import BIAS, CORE, OFFSET, POSE, state_dimension
 from .model import ErrorModel
+from .offset import OffsetEstimate, corrected_pixels, offset_innovation
 from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
@@ -205,16 +206,22 @@ class VisualInertialEKF:
             StateHelper.set_prior(self.state, inertial.covariance)
         else:
             self.model = make_error_model(config, camera, imu_T_cam)
+            offset_sigma = noise.stereo_offset_sigma if self.use_vision and not window else None
+            core = CORE + 1 if offset_sigma else CORE
             self.state = FilterState(
                 mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
                 theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
                 anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
+                core=core, offset_row=OFFSET if offset_sigma else None,
+                offset_considered=bool(offset_sigma) and not est.estimate_stereo_offset,
             )
-            prior = np.zeros((CORE, CORE))
+            prior = np.zeros((core, core))
             if self.estimate_pose:
                 prior[POSE, POSE] = np.eye(6) * noise.initial_pose_sigma**2
                 if est.estimate_gyro_bias:
                     prior[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
+            if offset_sigma:  # (O1) the residual disparity offset
+                prior[OFFSET, OFFSET] = offset_sigma**2
             StateHelper.set_prior(self.state, prior)
         if noise.pixel_sigma is None:
             raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
@@ -265,6 +272,15 @@ class VisualInertialEKF:
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of the right perturbation world_T_imu = mu exp(xi^), whatever the error model."""
         return self.model.pose_covariance(self.state)
+
+    @property
+    def disparity_offset(self) -> OffsetEstimate | None:
+        """The residual disparity offset in the state (O1, O4), or None where it is not."""
+        st = self.state
+        if st.offset_row is None:
+            return None
+        return OffsetEstimate(st.offset, float(np.sqrt(max(st.P[st.offset_row, st.offset_row], 0.0))),
+                              float(self.config.noise.stereo_offset_sigma), not st.offset_considered)
 
     @property
     def num_active(self) -> int:
@@ -395,6 +411,8 @@ class VisualInertialEKF:
         and the landmarks, a window's clones by theirs (W6)."""
         if self.window is None:
             self.model.correct(state, dx)
+            if state.offset_row is not None:
+                state.offset += float(dx[state.offset_row])
             return
         c = state.core
         self.model.correct(state, dx[:c])
@@ -416,12 +434,17 @@ class VisualInertialEKF:
         error model's correction; landmarks gated too often in a row are dropped."""
         st = self.state
         pixel_var = self._pixel_var
+        if st.offset_row is not None:  # (O1) the right column corrected by the offset's mean
+            pixels = corrected_pixels(pixels, st.offset)
+        obs_var = None
         if self._var_per_disparity:  # (N5) each observation's variance, by whitening (U6)
             obs_var = self._observation_variance(pixels)
             pixel_var = float(np.median(obs_var))
-            inn = whiten(self.model.innovation(st, slots, pixels, pixel_var), obs_var, pixel_var)
-        else:
-            inn = self.model.innovation(st, slots, pixels, pixel_var)
+        inn = self.model.innovation(st, slots, pixels, pixel_var)
+        if st.offset_row is not None:  # (O2)
+            inn = offset_innovation(inn, st.P, st.offset_row, pixel_var)
+        if obs_var is not None:
+            inn = whiten(inn, obs_var, pixel_var)
         upd = self.config.update
         result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, pixel_var,
                                     upd.persistent_outlier_steps)
@@ -430,7 +453,7 @@ class VisualInertialEKF:
             self.health.report(f"step {self.step_index}: update skipped (innovation covariance not positive "
                                f"definite, potrf info {result.status})")
         elif use.any():
-            self.model.correct(st, result.dx)
+            self._correct(st, result.dx)
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
         stats.nis_sum = float(inn.nis[use].sum())
@@ -479,6 +502,8 @@ class VisualInertialEKF:
         """Start landmarks from the stereo pixels of new tracks (A1 with I4 or B4) where disparity and
         depth allow; ``restart`` (n,) marks observations of re-anchored tracks (None: none)."""
         lm, cam = self.config.landmarks, self.camera
+        if self.state.offset_row is not None:  # (O1) triangulated from the corrected right column
+            pixels = corrected_pixels(pixels, self.state.offset)
         ok, counts, limits = admit_landmarks(
             ids, pixels, np.zeros(ids.size, dtype=bool) if restart is None else restart, lm.min_disparity,
             np.inf if lm.max_depth is None else lm.max_depth, cam.fx * cam.baseline, self._reanchor,
@@ -490,6 +515,8 @@ class VisualInertialEKF:
             ids, pixels = ids[ok], pixels[ok]
         sigma = self.config.noise.pixel_sigma if lm.unbiased_triangulation else 0.0
         new = self.model.initialize(self.state, pixels, sigma)
+        if self.state.offset_row is not None:  # (O3) d theta / d offset: the uR column of J_z
+            new = dataclasses.replace(new, J_offset=np.ascontiguousarray(new.J_z[:, :, 2]).reshape(-1))
         if self._var_per_disparity:  # (N5) each landmark from its own pixels' variance: J_z scaled to the reference
             scale = np.sqrt(self._observation_variance(pixels) / self._pixel_var)
             new = dataclasses.replace(new, J_z=np.ascontiguousarray(new.J_z * scale[:, None, None]))

@@ -79,6 +79,7 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
     """
     D = P.shape[0]
     K = points.shape[0]
+    core = D - 3 * K  # CORE, or CORE + 1 with the disparity offset (O1 of backend.estimator.offset)
     w = 12 if bias else 6
     X = np.zeros((D, w))
     Z = np.zeros((D, w))
@@ -86,7 +87,7 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
     se3.put_block(G, 0, 0, G_pose)
     for i in range(K):
         W = se3.hat3(points[i])
-        r = landmark_row(CORE, i)
+        r = landmark_row(core, i)
         for a in range(3):  # rows of m_i^ R_phi
             for c in range(6):
                 G[r + a, c] = W[a, 0] * R_phi[0, c] + W[a, 1] * R_phi[1, c] + W[a, 2] * R_phi[2, c]
@@ -158,7 +159,8 @@ class InvariantTransition:
 class FrozenTransition:
     """(I8) for one frozen step: P <- F P F^T + N N^T with F the row map of (I8) (``dR``, the bias
     columns ``g`` (6,3) of the pose rows) and N the noise map (``G`` (6,6) scaled by ``q`` on the
-    pose and on every landmark's translation rows), and the bias walk."""
+    pose and on every landmark's translation rows), and the bias walk; the landmark rows start at
+    ``core``."""
 
     dR: np.ndarray
     g: np.ndarray
@@ -166,10 +168,12 @@ class FrozenTransition:
     q: np.ndarray
     bias: bool
     bias_walk_var: float
+    core: int = CORE
 
     def apply(self, P: np.ndarray) -> np.ndarray:
         D = P.shape[0]
-        K = (D - CORE) // 3
+        core = self.core
+        K = (D - core) // 3
         dR, g = self.dR, self.g
         I_dR = np.eye(3) - dR
 
@@ -178,8 +182,8 @@ class FrozenTransition:
             out = M.copy()
             out[POSE] += g @ M[6:9]
             if K:
-                lm = M[CORE:].reshape(K, 3, -1)
-                out[CORE:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
+                lm = M[core:].reshape(K, 3, -1)
+                out[core:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
             return out
 
         FP = rows(P)
@@ -187,7 +191,7 @@ class FrozenTransition:
         N = np.zeros((D, 6))
         N[POSE] = self.G * self.q[None, :]
         if K:
-            N[CORE:] = np.tile(self.G[0:3] * self.q[None, :], (K, 1))
+            N[core:] = np.tile(self.G[0:3] * self.q[None, :], (K, 1))
         new += N @ N.T
         if self.bias:
             new[np.arange(6, 9), np.arange(6, 9)] += self.bias_walk_var
@@ -196,7 +200,7 @@ class FrozenTransition:
 
 
 def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray, dt: float,
-                   bias: bool, bias_walk_var: float, bias_weight: np.ndarray | None = None):
+                   bias: bool, bias_walk_var: float, bias_weight: np.ndarray | None = None, core: int = CORE):
     """(I8) one frozen step: returns (mu_next = mu exp(twist^), P's :class:`FrozenTransition`); the
     world ``points`` (K,3) move in place with the body. ``q`` (6,): the twist's noise sigmas;
     ``bias_weight`` (3,): the share of the rotation that came from the gyro (1: all; less when the
@@ -208,7 +212,7 @@ def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarra
     if points.shape[0]:
         step = mu @ se3.inverse(world_T_imu)
         points[...] = points @ step[:3, :3].T + step[:3, 3]
-    return mu, FrozenTransition(dR, g, G, np.asarray(q, dtype=float), bias, bias_walk_var)
+    return mu, FrozenTransition(dR, g, G, np.asarray(q, dtype=float), bias, bias_walk_var, core)
 
 
 # ---------------------------------------------------------------- observation (I3, U1)
@@ -381,7 +385,8 @@ class InvariantModel(ErrorModel):
         if not self.estimate_pose:  # mapping: the poses are held, the landmarks move with them
             q = np.zeros(6)
         state.mu, transition = predict_frozen(state.mu, state.theta, twist, q, dt,
-                                              self.estimate_bias and self.estimate_pose, bias_walk_var, bias_weight)
+                                              self.estimate_bias and self.estimate_pose, bias_walk_var, bias_weight,
+                                              state.core)
         return transition
 
     def predict(self, state, twist, q, dt, bias_walk_var) -> InvariantTransition | None:
@@ -405,7 +410,7 @@ class InvariantModel(ErrorModel):
         return NewLandmarks(theta, None, J_xi, J_z)
 
     def correct(self, state, dx) -> None:
-        state.mu = retract_inplace(state.mu, state.theta, dx)
+        state.mu = retract_inplace(state.mu, state.theta, dx, state.core)
         state.gyro_bias = state.gyro_bias + dx[6:9]
 
     def world_landmarks(self, state, slots):
@@ -426,7 +431,7 @@ def _warm_up() -> None:
     twist = np.full(6, 0.01)
     predict_covariance_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)
     pose, _ = predict_step(np.eye(4), twist)
-    retract_inplace(pose, points.copy(), np.full(D, 1e-3))
+    retract_inplace(pose, points.copy(), np.full(D, 1e-3), CORE)
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)
     # the arguments as the model passes them (core given: an omitted default would be another signature)
     innovation(P, points + 5.0, slots, np.eye(4), np.eye(4), 700.0, 700.0, 600.0, 180.0, 0.5, pixels, 1.0, True, CORE)

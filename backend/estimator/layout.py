@@ -2,7 +2,9 @@
 
 The error state is ``[xi (6), b_g (3), theta_1 (3), ..., theta_n (3)]``: the pose (6: translation
 then rotation, Barfoot's ``[rho, theta]``), the gyro bias, and 3 parameters per landmark in the
-state, in slot order; ``P`` is one dense covariance over it. The inertial state puts velocity and
+state, in slot order; ``P`` is one dense covariance over it. Where the filter estimates the stereo
+pair's residual disparity offset (O1 of ``backend.estimator.offset``), its row :data:`OFFSET` follows
+the bias and the core has ``CORE + 1`` rows. The inertial state puts velocity and
 accelerometer bias before the landmarks (``backend.estimator.inertial.CORE_INERTIAL`` = 15 rows):
 the number of rows before the first landmark is the state's ``core``, and landmark slot ``s``
 owns rows :func:`landmark_row` (core, s) .. + 2 in every module. Each stereo observation enters
@@ -16,6 +18,7 @@ from ..compiled import jit
 POSE = slice(0, 6)  # pose error
 BIAS = slice(6, 9)  # gyro bias
 CORE = 9  # pose + gyro bias: the landmark slots start here, 3 rows each
+OFFSET = 9  # the residual disparity offset (px), where estimated (the core is then CORE + 1 rows)
 ROWS = 3  # rows per observation in the update (U1)
 SQRT_HALF = float(np.sqrt(0.5))
 

@@ -1,8 +1,9 @@
 """The filter's state: its mean, its covariance, and the bookkeeping of the landmarks in it.
 
 The mean is the pose ``mu`` = world_T_imu (4,4), the gyro bias (3,) and the parameters ``theta``
-(n,3) of the n landmarks in the state, in slot order; ``P`` (D,D), D = 9 + 3n, is the covariance
-of the error state (``backend.estimator.layout``; its meaning is the error model's). Per landmark
+(n,3) of the n landmarks in the state, in slot order; ``P`` (D,D), D = core + 3n (core 9, or 10
+with the disparity offset), is the covariance of the error state (``backend.estimator.layout``;
+its meaning is the error model's). Per landmark
 the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, the steps in a row
 it was not used, the observations since it was anchored and how many it may have (R1 of
 ``backend.estimator.tracks``), and the steps in a row the RANSAC rejected its track; and, where
@@ -46,6 +47,11 @@ class FilterState:
     #: (w,4,4) world_T_imu of the pose clones of a sliding window (``backend.estimator.window``), oldest
     #: first, P's rows core + 6 j .. + 5 for clone j (such a state holds no landmark); None: no window
     clones: np.ndarray | None = None
+    #: P's row of the residual disparity offset (``layout.OFFSET``, O1 of ``backend.estimator.offset``);
+    #: None: not estimated
+    offset_row: int | None = None
+    offset: float = 0.0  # px: its mean, added to every right-image column before use (O1)
+    offset_considered: bool = False  # the offset is a consider state: never updated, its variance kept (O4)
 
     def __post_init__(self) -> None:
         if self.P.shape[0] < self.core:

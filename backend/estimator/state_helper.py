@@ -7,7 +7,7 @@ Every change of ``FilterState.P`` is one of these operations, each one function 
 - ``propagate``: P <- F P F^T + G Q G^T by the error model's :class:`Transition` (I2, I8, B1, J6, W2),
   then the landmarks' random walk (P_mm += q I).
 - ``update``: the joint update with the gate, RANSAC and rescue (U2-U5).
-- ``augment``: new landmarks from their stereo pixels (A1).
+- ``augment``: new landmarks from their stereo pixels (A1), with the disparity offset's columns (O3).
 - ``marginalize``: landmarks leave the state (A2).
 - ``repair``: eigenvalues clipped when P lost positive definiteness (H2).
 - ``clone``, ``update_window``, ``drop_oldest_clone``: a sliding window's pose clones join (W1),
@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import FilterError
 from .covariance import augment, gather_landmarks, gather_symmetric, repair_if_indefinite
 from .layout import POSE
+from .offset import offset_columns_of_new_landmarks
 from .state import FilterState
 from .tracks import plan_removal
 from .update import Innovation, select_and_update_inplace
@@ -80,6 +81,7 @@ class NewLandmarks:
     anchors: np.ndarray | None
     J_xi: np.ndarray
     J_z: np.ndarray
+    J_offset: np.ndarray | None = None  # (3n,) on the disparity offset (O3), where the state holds it
 
 
 @dataclass
@@ -125,18 +127,29 @@ class StateHelper:
         """The gate (U4), 1-point RANSAC (U5), the rescue (U3) and the joint update (U2) of P in one
         compiled call, with the prior innovation ``inn`` of landmarks ``slots``; the landmarks'
         RANSAC and gating runs are counted in the state's track rows. The mean is the caller's to
-        correct by ``dx`` (the error model's retraction)."""
+        correct by ``dx`` (the error model's retraction). A considered disparity offset (O4) keeps
+        its variance and mean."""
+        row = state.offset_row if state.offset_considered else None
+        if row is not None:
+            prior = state.P[row, row]
         status, dx, used = select_and_update_inplace(
             state.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, gate,
             ransac_threshold_px, pixel_var, state.outlier_run, persistent_outlier_steps, state.gated_run)
+        if row is not None:
+            state.P[row, row] = prior
+            dx[row] = 0.0
         return UpdateResult(int(status), dx, used)
 
     @staticmethod
     def augment(state: FilterState, ids: np.ndarray, new: NewLandmarks, pixel_var: float, counts: np.ndarray,
                 limits: np.ndarray) -> None:
         """(A1) landmarks ``ids`` (n,) enter the state after the last slot, with the Jacobians of
-        ``new`` and white pixel noise ``pixel_var``; their observation counts and limits (R1, R2)."""
+        ``new`` and white pixel noise ``pixel_var``; their observation counts and limits (R1, R2);
+        with the disparity offset in the state, its columns (O3)."""
+        old = state.P.shape[0]
         state.P = augment(state.P, np.ascontiguousarray(new.J_xi), np.ascontiguousarray(new.J_z), pixel_var)
+        if state.offset_row is not None:
+            offset_columns_of_new_landmarks(state.P, old, new.J_offset, state.offset_row)
         state.append_landmarks(ids, new.theta, counts, limits, new.anchors)
 
     @staticmethod

@@ -20,6 +20,7 @@ from ..config import Config, Mode, RepeatedFrames
 from ..errors import InputError
 from ..estimator.ekf import ImuNoise, StepStats, VisualInertialEKF
 from ..estimator.health import vision_check
+from ..estimator.offset import OffsetEstimate
 from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
 from ..geometry.camera import StereoCamera
@@ -170,6 +171,7 @@ class RunResult:
     velocity: np.ndarray | None = None  # (N,3) m/s in the world frame: an inertial run's (``backend.run.inertial``)
     gyro_biases: np.ndarray | None = None  # (N,3) rad/s at every step: an inertial run's
     accel_biases: np.ndarray | None = None  # (N,3) m/s^2 at every step: an inertial run's
+    disparity_offset: OffsetEstimate | None = None  # the residual disparity offset in the filter at the end (O1)
 
     @property
     def inertial(self) -> bool:
@@ -297,6 +299,7 @@ class OnlineRun:
             map_positions=map_pos,
             map_covariances=map_cov,
             gyro_bias=self.ekf.gyro_bias.copy(),
+            disparity_offset=self.ekf.disparity_offset,
             stats=self.stats,
             step_seconds=step_seconds,
             decisions=self.decisions,

@@ -90,6 +90,16 @@ class StereoOffset:
     def active(self) -> bool:
         return self.beta0_px != 0.0 or self.kappa_px_s != 0.0
 
+    @property
+    def residual_sigma(self) -> float:
+        """px: the standard error of the applied offset, what it may leave (O1 of
+        ``backend.estimator.offset``); 0 where none is applied."""
+        e = self.estimate
+        if not self.active or "beta_mean_px" not in e:
+            return 0.0
+        se = e["beta0_se"] if self.kappa_px_s != 0.0 else e["beta_mean_se"]
+        return float(se) if np.isfinite(se) else 0.0
+
     def offsets(self, omega_y: np.ndarray | float) -> np.ndarray | float:
         """beta_k (px) for camera-y angular rates ``omega_y`` (rad/s)  (D1)."""
         return self.beta0_px + self.kappa_px_s * omega_y
