@@ -18,7 +18,7 @@ warmed up only for such a run: a velocity run does not compile them.
 
 When nothing is cached yet (the first run after an install or a change), a helper process
 compiles modules beside this one, both going down one list of the modules by source size, the
-helper from the largest (the two-view fits, ~10 s alone) and this process from the second (the
+helper from the largest (the two-view fits, ~8 s alone) and this process from the second (the
 invariant model, then the update: the invariant model's kernels call the update's and the SE(3)
 functions, so those are compiled in one process, not in both), each then claiming the next module
 not yet claimed (a file created exclusively; no lock to leak); the caches the helper writes are

@@ -22,6 +22,7 @@ and the IMU's error against vision (``noise``: the fitted motion as an IMU-frame
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -239,7 +240,7 @@ def _point_jacobians(T, beta, p0, p1, p2, fx, fy, cx, cy, fb, pred, A, G):
 def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, huber):
     """The Huber-weighted Gauss-Newton of (D2) with the points eliminated (Schur complement), in one
     compiled call: (ok, T, beta, S (g,g) of the last iteration, residuals (n,8) at the end); ok
-    False when a residual is not finite or a normal matrix is singular.
+    False when a residual is not finite or a normal matrix is singular (the residuals then unset).
 
     Per point i, with J_p (8,3), J_g (8,g) its Jacobians (:func:`_point_jacobians`), W the Huber
     weights and r its residuals:
@@ -256,11 +257,12 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
     T = T0.copy()
     beta = 0.0
     p = np.empty((n, 3))
+    z = np.empty((n, 8))
     for i in range(n):
         p[i, 0], p[i, 1], p[i, 2] = za[i, 0], za[i, 1], za[i, 0] - za[i, 2]
-    z = np.empty((n, 8))
-    se3.put_block(z, 0, 0, za)
-    se3.put_block(z, 0, 4, zb)
+        for j in range(4):
+            z[i, j], z[i, 4 + j] = za[i, j], zb[i, j]
+    res = np.empty((n, 8))
     S = np.zeros((g, g))
     pred = np.empty(8)
     A = np.empty((4, 3))  # J_p rows 4-7
@@ -280,8 +282,8 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
             _point_jacobians(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred, A, G)
             for j in range(8):
                 r[j] = pred[j] - z[i, j]
-                if not np.isfinite(r[j]):
-                    return False, T, beta, S, np.zeros((n, 8))
+                if not math.isfinite(r[j]):
+                    return False, T, beta, S, res
                 a = abs(r[j])
                 w[j] = 1.0 if a <= huber else huber / max(a, 1e-12)
             w0, w1, w2, w3, w6 = w[0], w[1], w[2], w[3], w[6]
@@ -331,7 +333,7 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                 S[6, 6] += w2 + w6
                 rhs[6] += -1.0 * w2 * r[2] + -1.0 * w6 * r[6]
             if not inverse3(Hpp, Hinv[i]):
-                return False, T, beta, S, np.zeros((n, 8))
+                return False, T, beta, S, res
             # S -= Hgp Hpp^-1 Hpg, rhs -= Hgp Hpp^-1 bp
             for a in range(g):
                 t0 = Hpg[i, 0, a] * Hinv[i, 0, 0] + Hpg[i, 1, a] * Hinv[i, 1, 0] + Hpg[i, 2, a] * Hinv[i, 2, 0]
@@ -345,7 +347,7 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
             M[a, a] += 1e-9
         dg, ok = solve_small(M, rhs)
         if not ok:
-            return False, T, beta, S, np.zeros((n, 8))
+            return False, T, beta, S, res
         for a in range(g):
             dg[a] = -dg[a]
         for i in range(n):
@@ -367,7 +369,6 @@ def _gauss_newton(za, zb, fx, fy, cx, cy, baseline, offset, iterations, T0, hube
                 small = False
         if (not offset or abs(dg[6]) < 1e-4) and small:
             break
-    res = np.empty((n, 8))
     for i in range(n):
         _predict_point(T, beta, p[i, 0], p[i, 1], p[i, 2], fx, fy, cx, cy, fb, pred)
         for j in range(8):
@@ -406,8 +407,8 @@ def _block_sum(x, lo, n):
 
 
 @jit
-def _pairwise_sum(x, lo, n):
-    """x[lo:lo+n].sum() in numpy's order (its pairwise summation of a contiguous float64 array): a
+def _pairwise_sum(x):
+    """x.sum() in numpy's order (its pairwise summation of a contiguous float64 array): a
     block of up to 128 by :func:`_block_sum`, a longer range as the sum of its halves (the first
     half's length a multiple of 8), so a compiled sum is numpy's to the bit. The halving runs on an
     explicit stack: numba's cache does not load a recursive kernel safely."""
@@ -415,7 +416,7 @@ def _pairwise_sum(x, lo, n):
     ns = np.empty(64, dtype=np.int64)
     stage = np.zeros(64, dtype=np.int64)  # 0: to split, 1: first half summed, 2: both
     left = np.empty(64)
-    los[0], ns[0] = lo, n
+    los[0], ns[0] = 0, x.size
     top = 0
     ret = 0.0  # the sum of the range last finished
     while top >= 0:
@@ -453,7 +454,7 @@ def _noise_of(r, g, squares):
     for i in range(n):
         for j in range(8):
             x = r[i, j]
-            if not np.isfinite(x):
+            if not math.isfinite(x):
                 finite = False
             if abs(x) <= 3 * HUBER_PX:
                 squares[m] = x * x
@@ -461,7 +462,7 @@ def _noise_of(r, g, squares):
     dof = m - 3 * n - g
     if dof < 20 or not finite:
         return False, 0.0
-    return True, _pairwise_sum(squares, 0, m) / dof
+    return True, _pairwise_sum(squares[:m]) / dof
 
 
 @jit
@@ -479,13 +480,15 @@ def _rows_within(r, limit):
 
 
 @jit
-def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, initial):
+def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, start,
+               with_initial):
     """The compiled part of :func:`fit_pair` for many step pairs in one call (the GIL released
     throughout): pair k's matched pixels are ``za[begin[k]:end[k]]``, ``zb[...]`` (n,4);
-    ``initial`` (4,4) the motion to start from, or (0,0) for none. Per pair: the rows that agree,
-    the first fit, the trimming, the second fit (or the first again), each fit's noise
-    (:func:`_noise_of`) and the final residuals' bound; what needs S^-1 is left to the caller
-    (numpy's inverse, to keep its numbers). Returns
+    ``start`` (4,4) the motion to start from: the identity, or with ``with_initial`` a given one (the
+    second fit then starts from the first's motion and is made even when no point was trimmed). Per
+    pair: the rows that agree, the first fit, the trimming, the second fit (or the first again), each
+    fit's noise (:func:`_noise_of`) and the final residuals' bound; what needs S^-1 is left to the
+    caller (numpy's inverse, to keep its numbers). Returns
 
     - status (m,): 0 no fit, 1 a fit (the second is the first), 2 a fit whose first must pass too;
     - T (m,4,4), beta (m,), S (m,g,g), sigma^2 (m,), dof (m,) of the final fit (dof: residuals
@@ -497,8 +500,6 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
     - the disparity uL - uR at k of each final residual row's point (total,)."""
     m = begin.size
     g = 7 if offset else 6
-    with_initial = initial.shape[0] == 4
-    start = initial if with_initial else np.eye(4)
     status = np.zeros(m, dtype=np.int64)
     Ts = np.zeros((m, 4, 4))
     betas = np.zeros(m)
@@ -534,22 +535,25 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
             for j in range(4):
                 A[i, j] = za[agree[i], j]
                 B[i, j] = zb[agree[i], j]
-        ok, T, beta, S, r = _gauss_newton(A, B, fx, fy, cx, cy, baseline, offset, iterations, start, huber)
-        if not ok:
-            continue
-        ok, sigma2 = _noise_of(r, g, squares)
-        if not ok:
-            continue
-        keep = _rows_within(r, TRIM_PX)
-        kept = 0
-        for i in range(n):
-            kept += keep[i]
-        if kept < max(min_points, 2 * n / 3):
-            continue
-        final = A  # the final fit's points at k
-        if kept == n and not with_initial:
-            status[k] = 1  # the same points from the same start: the same fit
-        else:
+        fit_start = start
+        for second in range(2):  # the first fit, then (unless it is the final one) the fit of the kept points
+            ok, T, beta, S, r = _gauss_newton(A, B, fx, fy, cx, cy, baseline, offset, iterations, fit_start, huber)
+            if ok:
+                ok, sigma2 = _noise_of(r, g, squares)
+            if not ok:
+                break
+            keep = _rows_within(r, TRIM_PX)
+            kept = 0
+            for i in range(r.shape[0]):
+                kept += keep[i]
+            if second:
+                ok = kept == r.shape[0]  # every residual of the final fit within TRIM_PX
+                break
+            if kept < max(min_points, 2 * n / 3):
+                ok = False
+                break
+            if kept == n and not with_initial:
+                break  # the same points from the same start: the same fit
             betas1[k], sigma2s1[k] = beta, sigma2
             for i in range(g):
                 for j in range(g):
@@ -563,22 +567,12 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
                         A2[j2, j] = A[i, j]
                         B2[j2, j] = B[i, j]
                     j2 += 1
-            ok, T, beta, S, r = _gauss_newton(A2, B2, fx, fy, cx, cy, baseline, offset, iterations,
-                                              T if with_initial else start, huber)
-            if not ok:
-                continue
-            ok, sigma2 = _noise_of(r, g, squares)
-            if not ok:
-                continue
-            within = True
-            for i in range(r.shape[0]):
-                for j in range(8):
-                    if abs(r[i, j]) > TRIM_PX:
-                        within = False
-            if not within:
-                continue
-            status[k] = 2
-            final = A2
+            A, B = A2, B2  # the final fit's points
+            if with_initial:
+                fit_start = T
+        if not ok:
+            continue
+        status[k] = 1 + second
         n2 = r.shape[0]
         for i in range(4):
             for j in range(4):
@@ -589,12 +583,12 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
                 Ss[k, i, j] = S[i, j]
         dofs[k] = r.size - 3 * n2 - g
         for i in range(n2):
-            disparities[rows[k] + i] = final[i, 0] - final[i, 2]
+            disparities[rows[k] + i] = A[i, 0] - A[i, 2]
             for j in range(8):
                 residuals[rows[k] + i, j] = r[i, j]
                 squares[8 * i + j] = r[i, j] * r[i, j]
         rows[k + 1] = rows[k] + n2
-        sums[k] = _pairwise_sum(squares, 0, 8 * n2)
+        sums[k] = _pairwise_sum(squares[:8 * n2])
         for i in range(n2):
             for j in range(8):
                 squares[8 * i + j] = abs(r[i, j])
@@ -640,7 +634,7 @@ def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndar
     fx, fy, cx, cy, baseline = map(float, cam)
     status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows, scales, sums, disparities = _fit_batch(
         za, zb, begin, end, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
-        np.zeros((0, 0)) if initial is None else np.ascontiguousarray(initial, dtype=float))
+        np.eye(4) if initial is None else np.ascontiguousarray(initial, dtype=float), initial is not None)
     good = status > 0
     S_inv, usable = _usable_inverses(S[good], beta[good], sigma2[good], offset)
     ok = np.zeros(status.size, dtype=bool)
