@@ -364,7 +364,7 @@ def test_rescue_test_is_the_gate_after_the_inlier_update():
     w = np.linalg.solve(L, residual[inlier].ravel())
     X = np.linalg.solve(L, S[np.ix_(rr, ri)].T)
     gate = 9.0
-    ok = update._rescue_test(X, w, S, np.flatnonzero(~inlier), residual, off_row, SIGMA2, gate)
+    ok = update._rescue_test(X, w, S, rr, residual, off_row, SIGMA2, gate)
 
     Hi = H[ri]
     K = P @ Hi.T @ np.linalg.inv(S[np.ix_(ri, ri)])
@@ -461,6 +461,19 @@ def test_joint_update_refuses_an_indefinite_innovation_covariance():
                                                    np.zeros(4, dtype=bool), SIGMA2, 9.0)
     assert status > 0 and not used.any() and not dx.any()
     assert np.array_equal(out, P)  # the prior is kept
+
+
+def test_block_rows_are_numpys_rows_of_the_masked_observations():
+    """``update._block_rows``: the rows 3 i .. 3 i + 2 of each observation i where the mask holds, as
+    numpy's flatnonzero gives them, for random masks (none, all, and in between)."""
+    rng = np.random.default_rng(11)
+    for k in [0, 1, 2, 5, 17, 64]:
+        for p in [0.0, 0.3, 0.7, 1.0]:
+            mask = rng.random(k) < p
+            expected = (3 * np.flatnonzero(mask)[:, None] + np.arange(3)).ravel()
+            rows = update._block_rows(mask)
+            assert rows.dtype == np.int64
+            np.testing.assert_array_equal(rows, expected)
 
 
 def test_mirror_lower_copies_the_lower_triangle():

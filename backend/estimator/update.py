@@ -188,24 +188,6 @@ def whiten(inn: Innovation, obs_var: np.ndarray, ref_var: float) -> Innovation:
 
 
 @jit
-def _solve3(S, r):
-    """S^-1 r for a 3x3 S by Cramer's rule (S is a gated, regular innovation block)."""
-    a, b, c = S[0, 0], S[0, 1], S[0, 2]
-    d, e, f = S[1, 0], S[1, 1], S[1, 2]
-    g, h, i = S[2, 0], S[2, 1], S[2, 2]
-    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
-    det = a * A + b * B + c * C
-    inv = np.empty((3, 3))
-    inv[0, 0], inv[1, 0], inv[2, 0] = A / det, B / det, C / det
-    inv[0, 1], inv[1, 1], inv[2, 1] = -(b * i - c * h) / det, (a * i - c * g) / det, -(a * h - b * g) / det
-    inv[0, 2], inv[1, 2], inv[2, 2] = (b * f - c * e) / det, -(a * f - c * d) / det, (a * e - b * d) / det
-    out = np.empty(3)
-    for t in range(3):
-        out[t] = inv[t, 0] * r[0] + inv[t, 1] * r[1] + inv[t, 2] * r[2]
-    return out
-
-
-@jit
 def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
     """1-point RANSAC for the EKF (Civera et al., J. Field Robotics 2010), every candidate a hypothesis.
 
@@ -218,26 +200,32 @@ def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
     other but not with the scene, loses.
     """
     k = candidates.size
-    idx = np.flatnonzero(candidates)
-    m = idx.size
-    a = np.empty((m, 3))
+    rows = _block_rows(candidates)
+    m = rows.size // 3
+    a = np.empty((m, 3))  # S_jj^-1 r_j by Cramer's rule (S_jj a gated, regular innovation block)
     for jj in range(m):
-        o = 3 * idx[jj]
-        x = _solve3(S[o:o + 3, o:o + 3], residual[idx[jj]])
-        for t in range(3):
-            a[jj, t] = x[t]
+        o = rows[3 * jj]
+        s00, s01, s02 = S[o, o], S[o, o + 1], S[o, o + 2]
+        s10, s11, s12 = S[o + 1, o], S[o + 1, o + 1], S[o + 1, o + 2]
+        s20, s21, s22 = S[o + 2, o], S[o + 2, o + 1], S[o + 2, o + 2]
+        c0, c1, c2 = s11 * s22 - s12 * s21, -(s10 * s22 - s12 * s20), s10 * s21 - s11 * s20
+        det = s00 * c0 + s01 * c1 + s02 * c2
+        r0, r1, r2 = residual[o // 3, 0], residual[o // 3, 1], residual[o // 3, 2]
+        a[jj, 0] = c0 / det * r0 + -(s01 * s22 - s02 * s21) / det * r1 + (s01 * s12 - s02 * s11) / det * r2
+        a[jj, 1] = c1 / det * r0 + (s00 * s22 - s02 * s20) / det * r1 + -(s00 * s12 - s02 * s10) / det * r2
+        a[jj, 2] = c2 / det * r0 + -(s00 * s21 - s01 * s20) / det * r1 + (s00 * s11 - s01 * s10) / det * r2
     err = np.empty((m, m))
     for ii in range(m):
-        oi = 3 * idx[ii]
-        off2 = off_row[idx[ii]] ** 2
+        oi = rows[3 * ii]
+        off2 = off_row[oi // 3] ** 2
         for jj in range(m):
-            oj = 3 * idx[jj]
+            oj = rows[3 * jj]
             s = off2
             for t in range(3):
                 ch = S[oi + t, oj] * a[jj, 0] + S[oi + t, oj + 1] * a[jj, 1] + S[oi + t, oj + 2] * a[jj, 2]
                 if ii == jj:
                     ch -= pixel_var * a[jj, t]
-                d = residual[idx[ii], t] - ch
+                d = residual[oi // 3, t] - ch
                 s += d * d
             err[ii, jj] = np.sqrt(s)
     best = 0
@@ -257,55 +245,51 @@ def one_point_ransac(S, residual, off_row, candidates, pixel_var, threshold):
     out = np.zeros(k, dtype=np.bool_)
     for ii in range(m):
         if err[ii, best] <= threshold:
-            out[idx[ii]] = True
+            out[rows[3 * ii] // 3] = True
     return out
 
 
 @jit
-def _rescue_test(X, w, S, rest_idx, residual, off_row, pixel_var, gate):
-    """(U3) the chi-square test of the ``rest_idx`` observations after the update with the inliers:
-    residual r_r - X^T w and covariance S_rr - X^T X (diagonal 3x3 blocks only), with X = L^-1 S_ir
-    (3 m_i, 3 m_r) and w = L^-1 r_i. Returns a mask over ``rest_idx``."""
-    mr = rest_idx.size
+def _rescue_test(X, w, S, rest_rows, residual, off_row, pixel_var, gate):
+    """(U3) the chi-square test of the rest's observations (rows ``rest_rows`` of their 3-row blocks,
+    :func:`_block_rows`) after the update with the inliers: residual r_r - X^T w and covariance
+    S_rr - X^T X (diagonal 3x3 blocks only), with X = L^-1 S_ir (3 m_i, 3 m_r) and w = L^-1 r_i.
+    Returns a mask over the rest's observations."""
+    mr = rest_rows.size // 3
     ok = np.zeros(mr, dtype=np.bool_)
     n = X.shape[0]
     Sb = np.empty((3, 3))
+    r = np.empty(3)
     for jj in range(mr):
-        o = 3 * rest_idx[jj]
         c = 3 * jj
-        r = np.empty(3)
+        o = rest_rows[c]
         for a in range(3):
             s = 0.0
             for t in range(n):
                 s += X[t, c + a] * w[t]
-            r[a] = residual[rest_idx[jj], a] - s
+            r[a] = residual[o // 3, a] - s
             for b in range(3):
                 s = 0.0
                 for t in range(n):
                     s += X[t, c + a] * X[t, c + b]
                 Sb[a, b] = S[o + a, o + b] - s
-        ok[jj] = _nis3(Sb, r[0], r[1], r[2]) + off_row[rest_idx[jj]] ** 2 / pixel_var <= gate
+        ok[jj] = _nis3(Sb, r[0], r[1], r[2]) + off_row[o // 3] ** 2 / pixel_var <= gate
     return ok
 
 
 @jit
-def _gather_rows(M, rows):
-    """M[rows] as a new C-ordered array."""
-    out = np.empty((rows.size, M.shape[1]))
-    for a in range(rows.size):
-        row = M[rows[a]]
-        for c in range(M.shape[1]):
-            out[a, c] = row[c]
-    return out
-
-
-@jit
-def _block_rows(obs):
-    """Rows of the 3-row blocks (U1) of observations ``obs``."""
-    rows = np.empty(3 * obs.size, dtype=np.int64)
-    for i in range(obs.size):
-        for a in range(3):
-            rows[3 * i + a] = 3 * obs[i] + a
+def _block_rows(mask):
+    """Rows of the 3-row blocks (U1) of the observations where ``mask``, in order."""
+    n = 0
+    for i in range(mask.size):
+        n += mask[i]
+    rows = np.empty(3 * n, dtype=np.int64)
+    n = 0
+    for i in range(mask.size):
+        if mask[i]:
+            for a in range(3):
+                rows[n + a] = 3 * i + a
+            n += 3
     return rows
 
 
@@ -328,8 +312,7 @@ def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, g
     D = P.shape[0]
     dx = np.zeros(D)
     used = np.zeros(k, dtype=np.bool_)
-    obs_i = np.flatnonzero(inlier)
-    rows_i = _block_rows(obs_i)
+    rows_i = _block_rows(inlier)
     mi = rows_i.size
     U = np.empty((mi, mi))  # upper triangle: L^T
     for a in range(mi):
@@ -338,70 +321,65 @@ def joint_update_inplace(P, HP, S, residual, off_row, inlier, rest, pixel_var, g
     info = cholesky_upper_inplace(U)
     if info != 0:
         return info, dx, used
-    w = np.empty((mi, 1))
+    rows_r = _block_rows(rest)
+    mr = rows_r.size
+    w = np.empty((mi + mr, 1))  # L^-1 r over [inliers; rescued]
     for a in range(mi):
         w[a, 0] = residual[rows_i[a] // 3, rows_i[a] % 3]
-    solve_lower_inplace(U, w)
-    obs_r = np.flatnonzero(rest)
-    obs_ok = obs_r[:0]
-    X = np.empty((mi, 0))
-    ok = np.zeros(0, dtype=np.bool_)
-    if obs_r.size:
-        rows_r = _block_rows(obs_r)
-        X = np.empty((mi, rows_r.size))
+    solve_lower_inplace(U, w[:mi])
+    cols = rows_r[:0]  # the rescued rows' positions in rows_r
+    if mr:
+        X = np.empty((mi, mr))
         for a in range(mi):
-            for b in range(rows_r.size):
+            for b in range(mr):
                 X[a, b] = S[rows_i[a], rows_r[b]]
         solve_lower_inplace(U, X)
-        ok = _rescue_test(X, w[:, 0], S, obs_r, residual, off_row, pixel_var, gate)
-        obs_ok = obs_r[ok]
-    if obs_ok.size:
-        rows_o = _block_rows(obs_ok)
-        cols = _block_rows(np.flatnonzero(ok))
-        mo = rows_o.size
-        m = mi + mo
-        J = np.zeros((m, m))  # upper triangle: [[L, 0], [X_ok^T, L_o]]^T
-        for a in range(mi):
-            for b in range(a, mi):
-                J[a, b] = U[a, b]
-            for b in range(mo):
-                J[a, mi + b] = X[a, cols[b]]
-        Uo = np.empty((mo, mo))
-        for a in range(mo):
-            for b in range(a, mo):
-                s = S[rows_o[a], rows_o[b]]
+        cols = _block_rows(_rescue_test(X, w[:mi, 0], S, rows_r, residual, off_row, pixel_var, gate))
+        mo = cols.size
+        if mo:
+            J = np.zeros((mi + mo, mi + mo))  # upper triangle: [[L, 0], [X_ok^T, L_o]]^T
+            for a in range(mi):
+                for b in range(a, mi):
+                    J[a, b] = U[a, b]
+                for b in range(mo):
+                    J[a, mi + b] = X[a, cols[b]]
+            Uo = np.empty((mo, mo))
+            for a in range(mo):
+                for b in range(a, mo):
+                    s = S[rows_r[cols[a]], rows_r[cols[b]]]
+                    for t in range(mi):
+                        s -= X[t, cols[a]] * X[t, cols[b]]
+                    Uo[a, b] = s
+            info = cholesky_upper_inplace(Uo)
+            if info != 0:
+                return info, dx, used
+            for a in range(mo):
+                row = rows_r[cols[a]]
+                s = residual[row // 3, row % 3]
                 for t in range(mi):
-                    s -= X[t, cols[a]] * X[t, cols[b]]
-                Uo[a, b] = s
-        info = cholesky_upper_inplace(Uo)
-        if info != 0:
-            return info, dx, used
-        wo = np.empty((mo, 1))
-        for a in range(mo):
-            s = residual[rows_o[a] // 3, rows_o[a] % 3]
-            for t in range(mi):
-                s -= X[t, cols[a]] * w[t, 0]
-            wo[a, 0] = s
-        solve_lower_inplace(Uo, wo)
-        for a in range(mo):
-            for b in range(a, mo):
-                J[mi + a, mi + b] = Uo[a, b]
-        rows = np.concatenate((rows_i, rows_o))
-        w = np.concatenate((w, wo))
-        U = J
-    else:
-        rows = rows_i
-    A = _gather_rows(HP, rows)
+                    s -= X[t, cols[a]] * w[t, 0]
+                w[mi + a, 0] = s
+            solve_lower_inplace(Uo, w[mi:mi + mo])
+            for a in range(mo):
+                for b in range(a, mo):
+                    J[mi + a, mi + b] = Uo[a, b]
+            U = J
+    m = mi + cols.size
+    A = np.empty((m, D))  # H P over [inliers; rescued]
+    for a in range(m):
+        row = HP[rows_i[a] if a < mi else rows_r[cols[a - mi]]]
+        for c in range(D):
+            A[a, c] = row[c]
     solve_lower_inplace(U, A)
     downdate_lower(P, A)
     mirror_lower_inplace(P)
-    for a in range(rows.size):
+    for a in range(m):
         wa = w[a, 0]
         row = A[a]
         for c in range(D):
             dx[c] += row[c] * wa
-    used[obs_i] = True
-    used[obs_ok] = True
+    for a in range(0, m, 3):
+        used[(rows_i[a] if a < mi else rows_r[cols[a - mi]]) // 3] = True
     return 0, dx, used
 
 
