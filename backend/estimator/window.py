@@ -67,6 +67,7 @@ G = (H_p^T H_p)^-1 H_p^T, G H_x = [.. (H_p^T H_p)^-1 N_i E ..]: its pixels' and 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,11 +133,11 @@ def _residual_inplace(z, cx, cy, pred, res):
 
 
 @jit
-def _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
-    """The 3-row residuals (U1) ``rs[k]`` and Jacobians on the world point ``Ms[k]`` of the first n
-    observations ``obs`` of a feature at the point p (clone ``slot[o]``'s cam_T_world = [Rcw tcw]);
-    False when p lies behind one of the cameras."""
-    for k in range(n):
+def _linearize_inplace(obs, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+    """The 3-row residuals (U1) ``rs[k]`` and Jacobians on the world point ``Ms[k]`` of the observations
+    ``obs`` of a feature at the point p (clone ``slot[o]``'s cam_T_world = [Rcw tcw]); False when p lies
+    behind one of the cameras."""
+    for k in range(obs.size):
         o = obs[k]
         s = slot[o]
         if _rows_inplace(Rcw[s], tcw[s], p, fx, fy, baseline, pred, Ms[k]) < MIN_DEPTH:
@@ -156,19 +157,19 @@ def _squared_error(R, t, p, z, fx, fy, cx, cy, baseline, pred, M, res):
 
 
 @jit
-def _expand_inplace(C, P, out, r0, c0, work):
-    """E^T C E with E = [-I, P], P = p^ (3,3), into ``out[r0:r0+6, c0:c0+6]``: [[C, -C P], [P C, -P C P]];
-    ``work`` (3,3,3) is work space."""
+def _expand_inplace(C, P, out, work):
+    """E^T C E with E = [-I, P], P = p^ (3,3), into ``out`` (6,6): [[C, -C P], [P C, -P C P]]; ``work``
+    (3,3,3) is work space."""
     CP, PC, PCP = work[0], work[1], work[2]
     se3.small_matmul_into(C, P, CP)
     se3.small_matmul_into(P, C, PC)
     se3.small_matmul_into(PC, P, PCP)
     for i in range(3):
         for j in range(3):
-            out[r0 + i, c0 + j] = C[i, j]
-            out[r0 + i, c0 + 3 + j] = -CP[i, j]
-            out[r0 + 3 + i, c0 + j] = PC[i, j]
-            out[r0 + 3 + i, c0 + 3 + j] = -PCP[i, j]
+            out[i, j] = C[i, j]
+            out[i, 3 + j] = -CP[i, j]
+            out[3 + i, j] = PC[i, j]
+            out[3 + i, 3 + j] = -PCP[i, j]
 
 
 @jit
@@ -177,7 +178,7 @@ def _cholesky3(A, L):
     a = A[0, 0]
     if not a > 0.0:
         return False
-    L[:] = 0.0
+    L[0, 1] = L[0, 2] = L[1, 2] = 0.0
     L[0, 0] = np.sqrt(a)
     L[1, 0] = A[1, 0] / L[0, 0]
     L[2, 0] = A[2, 0] / L[0, 0]
@@ -204,20 +205,25 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
     Lam = np.zeros((6 * w, 6 * w + 1))  # [Lambda g] of the features within the gate
     points = np.zeros((F, 3))
     covs = np.zeros((F, 3, 3))
-    ok = np.zeros(F, dtype=np.bool_)
-    nis = np.full(F, np.inf)
-    used = np.zeros(F, dtype=np.int64)
+    ok = np.empty(F, dtype=np.bool_)
+    nis = np.empty(F)
+    used = np.empty(F, dtype=np.int64)
     Rcw = np.empty((w, 3, 3))
     tcw = np.empty((w, 3))
     for c in range(w):
         C = se3.small_matmul(cam_T_imu, se3.inverse(clones[c]))
-        Rcw[c] = C[:3, :3]
-        tcw[c] = C[:3, 3]
+        for i in range(3):
+            for j in range(3):
+                Rcw[c, i, j] = C[i, j]
+            tcw[c, i] = C[i, 3]
     pred = np.empty(3)
     M = np.empty((3, 3))
     inv = np.empty((3, 3))
     res = np.empty(3)
-    obs = np.empty(count.max() if F else 0, dtype=np.int64)  # the feature's observations in use
+    most = 0
+    for f in range(F):
+        most = max(most, count[f])
+    obs = np.empty(most, dtype=np.int64)  # the feature's observations in use
     Ms = np.empty((obs.size, 3, 3))  # ... their Jacobians on the point and residuals (_linearize_inplace)
     rs = np.empty((obs.size, 3))
     Ns = np.empty((obs.size, 3, 3))  # ... M_k^T M_k,
@@ -230,6 +236,7 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
     Wcols = np.zeros((6 * w, 3 * F))  # the rank-3 terms' columns W of the features within the gate
     accepted = 0
     for f in range(F):
+        ok[f], nis[f], used[f] = False, np.inf, 0  # until the feature is fitted
         n = count[f]
         for k in range(n):
             obs[k] = start[f] + k
@@ -243,11 +250,11 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
             if d <= 0.0:
                 continue
             z = fx * baseline / d
-            qc = np.array([(pixels[o, 0] - cx) * z / fx, (0.5 * (pixels[o, 1] + pixels[o, 3]) - cy) * z / fy, z])
+            qx, qy = (pixels[o, 0] - cx) * z / fx, (0.5 * (pixels[o, 1] + pixels[o, 3]) - cy) * z / fy
             s = slot[o]
-            for a in range(3):  # Rcw^T (qc - tcw)
-                starts[m0, a] = (Rcw[s, 0, a] * (qc[0] - tcw[s, 0]) + Rcw[s, 1, a] * (qc[1] - tcw[s, 1])
-                                 + Rcw[s, 2, a] * (qc[2] - tcw[s, 2]))
+            for a in range(3):  # Rcw^T (q - tcw)
+                starts[m0, a] = (Rcw[s, 0, a] * (qx - tcw[s, 0]) + Rcw[s, 1, a] * (qy - tcw[s, 1])
+                                 + Rcw[s, 2, a] * (z - tcw[s, 2]))
             m0 += 1
         if m0 == 0:
             continue
@@ -272,7 +279,7 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
         good = True
         for attempt in range(ATTEMPTS):  # fits again without the worst observation while it is a gross error
             for it in range(iterations):
-                if not _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+                if not _linearize_inplace(obs[:n], slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
                     good = False
                     break
                 JtJ = np.zeros((3, 3))
@@ -287,8 +294,14 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
                     good = False
                     break
                 step = se3.small_matmul(inv, Jtr)
-                p = p + step
-                if np.abs(step).max() < 1e-7 * (1.0 + np.abs(p).max()):
+                big = size = 0.0  # max |step|, max |p| (NaN with a NaN, as numpy's max)
+                for a in range(3):
+                    p[a] += step[a]
+                    if abs(step[a]) > big or math.isnan(step[a]):
+                        big = abs(step[a])
+                    if abs(p[a]) > size or math.isnan(p[a]):
+                        size = abs(p[a])
+                if big < 1e-7 * (1.0 + size):
                     break
             if not good or attempt == ATTEMPTS - 1 or n <= 2:
                 break
@@ -308,7 +321,7 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
             continue
         # (W4) the information of its rows with the point projected out, at p: per observation
         # N_k = M_k^T M_k, H_x,k = M_k E, E = [-I, p^]; the Schur complement of the point's block
-        if not _linearize_inplace(obs, n, slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
+        if not _linearize_inplace(obs[:n], slot, Rcw, tcw, p, pixels, fx, fy, cx, cy, baseline, pred, Ms, rs):
             continue
         Hpp = np.zeros((3, 3))
         Hpr = np.zeros(3)
@@ -349,7 +362,7 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
             gf[6 * k + 3] = a3[1] * p[2] - a3[2] * p[1]  # (p^)^T a3 = -p^ a3 = a3 x p
             gf[6 * k + 4] = a3[2] * p[0] - a3[0] * p[2]
             gf[6 * k + 5] = a3[0] * p[1] - a3[1] * p[0]
-            _expand_inplace(Ns[k], P, Df[k], 0, 0, work)
+            _expand_inplace(Ns[k], P, Df[k], work)
             se3.small_matmul_into(P, Ns[k], C)  # E^T N_k = [-N_k; -p^ N_k]
             for i in range(3):
                 for j in range(3):
@@ -384,8 +397,12 @@ def _feature_terms(clones, cam_T_imu, fx, fy, cx, cy, baseline, start, count, sl
                 T[i, i] += pixel_var
             x, solved = solve_small(T, se3.small_matmul(Pf, gf))
             if solved:
-                nis[f] = (ro2 - np.sum(gf * x) + off) / pixel_var
-        points[f] = p
+                gx = 0.0
+                for i in range(m6):
+                    gx += gf[i] * x[i]
+                nis[f] = (ro2 - gx + off) / pixel_var
+        for a in range(3):
+            points[f, a] = p[a]
         used[f] = n
         ok[f] = True
         if nis[f] > gate[n]:
