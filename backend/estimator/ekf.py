@@ -434,7 +434,7 @@ class VisualInertialEKF:
         error model's correction; landmarks gated too often in a row are dropped."""
         st = self.state
         pixel_var = self._pixel_var
-        if st.offset_row is not None:  # (O1) the right column corrected by the offset's mean
+        if st.offset:  # (O1) the right column corrected by the offset's mean (0 unless estimated)
             pixels = corrected_pixels(pixels, st.offset)
         obs_var = None
         if self._var_per_disparity:  # (N5) each observation's variance, by whitening (U6)
@@ -502,7 +502,7 @@ class VisualInertialEKF:
         """Start landmarks from the stereo pixels of new tracks (A1 with I4 or B4) where disparity and
         depth allow; ``restart`` (n,) marks observations of re-anchored tracks (None: none)."""
         lm, cam = self.config.landmarks, self.camera
-        if self.state.offset_row is not None:  # (O1) triangulated from the corrected right column
+        if self.state.offset:  # (O1) triangulated from the corrected right column
             pixels = corrected_pixels(pixels, self.state.offset)
         ok, counts, limits = admit_landmarks(
             ids, pixels, np.zeros(ids.size, dtype=bool) if restart is None else restart, lm.min_disparity,

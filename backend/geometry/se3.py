@@ -310,28 +310,25 @@ def _exp_se3_fill(T: np.ndarray, J: np.ndarray, r0: float, r1: float, r2: float,
     T[3, 3] = 1.0
 
 
+@register_jitable
+def _exp_se3_pair(xi):
+    """(exp(xi^) (4,4), J_l(phi) (3,3)) of a twist xi (6,) as scalar loops (:func:`_exp_se3_fill`)."""
+    w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    a, b, c, _, _, _ = _coefficients(np.sqrt(t2))
+    T, J = np.empty((4, 4)), np.empty((3, 3))
+    _exp_se3_fill(T, J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, a, b, c)
+    return T, J
+
+
 @overload(exp_se3_and_left_jacobian)
 def _exp_se3_and_left_jacobian_compiled(xi):
-    def exp_and_jacobian(xi):
-        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        a, b, c, _, _, _ = _coefficients(np.sqrt(t2))
-        T, J = np.empty((4, 4)), np.empty((3, 3))
-        _exp_se3_fill(T, J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, a, b, c)
-        return T, J
-    return exp_and_jacobian
+    return lambda xi: _exp_se3_pair(xi)
 
 
 @overload(exp_se3)
 def _exp_se3_compiled(xi):
-    def exp(xi):
-        w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        a, b, c, _, _, _ = _coefficients(np.sqrt(t2))
-        T, J = np.empty((4, 4)), np.empty((3, 3))
-        _exp_se3_fill(T, J, float(xi[0]), float(xi[1]), float(xi[2]), w0, w1, w2, t2, a, b, c)
-        return T
-    return exp
+    return lambda xi: _exp_se3_pair(xi)[0]
 
 
 @overload(exp_se3_and_right_jacobian)
