@@ -150,6 +150,7 @@ class UpdateOptions(OptionTable):
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     persistent_outlier_steps: int = 10  # a track RANSAC rejects this many steps in a row is no longer rescued (0: always)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    second_order: bool = True  # the stereo prediction's second-order terms: residual less 1/2 tr(H_j Sigma_q), S plus their covariance (U7, backend.estimator.update)
     zero_velocity: bool = True  # a real IMU's SLAM run: at frames where the IMU, the tracks and the filter's velocity say the rig stands still, v = 0 is measured before the frame's observations (backend.estimator.zero_velocity, Z6-Z9)
 
     def check(self) -> None:

@@ -443,19 +443,27 @@ def test_initialization_defers_too_small_disparity_and_too_far():
     assert ekf.landmark_map()[0].tolist() == [0]
 
 
-@pytest.mark.parametrize("error_model", ["invariant", "body"])
-def test_three_row_update_equals_four_row_joseph_update(error_model):
-    """The 3-row update (backend.estimator.update module docstring, U1-U2) against the textbook 4-row Joseph form
-    K = P H^T S^-1,  P+ = (I - K H) P (I - K H)^T + K R K^T,  dx = K r  on the same linearization."""
+def filter_before_an_update(error_model: str, values: dict | None = None):
+    """A filter 20 steps into a synthetic drive and predicted to step 20, with that step's pixels
+    (k,4) of landmarks in its state and their slots (k,) (at least 10); no RANSAC, a wide gate."""
     drive = make_drive(30, seed=3)
     config = slam_config({"estimator.error_model": error_model, "update.ransac_threshold_px": 0.0,
-                          "update.gate_probability": 0.999999})
+                          "update.gate_probability": 0.999999, **(values or {})})
     ekf, _, _ = run_filter(drive, config, steps=20)
     ekf.predict(DT, drive.v_meas[19], drive.w_meas[19])
     ids, pix = drive.observations(20)
     slots = slots_of(ekf, ids)
-    ids, pix, slots = ids[slots >= 0], pix[slots >= 0], slots[slots >= 0]
+    pix, slots = pix[slots >= 0], slots[slots >= 0]
     assert slots.size >= 10
+    return ekf, pix, slots
+
+
+@pytest.mark.parametrize("error_model", ["invariant", "body"])
+def test_three_row_update_equals_four_row_joseph_update(error_model):
+    """The 3-row update (backend.estimator.update module docstring, U1-U2) against the textbook 4-row Joseph form
+    K = P H^T S^-1,  P+ = (I - K H) P (I - K H)^T + K R K^T,  dx = K r  on the same linearization (the
+    first-order update: U7's terms, tested with it in test_second_order.py, off)."""
+    ekf, pix, slots = filter_before_an_update(error_model, {"update.second_order": False})
     residual, off_row, H_x3, H_m3, in_front = observation_model(ekf, slots, pix)
     assert in_front.all()
     r4 = four_rows(residual[:, :, None], off_row)[:, :, 0]  # the pixel rows, as a textbook filter has them

@@ -47,7 +47,7 @@ from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
 from .tracks import admit_landmarks, plan_update
-from .update import pixel_variance, whiten
+from .update import pixel_variance, second_order_inplace, whiten
 from .window import WindowStep, WindowUpdater, retract_clones, window_in_use
 from .zero_velocity import ZeroVelocityUpdater
 
@@ -443,6 +443,10 @@ class VisualInertialEKF:
         inn = self.model.innovation(st, slots, pixels, pixel_var)
         if st.offset_row is not None:  # (O2)
             inn = offset_innovation(inn, st.P, st.offset_row, pixel_var)
+        if self.config.update.second_order:  # (U7) before whitening: S was formed with R = pixel_var I
+            cam = self.camera
+            second_order_inplace(inn.residual, inn.S, inn.off_row, inn.nis, inn.in_front, pixels, cam.fx, cam.fy,
+                                 cam.cx, cam.cy, cam.baseline, pixel_var)
         if obs_var is not None:
             inn = whiten(inn, obs_var, pixel_var)
         upd = self.config.update
