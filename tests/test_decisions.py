@@ -152,6 +152,11 @@ def test_likelihood_search_stops_two_candidates_past_its_peak():
     assert not _past_the_peak([-3.0, -2.0, -2.5, -1.5])  # a dip, then higher
     assert _past_the_peak([-3.0, -2.0, -2.5, -2.1])
     assert not _past_the_peak([-2.0, -2.0, -2.0])  # ties are not below
+    # over 300 observations a candidate is below the best only by more than 2 log-likelihood units in all
+    flat = [-4.38811, -4.38821, -4.38870]  # ece276a2019_0042 at pixel_sigma 1.55: 0.03 and 0.18 units below
+    assert _past_the_peak(flat) and not _past_the_peak(flat, 300)
+    assert _past_the_peak([-4.38811, -4.39811, -4.39911], 300)  # 3.0 and 3.3 units below
+    assert not _past_the_peak([-4.38811, -4.39811, -4.38911], 300)  # the last within 0.3 units
 
 
 def test_hold_error_is_left_out_where_the_truth_moves_by_the_held_samples():

@@ -190,3 +190,24 @@ def test_map_is_sane(run_0027):
     # distance of each landmark to the nearest 10th pose: 90 % within 100 m
     d = np.min(np.linalg.norm(pos[:, None, :] - path[None, ::10, :], axis=2), axis=1)
     assert np.quantile(d, 0.9) < 100
+
+
+def test_sparse_drive_imu_noise_does_not_jump_with_the_pixel_sigma():
+    """(L2, LIKELIHOOD_TIE) on 0042 (3.5 observations a step) the linear IMU sigma comes from the
+    innovation likelihood; with a configured pixel sigma of 1.45, 1.5 or 1.55 px the likelihood is
+    flat over the smallest candidates, and the search must not stop there: measured 0.074 m/s forward
+    at all three (when any candidate a hair below the best counted, it ended at the samples' white
+    noise, 0.0027 m/s, at all three, and the run's position NEES went from 360 to 50000)."""
+    from vislam.backend.run.decisions import decide
+
+    seq = load_sequence(DATA / "ece276a2019_0042.npz")
+    sigmas = []
+    for pixel in (1.45, 1.5, 1.55):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            decisions = decide(seq, Config().with_assignments([f"noise.pixel_sigma={pixel}"]))
+        assert decisions.imu.linear_source == "innovation likelihood"
+        sigmas.append(float(decisions.imu.linear_sigma[0]))
+    white = float(decisions.imu.white_linear[0])
+    assert min(sigmas) >= 9 * white, (sigmas, white)
+    assert max(sigmas) <= 3 * min(sigmas), sigmas
