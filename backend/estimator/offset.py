@@ -44,6 +44,7 @@ errors far more. Where the decided offset's error is within its standard error t
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,8 +64,7 @@ class OffsetEstimate:
     estimated: bool  # False: a consider state (O4), its mean and variance held
 
     def as_dict(self) -> dict:
-        return {"residual_px": self.residual_px, "sigma_px": self.sigma_px, "prior_sigma_px": self.prior_sigma_px,
-                "estimated": self.estimated}
+        return dataclasses.asdict(self)
 
 
 def corrected_pixels(pixels: np.ndarray, offset: float) -> np.ndarray:

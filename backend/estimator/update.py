@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..compiled import jit, warms_up
+from ..geometry import se3
 from .layout import CORE, SQRT_HALF, landmark_row
 from .linalg import cholesky_upper_inplace, downdate_lower, solve_lower_inplace
 from .covariance import mirror_lower_inplace
@@ -200,12 +201,14 @@ def second_order_inplace(residual, S, off_row, nis, in_front, pixels, fx, fy, cx
     k = residual.shape[0]
     fxb = fx * baseline
     J = np.empty((3, 3))
+    Jt = np.empty((3, 3))
+    Sb = np.empty((3, 3))
     A = np.empty((3, 3))
     Sig = np.empty((3, 3))
     M = np.empty((3, 3, 3))
-    C = np.empty((3, 3))
     coef = np.empty(3)
     w = np.empty(3)
+    changed = np.zeros(k, dtype=np.bool_)
     for i in range(k):
         if not in_front[i]:
             continue
@@ -216,6 +219,7 @@ def second_order_inplace(residual, S, off_row, nis, in_front, pixels, fx, fy, cx
         d = uL - uR
         if not d > 0.0:
             continue
+        changed[i] = True
         z = fxb / d
         x = (uL - cx) * z / fx
         y = (vs * SQRT_HALF - cy) * z / fy
@@ -225,16 +229,9 @@ def second_order_inplace(residual, S, off_row, nis, in_front, pixels, fx, fy, cx
         J[2, 0], J[2, 1], J[2, 2] = -z / d, 0.0, z / d
         for a in range(3):
             for b in range(3):
-                t = 0.0
-                for c in range(3):
-                    t += J[a, c] * (S[o + c, o + b] - (pixel_var if c == b else 0.0))
-                A[a, b] = t
-        for a in range(3):
-            for b in range(3):
-                t = 0.0
-                for c in range(3):
-                    t += A[a, c] * J[b, c]
-                Sig[a, b] = t
+                Jt[b, a] = J[a, b]
+                Sb[a, b] = S[o + a, o + b] - (pixel_var if a == b else 0.0)  # H_i P H_i^T
+        se3.small_matmul_into(se3.small_matmul_into(J, Sb, A), Jt, Sig)  # Sigma_q = J Sb J^T
         rel2 = Sig[2, 2] / (z * z)  # the depth's relative variance: the expansion holds where it is small
         if rel2 > SECOND_ORDER_MAX_DEPTH_SIGMA ** 2:
             shrink = SECOND_ORDER_MAX_DEPTH_SIGMA ** 2 / rel2
@@ -253,22 +250,19 @@ def second_order_inplace(residual, S, off_row, nis, in_front, pixels, fx, fy, cx
                 M[j, 1, b] = 0.0
                 M[j, aj, b] = hw * Sig[2, b]
                 M[j, 2, b] = hw * Sig[aj, b] + hz * Sig[2, b]
-        for j in range(3):
+        for j in range(3):  # C_jm = 1/2 tr(M_j M_m), added to the block (symmetric)
             for m in range(j + 1):
                 t = 0.0
                 for a in range(3):
                     for b in range(3):
                         t += M[j, a, b] * M[m, b, a]
-                C[j, m] = 0.5 * t
-        for j in range(3):
-            for m in range(j + 1):
-                S[o + j, o + m] += C[j, m]
+                S[o + j, o + m] += 0.5 * t
                 if m != j:
-                    S[o + m, o + j] += C[j, m]
-        for a in range(3):  # the block C-ordered, as block_nis passes it (one compiled _nis3)
-            for b in range(3):
-                C[a, b] = S[o + a, o + b]
-        nis[i] = _nis3(C, residual[i, 0], residual[i, 1], residual[i, 2]) + off_row[i] ** 2 / pixel_var
+                    S[o + m, o + j] += 0.5 * t
+    updated = block_nis(S, residual, off_row, pixel_var)  # (U4) with the new residuals and blocks
+    for i in range(k):
+        if changed[i]:
+            nis[i] = updated[i]
 
 
 def pixel_variance(sigma2: float, per_disparity: float, disparity: np.ndarray) -> np.ndarray:

@@ -97,11 +97,16 @@ class Decisions:
         trajectory's scale (ATE 0.065 -> 0.076 m, dead reckoning 0.069 m)."""
         return 0.0 if self.drift.drifting else self.stereo_offset.residual_sigma
 
+    def offset_sigma_for(self, config: Config | None) -> float:
+        """px: the residual disparity offset's prior sigma a run with ``config`` uses: the configured
+        ``noise.stereo_offset_sigma``, else :attr:`offset_sigma`."""
+        configured = None if config is None else config.noise.stereo_offset_sigma
+        return self.offset_sigma if configured is None else configured
+
     def config_for(self, config: Config) -> Config:
         """``config`` with the decided values the filter reads (pixel noise, drift and its walk, gyro bias,
         the residual disparity offset's prior unless configured)."""
-        offset_sigma = config.noise.stereo_offset_sigma
-        values = {"noise.stereo_offset_sigma": self.offset_sigma if offset_sigma is None else offset_sigma,
+        values = {"noise.stereo_offset_sigma": self.offset_sigma_for(config),
                   "noise.pixel_sigma": self.pixels.sigma,
                   "noise.pixel_variance_per_disparity": self.pixels.variance_per_disparity,
                   "drift.track_drift": Choice.YES if self.drift.drifting else Choice.NO,
@@ -122,8 +127,7 @@ class Decisions:
 
     def _offset_state_text(self, config: Config | None) -> str:
         """The residual disparity offset in the filter (O1), as ``config_for`` sets it."""
-        configured = None if config is None else config.noise.stereo_offset_sigma
-        sigma = self.offset_sigma if configured is None else configured
+        sigma = self.offset_sigma_for(config)
         if sigma:
             how = "estimated" if config is None or config.estimator.estimate_stereo_offset else "considered"
             return f"residual disparity offset: a filter state, {how}, prior sigma {sigma:.3f} px (O1)"
