@@ -221,6 +221,8 @@ class ConventionOptions(OptionTable):
     repeated_frames: RepeatedFrames = RepeatedFrames.FREEZE  # steps repeating the previous step's pixels
     stereo_offset: StereoOffsetModel = StereoOffsetModel.CONSTANT  # disparity offset identified from the tracks and
     # removed when significant (backend.run.stereo_offset): constant d_true = d - beta; rate: beta_0 + kappa omega_y; off
+    stereo_offset_by_imu: bool = True  # where the tracks leave the offset open (> 1 % of scale), the one with which
+    # the filter's scale over the first steps is the IMU's (D5); false: the tracks' estimate alone
     velocity_correction: Choice = Choice.AUTO  # the IMU's lever arm and velocity offset against vision (N3):
     # auto: removed when significant and dead reckoning agrees; yes: always removed; no: not estimated
 

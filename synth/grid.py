@@ -20,10 +20,12 @@ import hashlib
 from dataclasses import dataclass
 from typing import Iterator
 
+import numpy as np
+
 from .scene import SceneConfig
 from .track_errors import KITTI_LIKE, TrackErrors
 
-__all__ = ["GridSpec", "GRID", "PARTS", "DRIFT_LEVELS", "VELOCITY_NOISE", "part_of", "specs", "scenes"]
+__all__ = ["GridSpec", "GRID", "PARTS", "DRIFT_LEVELS", "VELOCITY_NOISE", "part_of", "specs", "scenes", "random_spec"]
 
 PARTS = ("tuning", "held_out")
 
@@ -129,3 +131,21 @@ def scenes(part: str) -> Iterator[tuple[str, SceneConfig]]:
     """(name, SceneConfig) of every scene of one part, in GRID's order."""
     for spec in specs(part):
         yield spec.name, spec.scene_config()
+
+
+#: The levels :func:`random_spec` draws from (each uniformly, in this order); the offsets add -0.5 and +0.7 px
+#: to the grid's
+RANDOM_LEVELS = {
+    "scenario": ("street", "aerial"), "steps": (200, 250, 300, 350, 400), "pixel_sigma": (0.25, 0.5, 0.75, 1.0),
+    "drift": ("off", "on", "heavy"), "repeats": (False, True), "disparity_offset": (0.0, 0.0, -1.0, -0.5, 0.7),
+    "outlier_share": (0.0, 0.03), "jitter": (False, True), "velocity_noise": ("low", "mid", "high"),
+    "velocity_index": ("this", "next"),
+}
+
+
+def random_spec(seed: int) -> GridSpec:
+    """A scene spec off the grid: every factor drawn from :data:`RANDOM_LEVELS` by a generator seeded
+    with ``seed`` (the same seed, the same spec), for checks on scenes no option was chosen on."""
+    rng = np.random.default_rng(seed)
+    draw = {key: levels[int(rng.integers(len(levels)))] for key, levels in RANDOM_LEVELS.items()}
+    return GridSpec(seed=seed, **draw)

@@ -39,6 +39,10 @@ def test_run_writes_every_output(short_0027, tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == 150
     assert summary["decisions"]["conventions"]["velocity_index"] == "next"
+    # the run's scale against the IMU's (H4): 150 steps are enough to test, and they agree
+    scale = summary["scale_against_imu"]
+    assert scale["tested"] and scale["steps"] == 140 and not scale["failed"]
+    assert abs(scale["imu_over_filter"] - 1.0) < 4 * scale["standard_error"] + 0.01
     # the summary's error is what `vislam eval` computes from the files written
     assert main(["eval", str(out / "trajectory.txt"), str(gt), "--json", str(tmp_path / "eval.json")]) == 0
     evaluated = json.loads((tmp_path / "eval.json").read_text())

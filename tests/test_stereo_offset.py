@@ -291,7 +291,8 @@ def test_gross_outliers_are_not_taken_for_an_offset():
 def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
     """The guard of ``decisions.decide``: the IMU's reprojection test (C1) must not get worse with the
     offset removed. The offset estimated from a planted -1 px is kept; one of the opposite sign (put in
-    place of the estimate) is refused."""
+    place of the estimate, without a standard error) is refused, and the filter's scale against the
+    IMU's (D5) then finds the planted one."""
     from vislam.backend.run import decisions
 
     seq = _with_offset(_scene(3).sequence, -1.0)
@@ -303,10 +304,13 @@ def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
     assert reprojection["with"] < reprojection["without"]
     wrong = StereoOffset(+1.0, 0.0, {"beta_mean_px": 1.0, "steps": 100}, "auto, constant")  # the opposite sign
     monkeypatch.setattr(decisions, "offset_from_fits", lambda *args: wrong)
-    refused = decisions.decide(seq, config).stereo_offset
+    refused = decisions.decide(seq, config.with_values({"conventions.stereo_offset_by_imu": False})).stereo_offset
     assert not refused.active and "worse" in refused.estimate["rejected"] and "not removed" in refused.describe()
     reprojection = refused.estimate["dead_reckoning_reprojection_px"]
     assert reprojection["with"] > decisions.GUARD_TOLERANCE * reprojection["without"]
+    rescued = decisions.decide(seq, config).stereo_offset
+    assert "rejected" in rescued.estimate and rescued.source.endswith("set by the IMU's scale (D5)")
+    assert abs(rescued.beta0_px + 1.0) < 0.3, rescued.estimate["imu_scale"]
 
 
 def test_too_few_steps_is_said_not_estimated():

@@ -414,3 +414,19 @@ def test_grid_names_parts_and_determinism():
         list(grid.scenes("test"))
     scene = make_scene(dataclasses.replace(held_out[-1][1], steps=40))
     assert scene.sequence.tracker == "synthetic-drifting" and scene.sequence.num_observations > 1000
+
+
+def test_random_specs_are_seeded_draws_of_the_levels():
+    """grid.random_spec: the same seed gives the same scene; every factor is one of RANDOM_LEVELS; over
+    200 seeds every level of every factor is drawn, each about as often as uniform draws make it."""
+    specs = [grid.random_spec(seed) for seed in range(1000, 1200)]
+    assert specs == [grid.random_spec(seed) for seed in range(1000, 1200)]
+    assert len({s.name for s in specs}) == len(specs) and not {s.name for s in specs} & {s.name for s in grid.GRID}
+    for key, levels in grid.RANDOM_LEVELS.items():
+        drawn = [getattr(s, key) for s in specs]
+        assert set(drawn) == set(levels), key
+        for level in set(levels):
+            expected = len(specs) * levels.count(level) / len(levels)
+            assert abs(drawn.count(level) - expected) < 4 * np.sqrt(expected), (key, level)
+    scene = make_scene(dataclasses.replace(specs[0].scene_config(), steps=30))
+    assert scene.sequence.num_steps == 30

@@ -18,7 +18,9 @@ each by a test whose numbers it keeps:
    of the samples (N1) as the smallest candidate: no floor is set by hand; a sigma from the white
    noise alone covers the error of holding a sample over its step (N4) where the likelihood
    prefers it;
-5. whether the gyro bias is estimated (enough stereo observations a step to tell it from drift).
+5. whether the gyro bias is estimated (enough stereo observations a step to tell it from drift);
+6. last, with every other decision taken, where the two-view offset leaves the scale open: the
+   offset with which the filter's scale over the first steps is the IMU's (D5, H4).
 
 :class:`~vislam.backend.run.online.OnlineRun` applies the record; ``decisions.describe()`` says
 it, a line per decision, and ``as_dict()`` goes to summary.json. The configuration's explicit
@@ -40,7 +42,7 @@ from .noise import (
     ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise, gap_statistics,
     hold_error, imu_vs_vision, pixel_noise, with_disparity_noise,
 )
-from .stereo_offset import StereoOffset, offset_from_fits
+from .stereo_offset import StereoOffset, offset_by_imu_scale, offset_from_fits
 from .timing import repeated_steps
 from .two_view import fit_pairs
 
@@ -274,8 +276,11 @@ def decide(seq: Sequence, config: Config, imu_velocities: tuple[np.ndarray, np.n
                           guard)
     if vision_used and (imu.linear_source != "configured" or imu.angular_source != "configured") and vision is None:
         decisions = _imu_by_likelihood(seq, decisions, config)
-    return _hold_decision(seq, decisions, config, hold_error(np.asarray(lin)), hold_error(np.asarray(ang)),
-                          vision_used)
+    decisions = _hold_decision(seq, decisions, config, hold_error(np.asarray(lin)), hold_error(np.asarray(ang)),
+                               vision_used)
+    if c.stereo_offset_by_imu and config.estimator.mode == Mode.SLAM and _offset_model(config) != "off":  # (D5)
+        decisions = dataclasses.replace(decisions, stereo_offset=offset_by_imu_scale(seq, decisions, config))
+    return decisions
 
 
 #: The source of an IMU sigma floored by the hold error (N4)

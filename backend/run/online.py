@@ -19,7 +19,7 @@ import numpy as np
 from ..config import Config, Mode, RepeatedFrames
 from ..errors import InputError
 from ..estimator.ekf import ImuNoise, StepStats, VisualInertialEKF
-from ..estimator.health import vision_check
+from ..estimator.health import ScaleCheck, scale_check, vision_check
 from ..estimator.offset import OffsetEstimate
 from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
@@ -64,6 +64,7 @@ class RunStats:
     step_ms_p99: float = 0.0
     step_ms_max: float = 0.0
     health_messages: list = field(default_factory=list)
+    scale: Optional[ScaleCheck] = None  # H4: the filter's scale against the IMU's (SLAM runs with velocities)
 
     @property
     def gated_share(self) -> float:
@@ -82,6 +83,7 @@ class RunStats:
 
     def as_dict(self) -> dict:
         out = dict(self.__dict__)
+        out["scale"] = None if self.scale is None else self.scale.as_dict()
         out["gated_share"] = self.gated_share
         out["real_time_factor"] = self.real_time_factor
         return out
@@ -286,15 +288,30 @@ class OnlineRun:
         self.book.add_update(step_stats)
         return step_stats
 
+    def _imu_steps(self) -> np.ndarray:
+        """(N-1,4,4) what the IMU moved over each step, exp(tau [v; omega]^) (dead reckoning's steps)."""
+        return se3.exp_se3_batch(np.array(self._dr_twists).reshape(-1, 6))
+
+    def scale_check(self, imu_steps: np.ndarray | None = None) -> ScaleCheck:
+        """H4 over the steps so far: the IMU's displacement per step against the filter's."""
+        imu_steps = self._imu_steps() if imu_steps is None else imu_steps
+        return scale_check(np.array(self._poses), imu_steps[:, :3, 3])
+
     def result(self, setup_seconds: float = 0.0, load_seconds: float = 0.0, input_seconds: float = 0.0) -> RunResult:
-        """Marginalize the active landmarks into the map; the run's trajectory, map and statistics."""
+        """Marginalize the active landmarks into the map; the run's trajectory, map and statistics; a
+        SLAM run's scale checked against the IMU's (H4)."""
+        imu_steps = self._imu_steps()
+        if self.config.estimator.mode == Mode.SLAM and self._poses:
+            self.stats.scale = self.scale_check(imu_steps)
+            if (message := self.stats.scale.message()) is not None:
+                self.ekf.health.report(message)
         map_ids, map_pos, map_cov, step_seconds = self.book.close(self.config.estimator.mode, setup_seconds,
                                                                   load_seconds, input_seconds)
         return RunResult(
             time_stamps=np.array(self._t),
             world_T_imu=np.array(self._poses),
             pose_covariance=np.array(self._pose_covariances),
-            dead_reckoning=compose_steps(se3.exp_se3_batch(np.array(self._dr_twists).reshape(-1, 6))),
+            dead_reckoning=compose_steps(imu_steps),
             map_ids=map_ids,
             map_positions=map_pos,
             map_covariances=map_cov,

@@ -1,0 +1,166 @@
+"""The filter's scale against the IMU's (H4 of backend/estimator/health.py) and the disparity offset
+it identifies where the tracks leave the scale open (D5 of backend/run/stereo_offset.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+from vislam.backend.config import Config
+from vislam.backend.errors import HealthWarning
+from vislam.backend.estimator.health import (
+    SCALE_BATCHES, SCALE_MIN_BATCH_STEPS, SCALE_MIN_EFFECT, SCALE_SIGNIFICANCE, scale_check,
+)
+from vislam.backend.evaluation.consistency import trajectory_nees
+from vislam.backend.evaluation.metrics import trajectory_errors
+from vislam.backend.geometry import se3
+from vislam.backend.run.decisions import decide
+from vislam.backend.run.runner import run_sequence
+from vislam.synth.scene import SceneConfig, make_scene
+
+
+def _turning_drive(steps: int, seed: int = 0):
+    """Poses (steps,4,4) of a drive turning and climbing, and its true step displacements (steps-1,3)
+    in the body frame at each step's start."""
+    rng = np.random.default_rng(seed)
+    twists = np.zeros((steps - 1, 6))
+    twists[:, 0] = 1.0 + 0.3 * np.sin(np.arange(steps - 1) / 15.0) + 0.05 * rng.standard_normal(steps - 1)
+    twists[:, 2] = 0.05 * np.sin(np.arange(steps - 1) / 40.0)
+    twists[:, 4] = 0.01 * rng.standard_normal(steps - 1)
+    twists[:, 5] = 0.03 * np.cos(np.arange(steps - 1) / 25.0)
+    steps_T = se3.exp_se3_batch(twists)
+    poses = np.empty((steps, 4, 4))
+    poses[0] = se3.exp_se3(np.array([5.0, -2.0, 1.0, 0.1, -0.2, 0.7]))
+    for k in range(steps - 1):
+        poses[k + 1] = poses[k] @ steps_T[k]
+    return poses, steps_T[:, :3, 3]
+
+
+def _stretched(poses: np.ndarray, factor: float) -> np.ndarray:
+    """The same drive with every position scaled about the first (a trajectory at the wrong scale)."""
+    out = poses.copy()
+    out[:, :3, 3] = poses[0, :3, 3] + factor * (poses[:, :3, 3] - poses[0, :3, 3])
+    return out
+
+
+def test_the_scale_is_the_ratio_of_the_imus_steps_to_the_filters():
+    poses, true_steps = _turning_drive(300)
+    exact = scale_check(poses, true_steps)
+    assert exact.tested and abs(exact.scale - 1.0) < 1e-12 and exact.standard_error < 1e-12
+    stretched = scale_check(_stretched(poses, 1.08), true_steps)
+    assert abs(stretched.scale - 1.0 / 1.08) < 1e-9  # the IMU moved 1/1.08 of the filter's distance
+    noise = np.random.default_rng(1).normal(0.0, 0.05, true_steps.shape)
+    noisy = scale_check(_stretched(poses, 1.08), true_steps + noise)
+    assert abs(noisy.scale - 1.0 / 1.08) < 4 * noisy.standard_error and noisy.failed
+    assert stretched.failed and "8.0 % longer" in stretched.message() and "stereo baseline" in stretched.message()
+    assert f"{100 * (1 / noisy.scale - 1):.1f} % longer" in noisy.message()
+    assert "shorter" in scale_check(_stretched(poses, 0.9), true_steps).message()
+
+
+def test_the_standard_error_is_the_scatter_of_the_scale_over_imu_noise():
+    """Over 300 draws of white noise on the IMU's steps (5 % of a step), z = (s - 1) / se has unit
+    spread (batch means: a t with 9 degrees of freedom, sd 1.13) and the check fails about never."""
+    poses, true_steps = _turning_drive(200)
+    rng = np.random.default_rng(2)
+    checks = [scale_check(poses, true_steps + rng.normal(0.0, 0.05, true_steps.shape)) for _ in range(300)]
+    z = np.array([c.z for c in checks])
+    assert 0.85 < z.std() < 1.4, z.std()
+    assert abs(z.mean()) < 0.25
+    assert sum(c.failed for c in checks) <= 1
+
+
+def test_correlated_imu_errors_widen_the_standard_error():
+    """A slowly wandering speed error (a real IMU's, or a drifting track's) is seen by the batches: the
+    scale stays within its standard error where white-noise statistics would call it off."""
+    poses, true_steps = _turning_drive(400)
+    rng = np.random.default_rng(3)
+    hits = 0
+    for _ in range(100):
+        wander = 1.0 + np.cumsum(rng.normal(0.0, 0.004, true_steps.shape[0]))  # random walk of the speed's scale
+        c = scale_check(poses, true_steps * wander[:, None])
+        mean_scale = float(np.mean(wander))
+        hits += abs(c.scale - mean_scale) < 3 * c.standard_error
+    assert hits >= 90
+
+
+def test_a_small_or_short_difference_is_not_a_failure():
+    poses, true_steps = _turning_drive(300)
+    small = scale_check(_stretched(poses, 1.0 + 0.5 * SCALE_MIN_EFFECT), true_steps)  # far beyond 4 se, under 1 %
+    assert abs(small.z) > SCALE_SIGNIFICANCE and not small.failed
+    n = SCALE_BATCHES * SCALE_MIN_BATCH_STEPS
+    short = scale_check(_stretched(poses[:n], 1.2), true_steps[: n - 1])
+    assert not short.tested and not short.failed and "not tested" in short.describe()
+    assert scale_check(_stretched(poses[: n + 1], 1.2), true_steps[:n]).failed
+
+
+def test_a_run_at_the_wrong_scale_says_so_and_a_right_one_does_not():
+    """Grid scene aerial-s210 (-1 px of disparity offset planted) with the offset left in
+    (conventions.stereo_offset = off): the trajectory is 4 % long and the run warns with the measured
+    scale (H4); with the defaults (D5 sets the offset) it stays quiet."""
+    _, scene = _grid_scene("aerial-s210")
+    for setting, warns in (("off", True), ("constant", False)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = run_sequence(scene.sequence, Config().with_values({"conventions.stereo_offset": setting}))
+        scale = result.stats.scale
+        messages = [str(w.message) for w in caught if issubclass(w.category, HealthWarning)
+                    and "scale disagrees" in str(w.message)]
+        assert scale.tested and scale.failed == warns and bool(messages) == warns, (setting, scale, messages)
+        if warns:
+            assert 0.93 < scale.scale < 0.98, scale
+            assert messages[0] in result.stats.health_messages
+
+
+def _grid_scene(name: str):
+    from vislam.synth.grid import GRID
+
+    spec = next(s for s in GRID if s.name.startswith(name))
+    assert spec.part == "tuning"
+    return spec, make_scene(spec.scene_config())
+
+
+def test_an_offset_the_tracks_leave_open_is_set_by_the_imus_scale():
+    """Grid scene aerial-s210 (1 px of noise on 5-20 px disparities, -1 px planted): the two-view fits
+    find -0.04 +- 0.76 px, nothing is removed, and the filter's trajectory is 4 % long (ATE 0.52 m, 6.8
+    times dead reckoning's, NEES 600). The scale check over the first steps fails; the offset that
+    makes it pass is applied (D5): better than dead reckoning, NEES <= 9, the run's scale the IMU's."""
+    spec, scene = _grid_scene("aerial-s210")
+    seq = scene.sequence
+    decisions = decide(seq, Config())
+    offset = decisions.stereo_offset
+    trials = offset.estimate["imu_scale"]["trials"]
+    assert trials[0]["beta_px"] == 0.0 and trials[0]["failed"], trials
+    assert offset.active and -1.5 < offset.beta0_px < -0.2, offset
+    assert "set by the IMU's scale (D5)" in offset.describe()
+    alone = decide(seq, Config().with_values({"conventions.stereo_offset_by_imu": False})).stereo_offset
+    assert "imu_scale" not in alone.estimate and not alone.active
+    result = run_sequence(seq, Config(), decisions=decisions)
+    t = result.time_stamps
+    ate = trajectory_errors(t, result.world_T_imu, t, scene.world_T_imu_true).ate_rmse
+    dead_reckoning = trajectory_errors(t, result.dead_reckoning, t, scene.world_T_imu_true).ate_rmse
+    nees = trajectory_nees(t, result.world_T_imu, result.pose_covariance, t, scene.world_T_imu_true).position
+    assert ate < 0.8 * dead_reckoning and nees.mean <= 9.0, (ate, dead_reckoning, nees.mean)
+    assert not result.stats.scale.failed
+
+
+def test_an_open_offset_whose_scale_agrees_is_left_alone():
+    """Grid scene aerial-s204 (no offset planted, the two-view estimate -1.7 +- 1.4 px): the check runs,
+    passes, and nothing is applied."""
+    _, scene = _grid_scene("aerial-s204")
+    offset = decide(scene.sequence, Config()).stereo_offset
+    trials = offset.estimate["imu_scale"]["trials"]
+    assert len(trials) == 1 and not trials[0]["failed"] and trials[0]["tested"], trials
+    assert not offset.active
+
+
+def test_a_precise_offset_is_not_checked_again():
+    """A street (disparities of ~10 px, 0.5 px noise): the two-view estimate fixes the scale to well
+    under 1 %, so no trial run is made."""
+    seq = make_scene(SceneConfig(scenario="street", steps=200, seed=1)).sequence
+    offset = decide(seq, Config()).stereo_offset
+    assert "imu_scale" not in offset.estimate
+    d = seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2]
+    assert offset.estimate["beta_mean_se"] * np.median(1.0 / d[d > 0]) <= SCALE_MIN_EFFECT
