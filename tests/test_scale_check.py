@@ -146,6 +146,17 @@ def test_an_offset_the_tracks_leave_open_is_set_by_the_imus_scale():
     assert not result.stats.scale.failed
 
 
+def test_too_few_steps_to_test_the_scale_make_no_trial():
+    """A stream's first 100 frames (vislam run IMAGES decides from them) leave 99 step pairs, fewer than
+    H4 tests: no trial runs, even where the tracks leave the offset open."""
+    _, scene = _grid_scene("aerial-s210")
+    n = SCALE_BATCHES * SCALE_MIN_BATCH_STEPS
+    offset = decide(scene.sequence.subset(n), Config()).stereo_offset
+    assert "imu_scale" not in offset.estimate and not offset.active
+    longer = decide(scene.sequence.subset(n + 1), Config()).stereo_offset
+    assert len(longer.estimate["imu_scale"]["trials"]) >= 1
+
+
 def test_an_open_offset_whose_scale_agrees_is_left_alone():
     """Grid scene aerial-s204 (no offset planted, the two-view estimate -1.7 +- 1.4 px): the check runs,
     passes, and nothing is applied."""

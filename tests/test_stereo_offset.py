@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from vislam.backend.config import Config
+from vislam.backend.errors import HealthWarning
 from vislam.backend.evaluation.metrics import alignment_scale, trajectory_errors
 from vislam.backend.geometry import se3
 from vislam.backend.run.runner import run_sequence
@@ -236,7 +238,11 @@ def test_removing_a_planted_offset_restores_the_scale():
     results = {}
     for setting in ("constant", "off"):
         config = Config().with_values({**noise, "conventions.stereo_offset": setting})
-        r = run_sequence(seq, config)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            r = run_sequence(seq, config)
+        said = any(issubclass(w.category, HealthWarning) and "scale disagrees" in str(w.message) for w in caught)
+        assert said == r.stats.scale.failed == (setting == "off")  # H4: the offset left in lengthens the run
         t = r.time_stamps
         results[setting] = (alignment_scale(t, r.world_T_imu, t, scene.world_T_imu_true),
                             trajectory_errors(t, r.world_T_imu, t, scene.world_T_imu_true).ate_rmse)

@@ -49,20 +49,21 @@ test C1 must not get worse). The correction moves the right pixel: ``uR <- uR + 
 
 Where the two-view estimate leaves the scale open (its standard error moves the depth of the
 median point, ``se * median(1/d)``, by more than ``SCALE_MIN_EFFECT``, or no estimate was made),
-the filter over the first steps checks its scale against the IMU's (H4 of
-``backend.estimator.health``). Where they differ significantly, the offset is the one that makes
-them agree: a secant search on f(beta) = s(beta) - 1 over trial runs of the same steps, the first
-step from the sensitivity of a disparity's relative change, ds/dbeta ~ -mean(1/d), each candidate
-kept within ``SIGNIFICANCE`` standard errors of the two-view estimate, ended within one standard
-error of 1 or after ``SCALE_SEARCH_RUNS`` runs. The trial runs carry no residual offset state
-(O1 of ``backend.estimator.offset``), so that s(beta) is the mean offset's alone: a consider state,
-there only for a nonzero offset, makes s jump at 0 and flattens it (on a random aerial scene the
-search then ended at +0.35 px where -1 was planted). The candidate closest to 1 is applied where it
-agrees with the IMU (within the check's significance); its uncertainty in the filter stays the
-two-view one (the filter's scale blends vision's and the IMU's, so the search's precision is not
-the offset's). The search needs no effect size: with a precise IMU a 0.7 % scale error is the
-whole of a run's error (a street with +0.7 px planted and 1 px of noise: 0.66 m against dead
-reckoning's 0.47 m, NEES 356).                                                                 (D5)
+the filter over the first steps (at most 300, at least the 101 H4 needs: not an image stream's
+first 100 frames) checks its scale against the IMU's (H4 of ``backend.estimator.health``). Where
+they differ significantly, the offset is the one that makes them agree: a secant search on
+f(beta) = s(beta) - 1 over trial runs of the same steps, the first step from the sensitivity of a
+disparity's relative change, ds/dbeta ~ -mean(1/d), each candidate kept within ``SIGNIFICANCE``
+standard errors of the two-view estimate, ended within one standard error of 1 or after
+``SCALE_SEARCH_RUNS`` runs. The trial runs carry no residual offset state (O1 of
+``backend.estimator.offset``), so that s(beta) is the mean offset's alone: a consider state, there
+only for a nonzero offset, makes s jump at 0 and flattens it (on a random aerial scene the search
+then ended at +0.35 px where -1 was planted). The candidate closest to 1 is applied where it agrees
+with the IMU (within the check's significance); its uncertainty in the filter stays the two-view
+one (the filter's scale blends vision's and the IMU's, so the search's precision is not the
+offset's). The search needs no effect size: with a precise IMU a 0.7 % scale error is the whole of
+a run's error (a street with +0.7 px planted and 1 px of noise: 0.66 m against dead reckoning's
+0.47 m, NEES 356).                                                                             (D5)
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ import numpy as np
 
 from ..config import Config
 from ..data.sequence import Sequence
-from ..estimator.health import SCALE_MIN_EFFECT
+from ..estimator.health import SCALE_BATCHES, SCALE_MIN_BATCH_STEPS, SCALE_MIN_EFFECT
 from .two_view import fit_pairs
 
 __all__ = ["StereoOffset", "identify_stereo_offset", "camera_rate_y", "offset_by_imu_scale"]
@@ -314,6 +315,9 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
     from .likelihood import LIKELIHOOD_STEPS, first_steps_scale  # runs the filter: the layer above
 
     offset = decisions.stereo_offset
+    steps = min(seq.num_steps, LIKELIHOOD_STEPS)
+    if steps - 1 < SCALE_BATCHES * SCALE_MIN_BATCH_STEPS:  # too few steps for H4 to test (a stream's first frames)
+        return offset
     e = offset.estimate
     d = seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2] - offset.beta0_px
     inverse = 1.0 / d[d > 0]
@@ -323,7 +327,7 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
         return offset
     center = float(e["beta_mean_px"]) if np.isfinite(se) else offset.beta0_px
     half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d[d > 0]))
-    record = {"steps": int(min(seq.num_steps, LIKELIHOOD_STEPS)), "trials": [], "chosen": None}
+    record = {"steps": int(steps), "trials": [], "chosen": None}
     mean_only = config.with_values({"noise.stereo_offset_sigma": 0.0})  # no residual offset state in the trials
 
     def trial(beta: float):
