@@ -121,10 +121,11 @@ def _random_job(args):
     from vislam.synth.scene import make_scene
 
     seed, assignments = args
-    scene = make_scene(random_spec(seed).scene_config())
+    spec = random_spec(seed)
+    scene = make_scene(spec.scene_config())
     out = evaluate(scene.sequence, Config().with_assignments(assignments),
                    (scene.sequence.time_stamps, scene.world_T_imu_true))
-    out["name"] = random_spec(seed).name
+    out["name"] = spec.name
     return out
 
 

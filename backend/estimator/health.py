@@ -41,6 +41,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import HealthWarning
+from ..geometry import se3
 
 #: H3: a run whose gated share of observations is above this is called close to dead reckoning
 MAX_GATED_SHARE = 0.9
@@ -48,6 +49,8 @@ MAX_GATED_SHARE = 0.9
 SCALE_BATCHES = 10
 #: ... of at least this many steps each; shorter runs are not tested
 SCALE_MIN_BATCH_STEPS = 10
+#: ... so that H4 tests from this many step pairs on
+SCALE_MIN_STEPS = SCALE_BATCHES * SCALE_MIN_BATCH_STEPS
 #: H4 fails beyond this many standard errors (a t with 9 degrees of freedom: p = 0.003) ...
 SCALE_SIGNIFICANCE = 4.0
 #: ... and this relative difference (1 m in 100 m), below which a scale error is not worth a warning
@@ -146,15 +149,17 @@ class ScaleCheck:
 
     @property
     def tested(self) -> bool:
-        return self.steps >= SCALE_BATCHES * SCALE_MIN_BATCH_STEPS and math.isfinite(self.standard_error)
+        return self.steps >= SCALE_MIN_STEPS and math.isfinite(self.standard_error)
 
     @property
     def z(self) -> float:
-        """(s - 1) in standard errors."""
-        if not self.tested or self.scale == 1.0:
+        """(s - 1) in standard errors (infinite for a difference without error)."""
+        difference = self.scale - 1.0
+        if not self.tested or difference == 0.0:
             return 0.0
-        return (self.scale - 1.0) / self.standard_error if self.standard_error > 0 else math.copysign(math.inf,
-                                                                                                     self.scale - 1.0)
+        if self.standard_error == 0.0:
+            return math.copysign(math.inf, difference)
+        return difference / self.standard_error
 
     @property
     def significant(self) -> bool:
@@ -172,8 +177,7 @@ class ScaleCheck:
 
     def describe(self) -> str:
         if not self.tested:
-            return (f"the filter's scale against the IMU's: not tested ({self.steps} step pairs, "
-                    f"{SCALE_BATCHES * SCALE_MIN_BATCH_STEPS} needed)")
+            return f"the filter's scale against the IMU's: not tested ({self.steps} step pairs, {SCALE_MIN_STEPS} needed)"
         return (f"the IMU moved {self.scale:.3f} +- {self.standard_error:.3f} times the filter's distance a step "
                 f"({self.z:+.1f} standard errors from 1, over {self.steps} steps)")
 
@@ -196,9 +200,9 @@ def scale_check(world_T_imu: np.ndarray, imu_steps: np.ndarray) -> ScaleCheck:
     m = np.asarray(imu_steps, dtype=float).reshape(-1, 3)
     n = min(max(T.shape[0] - 1, 0), m.shape[0])
     n -= n % SCALE_BATCHES
-    if n < SCALE_BATCHES * SCALE_MIN_BATCH_STEPS:
+    if n < SCALE_MIN_STEPS:
         return ScaleCheck(float("nan"), float("nan"), n)
-    d = np.einsum("kji,kj->ki", T[:n, :3, :3], T[1 : n + 1, :3, 3] - T[:n, :3, 3])
+    d = (se3.inverse(T[:n]) @ T[1 : n + 1])[:, :3, 3]  # the filter's step in the body frame at its start
     N = np.einsum("ki,ki->k", m[:n], d).reshape(SCALE_BATCHES, -1).sum(axis=1)
     D = np.einsum("ki,ki->k", d, d).reshape(SCALE_BATCHES, -1).sum(axis=1)
     if not D.sum() > 0:

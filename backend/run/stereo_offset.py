@@ -75,7 +75,7 @@ import numpy as np
 
 from ..config import Config
 from ..data.sequence import Sequence
-from ..estimator.health import SCALE_BATCHES, SCALE_MIN_BATCH_STEPS, SCALE_MIN_EFFECT
+from ..estimator.health import SCALE_MIN_EFFECT, SCALE_MIN_STEPS, ScaleCheck
 from .two_view import fit_pairs
 
 __all__ = ["StereoOffset", "identify_stereo_offset", "camera_rate_y", "offset_by_imu_scale"]
@@ -316,56 +316,56 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
 
     offset = decisions.stereo_offset
     steps = min(seq.num_steps, LIKELIHOOD_STEPS)
-    if steps - 1 < SCALE_BATCHES * SCALE_MIN_BATCH_STEPS:  # too few steps for H4 to test (a stream's first frames)
+    if steps - 1 < SCALE_MIN_STEPS:  # too few steps for H4 to test (a stream's first frames)
         return offset
     e = offset.estimate
     d = seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2] - offset.beta0_px
-    inverse = 1.0 / d[d > 0]
+    d = d[d > 0]
     se = float(e.get("beta_mean_se", np.inf))
     se = se if np.isfinite(se) else np.inf
-    if inverse.size == 0 or not se * float(np.median(inverse)) > SCALE_MIN_EFFECT:
+    if d.size == 0 or not se * float(np.median(1.0 / d)) > SCALE_MIN_EFFECT:
         return offset
     center = float(e["beta_mean_px"]) if np.isfinite(se) else offset.beta0_px
-    half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d[d > 0]))
-    record = {"steps": int(steps), "trials": [], "chosen": None}
+    half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d))
     mean_only = config.with_values({"noise.stereo_offset_sigma": 0.0})  # no residual offset state in the trials
+    tried: list[tuple[float, ScaleCheck]] = []  # (offset px, its check), in the order run
 
-    def trial(beta: float):
+    def trial(beta: float) -> ScaleCheck:
         candidate = offset if beta == offset.beta0_px else StereoOffset(beta, offset.kappa_px_s, e, offset.source)
         check = first_steps_scale(seq, dataclasses.replace(decisions, stereo_offset=candidate), mean_only)
-        record["trials"].append({"beta_px": float(beta), **check.as_dict()})
+        tried.append((beta, check))
         return check
 
-    def kept(o: StereoOffset) -> StereoOffset:
+    def kept(o: StereoOffset, chosen: int | None = None, why: str | None = None) -> StereoOffset:
+        trials = [{"beta_px": float(b), **c.as_dict()} for b, c in tried]
+        record = {"steps": int(steps), "trials": trials, "chosen": None if chosen is None else trials[chosen]}
+        if why is not None:
+            record["why"] = why
         return dataclasses.replace(o, estimate=dict(o.estimate, imu_scale=record))
 
     first = trial(offset.beta0_px)
     if not first.significant:
         return kept(offset)
-    tried = [(offset.beta0_px, first)]
-    beta = offset.beta0_px + (first.scale - 1.0) / float(np.mean(inverse))
+    beta = offset.beta0_px + (first.scale - 1.0) / float(np.mean(1.0 / d))
     for _ in range(SCALE_SEARCH_RUNS):
         beta = float(np.clip(beta, center - half, center + half))
         if any(beta == b for b, _ in tried):
             break
         check = trial(beta)
-        tried.append((beta, check))
         f = check.scale - 1.0
         if not check.tested or abs(f) <= check.standard_error:
             break
-        (b_prev, c_prev) = tried[-2]
+        b_prev, c_prev = tried[-2]
         slope = (f - (c_prev.scale - 1.0)) / (beta - b_prev)
         if not slope < 0.0:  # the scale falls as the offset rises: else the offset does not explain it
             break
         beta -= f / slope
-    candidates = [(b, c) for b, c in tried[1:] if c.tested]
+    candidates = [i for i in range(1, len(tried)) if tried[i][1].tested]
     if not candidates:
-        record["why"] = "no other candidate within the two-view estimate's bounds could be tested"
-        return kept(offset)
-    beta, check = min(candidates, key=lambda bc: abs(bc[1].z))
+        return kept(offset, why="no other candidate within the two-view estimate's bounds could be tested")
+    best = min(candidates, key=lambda i: abs(tried[i][1].z))
+    beta, check = tried[best]
     if check.significant:
-        record["why"] = (f"the closest, {beta:+.2f} px, leaves the IMU at {check.scale:.3f} +- "
-                         f"{check.standard_error:.3f} times the filter's distance")
-        return kept(offset)
-    record["chosen"] = record["trials"][[b for b, _ in tried].index(beta)]
-    return kept(StereoOffset(beta, offset.kappa_px_s, e, f"{offset.source}, set by the IMU's scale (D5)"))
+        return kept(offset, why=f"the closest, {beta:+.2f} px, leaves the IMU at {check.scale:.3f} +- "
+                                f"{check.standard_error:.3f} times the filter's distance")
+    return kept(StereoOffset(beta, offset.kappa_px_s, e, f"{offset.source}, set by the IMU's scale (D5)"), best)
