@@ -298,7 +298,7 @@ def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
     """The guard of ``decisions.decide``: the IMU's reprojection test (C1) must not get worse with the
     offset removed. The offset estimated from a planted -1 px is kept; one of the opposite sign (put in
     place of the estimate, without a standard error) is refused, and the filter's scale against the
-    IMU's (D5) then finds the planted one."""
+    IMU's (D5) then finds the planted one, from the IMU alone (the refused estimate does not enter D6)."""
     from vislam.backend.run import decisions
 
     seq = _with_offset(_scene(3).sequence, -1.0)
@@ -315,8 +315,9 @@ def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
     reprojection = refused.estimate["dead_reckoning_reprojection_px"]
     assert reprojection["with"] > decisions.GUARD_TOLERANCE * reprojection["without"]
     rescued = decisions.decide(seq, config).stereo_offset
-    assert "rejected" in rescued.estimate and rescued.source.endswith("set by the IMU's scale (D5)")
-    assert abs(rescued.beta0_px + 1.0) < 0.3, rescued.estimate["imu_scale"]
+    assert "rejected" in rescued.estimate and rescued.source.endswith("fused with the IMU's scale (D6)")
+    check = rescued.estimate["imu_scale"]
+    assert abs(rescued.beta0_px + 1.0) < 0.3 and rescued.beta0_px == check["imu_px"] == check["fused_px"], check
 
 
 def test_too_few_steps_is_said_not_estimated():

@@ -49,26 +49,48 @@ test C1 must not get worse). The correction moves the right pixel: ``uR <- uR + 
 
 Where the two-view estimate leaves the scale open (its standard error moves the depth of the
 median point, ``se * median(1/d)``, by more than ``SCALE_MIN_EFFECT``, or no estimate was made),
-the filter over the first steps (at most 300, at least the 101 H4 needs: not an image stream's
-first 100 frames) checks its scale against the IMU's (H4 of ``backend.estimator.health``). Where
-they differ significantly, the offset is the one that makes them agree: a secant search on
-f(beta) = s(beta) - 1 over trial runs of the same steps, the first step from the sensitivity of a
-disparity's relative change, ds/dbeta ~ -mean(1/d), each candidate kept within ``SIGNIFICANCE``
-standard errors of the two-view estimate, ended within one standard error of 1 or after
-``SCALE_SEARCH_RUNS`` runs. The trial runs carry no residual offset state (O1 of
-``backend.estimator.offset``), so that s(beta) is the mean offset's alone: a consider state, there
-only for a nonzero offset, makes s jump at 0 and flattens it (on a random aerial scene the search
-then ended at +0.35 px where -1 was planted). The candidate closest to 1 is applied where it agrees
-with the IMU (within the check's significance); its uncertainty in the filter stays the two-view
-one (the filter's scale blends vision's and the IMU's, so the search's precision is not the
-offset's). The search needs no effect size: with a precise IMU a 0.7 % scale error is the whole of
-a run's error (a street with +0.7 px planted and 1 px of noise: 0.66 m against dead reckoning's
-0.47 m, NEES 356).                                                                             (D5)
+the IMU measures the offset a second time: the filter over the first steps (at most 300, at least
+the 101 H4 needs: not an image stream's first 100 frames) is run with trial offsets and its scale
+s(beta) checked against the IMU's (H4 of ``backend.estimator.health``): a secant search on
+f(beta) = s(beta) - 1, the first trial at the offset the tracks decided, the second a step that
+would move a vision-only scale (ds/dbeta ~ -mean(1/d)) by the first error or at least two of its
+standard errors, each candidate within ``SIGNIFICANCE`` standard errors of the two-view estimate,
+ended within one standard error of 1 or after ``SCALE_SEARCH_RUNS`` runs. Through the two trials
+closest to 1 (the trials share the data, so their difference is far more precise than either),
+
+    beta_imu = beta_1 + (1 - s_1) / slope,   slope < 0,
+    se(beta_imu) = hypot(c_t se(s_1) / |slope|, MIN_EFFECT_PX)                                   (D5)
+
+with ``c_t = sqrt(9/7)`` the standard deviation of a t with the batch means' 9 degrees of freedom,
+and ``MIN_EFFECT_PX`` in quadrature: a run's scale carries errors over its whole length that batch
+means do not see (on street scenes with 1 px of noise and no offset the IMU put it at +0.07 and
++0.10 px, 3 and 4 of its standard errors without that term, on 2 of 8 noise draws; applied, they
+took the 8 runs' pose NEES from 6.6 to 8.0). The slope is the filter's own: where vision hardly
+moves the filter's scale the IMU says little about the offset, however precise its scale. The two
+measurements are combined by their inverse variances,
+
+    beta = (beta_imu / se_imu^2 + beta_tv / se_tv^2) / (1 / se_imu^2 + 1 / se_tv^2),
+    se(beta) = (1 / se_imu^2 + 1 / se_tv^2)^(-1/2)                                              (D6)
+
+(the IMU's alone where the tracks gave no estimate), and ``beta`` is applied where it exceeds
+``FUSED_SIGNIFICANCE`` of its standard errors and ``MIN_EFFECT_PX``, with ``se(beta)`` as the
+residual offset's prior sigma (O1 of ``backend.estimator.offset``; the filter considers it where
+the tracks do not drift); else none. Not a test of the scale first: at 3 standard errors of scale
+(a 4 % error on a random aerial scene, +0.7 px planted, two-view +0.86 +- 0.67 px) the run was 2.8
+times dead reckoning's error and NEES 1565. ``FUSED_SIGNIFICANCE = 2`` is chosen on random scenes
+700-739 and checked on 800-839 and the grid (BENCHMARKS.md): 0 and 1 apply offsets where none is
+planted and cost the median scene; 3 and 4 leave more scenes with a planted offset worse than dead
+reckoning. The trial runs carry no residual offset state,
+so that s(beta) is the mean offset's alone: a consider state, there only for a nonzero offset,
+makes s jump at 0 and flattens it (on a random aerial scene a search then ended at +0.35 px where
+-1 was planted). What the IMU cannot tell apart: an IMU whose speed is off moves beta_imu as an
+offset would (a speed 3 % high reads as the offset that makes vision 3 % longer).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -94,6 +116,12 @@ MIN_POINTS = 12
 SIMEX_PAIRS = 100
 #: D5: trial runs of the search for the offset that makes the filter's scale the IMU's, at most.
 SCALE_SEARCH_RUNS = 4
+#: D6: the offset fused from the tracks' and the IMU's measurements is applied beyond this many of its
+#: standard errors (and ``MIN_EFFECT_PX``)
+FUSED_SIGNIFICANCE = 2.0
+#: D5: the standard deviation of a t with the 9 degrees of freedom of H4's batch means, by which its
+#: standard error is widened to a normal one
+T_WIDENING = math.sqrt(9.0 / 7.0)
 #: The inverse-variance mean is dropped for the points' one when they differ by more than this many
 #: standard errors (hypot of the two; the two share the data, so the test is conservative) (D3).
 SELF_WEIGHTING = 3.0
@@ -107,6 +135,7 @@ class StereoOffset:
     kappa_px_s: float = 0.0  # applied px per rad/s of omega_y
     estimate: dict = field(default_factory=dict)  # beta0, kappa with their standard errors, steps used
     source: str = "off"  # "auto, constant" | "auto, rate" | "off"
+    sigma_px: float | None = None  # the applied offset's standard error where it is not the tracks' alone (D6)
 
     @property
     def active(self) -> bool:
@@ -115,8 +144,11 @@ class StereoOffset:
     @property
     def residual_sigma(self) -> float:
         """px: the standard error of the applied offset, what it may leave (O1 of
-        ``backend.estimator.offset``); 0 where none is applied."""
+        ``backend.estimator.offset``): the fused one (D6) where the IMU's scale entered, else the
+        tracks'; 0 where none is applied."""
         e = self.estimate
+        if self.active and self.sigma_px is not None:
+            return float(self.sigma_px)
         if not self.active or "beta_mean_px" not in e:
             return 0.0
         se = e["beta0_se"] if self.kappa_px_s != 0.0 else e["beta_mean_se"]
@@ -184,21 +216,23 @@ class StereoOffset:
         return f"d_true = d - ({self.beta0_px:+.2f} px {self.kappa_px_s:+.2f} px s/rad * omega_y)"
 
     def _scale_text(self) -> str:
-        """What the filter's scale against the IMU's said (D5), where it was checked."""
+        """What the filter's scale against the IMU's said (D5, D6), where it was checked."""
         check = self.estimate.get("imu_scale")
         if not check or not check.get("trials"):
             return ""
-        first, chosen = check["trials"][0], check.get("chosen")
-
-        def scale(trial: dict) -> str:
-            return f"{trial['imu_over_filter']:.3f} +- {trial['standard_error']:.3f}"
-
+        first = check["trials"][0]
         text = (f"; the filter's scale over the first {check['steps']} steps against the IMU's (D5): the IMU moved "
-                f"{scale(first)} times the filter's distance a step at {first['beta_px']:+.2f} px")
-        if chosen is not None:
-            text += f", {scale(chosen)} at {chosen['beta_px']:+.2f} px, so that offset is applied"
-        elif first["significant"]:
-            text += f"; no offset made them agree ({check.get('why', '')})"
+                f"{first['imu_over_filter']:.3f} +- {first['standard_error']:.3f} times the filter's distance a step "
+                f"at {first['beta_px']:+.2f} px")
+        if "imu_px" not in check:
+            return f"{text}; no offset from it ({check.get('why', '')})"
+        text += (f", so the IMU puts the offset at {check['imu_px']:+.2f} +- {check['imu_se_px']:.2f} px "
+                 f"({len(check['trials'])} trials)")
+        if check["with_tracks"]:
+            text += (f", combined with the tracks' estimate {check['fused_px']:+.2f} +- "
+                     f"{check['fused_se_px']:.2f} px (D6)")
+        if not check["applied"]:
+            text += f": within {FUSED_SIGNIFICANCE:g} standard errors of none"
         return text
 
 
@@ -309,9 +343,10 @@ def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: lis
 
 
 def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffset:
-    """(D5) the offset of ``decisions`` (a ``backend.run.decisions.Decisions``), or where the filter's
-    scale over the first steps of ``seq`` disagrees with the IMU's (H4), the offset with which they
-    agree; what was tried is kept in its estimate (``imu_scale``: each trial's offset and check)."""
+    """(D5, D6) the offset of ``decisions`` (a ``backend.run.decisions.Decisions``), or where the tracks
+    leave the scale open, the one fused from theirs and the IMU's scale over the first steps of
+    ``seq``; what was tried is kept in its estimate (``imu_scale``: each trial's offset and check, the
+    IMU's and the fused offset with their standard errors)."""
     from .likelihood import LIKELIHOOD_STEPS, first_steps_scale  # runs the filter: the layer above
 
     offset = decisions.stereo_offset
@@ -327,6 +362,8 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
         return offset
     center = float(e["beta_mean_px"]) if np.isfinite(se) else offset.beta0_px
     half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d))
+    # the tracks' measurement for D6, unless dead reckoning refused it (``decisions.decide``'s guard)
+    two_view = (center, se) if np.isfinite(se) and "rejected" not in e else None
     mean_only = config.with_values({"noise.stereo_offset_sigma": 0.0})  # no residual offset state in the trials
     tried: list[tuple[float, ScaleCheck]] = []  # (offset px, its check), in the order run
 
@@ -336,17 +373,19 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
         tried.append((beta, check))
         return check
 
-    def kept(o: StereoOffset, chosen: int | None = None, why: str | None = None) -> StereoOffset:
-        trials = [{"beta_px": float(b), **c.as_dict()} for b, c in tried]
-        record = {"steps": int(steps), "trials": trials, "chosen": None if chosen is None else trials[chosen]}
-        if why is not None:
-            record["why"] = why
+    def kept(o: StereoOffset, **record) -> StereoOffset:
+        record = {"steps": int(steps), "trials": [{"beta_px": float(b), **c.as_dict()} for b, c in tried], **record}
         return dataclasses.replace(o, estimate=dict(o.estimate, imu_scale=record))
 
     first = trial(offset.beta0_px)
-    if not first.significant:
-        return kept(offset)
-    beta = offset.beta0_px + (first.scale - 1.0) / float(np.mean(1.0 / d))
+    if not first.tested:
+        return kept(offset, why="the first trial could not be tested")
+    ratio = float(np.mean(1.0 / d))  # -ds/dbeta of a vision-only scale
+    step = (first.scale - 1.0) / ratio
+    least = 2.0 * first.standard_error / ratio
+    if abs(step) < least:  # a step the scale moves by: the slope is measured, not assumed
+        step = least if center >= offset.beta0_px else -least
+    beta = offset.beta0_px + step
     for _ in range(SCALE_SEARCH_RUNS):
         beta = float(np.clip(beta, center - half, center + half))
         if any(beta == b for b, _ in tried):
@@ -360,12 +399,32 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
         if not slope < 0.0:  # the scale falls as the offset rises: else the offset does not explain it
             break
         beta -= f / slope
-    candidates = [i for i in range(1, len(tried)) if tried[i][1].tested]
-    if not candidates:
-        return kept(offset, why="no other candidate within the two-view estimate's bounds could be tested")
-    best = min(candidates, key=lambda i: abs(tried[i][1].z))
-    beta, check = tried[best]
-    if check.significant:
-        return kept(offset, why=f"the closest, {beta:+.2f} px, leaves the IMU at {check.scale:.3f} +- "
-                                f"{check.standard_error:.3f} times the filter's distance")
-    return kept(StereoOffset(beta, offset.kappa_px_s, e, f"{offset.source}, set by the IMU's scale (D5)"), best)
+    imu = _imu_offset(tried)
+    if isinstance(imu, str):
+        return kept(offset, why=imu)
+    if two_view is None:
+        fused = imu
+    else:
+        w_imu, w_tv = imu[1] ** -2, two_view[1] ** -2
+        fused = ((w_imu * imu[0] + w_tv * two_view[0]) / (w_imu + w_tv), (w_imu + w_tv) ** -0.5)  # (D6)
+    applied = abs(fused[0]) > max(FUSED_SIGNIFICANCE * fused[1], MIN_EFFECT_PX)
+    numbers = {"imu_px": imu[0], "imu_se_px": imu[1], "fused_px": fused[0], "fused_se_px": fused[1],
+               "with_tracks": two_view is not None, "applied": bool(applied)}
+    if not applied:
+        return kept(dataclasses.replace(offset, beta0_px=0.0, sigma_px=None), **numbers)
+    return kept(StereoOffset(fused[0], offset.kappa_px_s, e, f"{offset.source}, fused with the IMU's scale (D6)",
+                             sigma_px=fused[1]), **numbers)
+
+
+def _imu_offset(tried: list[tuple[float, ScaleCheck]]) -> tuple[float, float] | str:
+    """(D5) the offset with which the filter's scale is the IMU's and its standard error (px), through
+    the two tested trials closest to a scale of 1; or why there is none."""
+    tested = sorted((t for t in tried if t[1].tested), key=lambda t: abs(t[1].z))
+    if len(tested) < 2:
+        return "fewer than two trials could be tested"
+    (b1, c1), (b2, c2) = tested[:2]
+    slope = (c1.scale - c2.scale) / (b1 - b2)
+    if not slope < 0.0:
+        return f"the filter's scale does not fall as the offset rises ({slope:+.4f} per px)"
+    return float(b1 + (1.0 - c1.scale) / slope), float(np.hypot(T_WIDENING * c1.standard_error / abs(slope),
+                                                                 MIN_EFFECT_PX))
