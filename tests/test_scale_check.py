@@ -19,7 +19,9 @@ from vislam.backend.evaluation.metrics import trajectory_errors
 from vislam.backend.geometry import se3
 from vislam.backend.run.decisions import decide
 from vislam.backend.run.runner import run_sequence
-from vislam.backend.run.stereo_offset import FUSED_SIGNIFICANCE, MIN_EFFECT_PX, T_WIDENING, _imu_offset
+from vislam.backend.run.stereo_offset import (
+    FUSED_SIGNIFICANCE, MIN_EFFECT_PX, T_WIDENING, OffsetMeasurement, _imu_offset,
+)
 from vislam.synth.grid import random_spec
 from vislam.synth.scene import SceneConfig, make_scene
 
@@ -182,13 +184,16 @@ def test_an_open_offset_whose_scale_agrees_is_left_alone():
 def test_the_imus_offset_is_the_root_of_the_trials_scale():
     """D5 and D6 on two trials whose scales are given: s = 1.05 at 0 px and 1.00 at +0.5 px (slope -0.1
     per px) put the offset at +0.5 px with hypot(c_t 0.01 / 0.1, MIN_EFFECT_PX) px; through the two
-    trials closest to 1 where there are three; a scale that rises with the offset gives no estimate."""
+    trials closest to 1 where there are three; a scale that rises with the offset gives no estimate.
+    Two measurements combine by their inverse variances (D6)."""
     check = lambda s: ScaleCheck(s, 0.01, 290)  # noqa: E731
-    beta, se = _imu_offset([(0.0, check(1.05)), (0.5, check(1.0))])
-    assert beta == pytest.approx(0.5) and se == pytest.approx(np.hypot(T_WIDENING * 0.1, MIN_EFFECT_PX))
-    beta, se = _imu_offset([(0.0, check(1.05)), (0.5, check(1.02)), (0.25, check(1.04))])  # the two closest to 1
-    assert beta == pytest.approx(0.5 + 0.02 / (0.02 / 0.25))
-    assert se == pytest.approx(np.hypot(T_WIDENING * 0.01 / 0.08, MIN_EFFECT_PX))
+    imu = _imu_offset([(0.0, check(1.05)), (0.5, check(1.0))])
+    assert imu.px == pytest.approx(0.5) and imu.se_px == pytest.approx(np.hypot(T_WIDENING * 0.1, MIN_EFFECT_PX))
+    imu = _imu_offset([(0.0, check(1.05)), (0.5, check(1.02)), (0.25, check(1.04))])  # the two closest to 1
+    assert imu.px == pytest.approx(0.5 + 0.02 / (0.02 / 0.25))
+    assert imu.se_px == pytest.approx(np.hypot(T_WIDENING * 0.01 / 0.08, MIN_EFFECT_PX))
+    both = OffsetMeasurement(0.4, 0.1).combined(OffsetMeasurement(1.0, 0.2))  # D6: weights 100 and 25
+    assert both.px == pytest.approx((100 * 0.4 + 25 * 1.0) / 125) and both.se_px == pytest.approx(125**-0.5)
     assert isinstance(_imu_offset([(0.0, check(1.0)), (0.5, check(1.05))]), str)
     assert isinstance(_imu_offset([(0.0, check(1.05))]), str)
 
@@ -199,9 +204,10 @@ def test_the_combined_offsets_standard_error_holds_the_planted_offset(seed):
     fewer with each planted offset, +0.7, -0.5, -1 and 0 px; 5-20 px disparities): where the tracks
     leave the scale open, the combined offset (D6) lies within 3 of its standard errors of the
     planted one, its standard error is below the tracks' alone, and the run that applies it keeps
-    the IMU's scale (H4) and is no worse than the run with the tracks' offset alone (``conventions.stereo_offset_by_imu = false``; where it is not better
-    than dead reckoning, as on s902, heavy drift under a precise IMU, that is not the offset's doing:
-    the offset alone then gives 3.9 times dead reckoning's error, D6 1.44)."""
+    the IMU's scale (H4) and is no worse than the run with the tracks' offset alone
+    (``conventions.stereo_offset_by_imu = false``; where it is not better than dead reckoning, as on
+    s902, heavy drift under a precise IMU, that is not the offset's doing: the offset alone then
+    gives 3.9 times dead reckoning's error, D6 1.44)."""
     spec = random_spec(seed)
     scene = make_scene(spec.scene_config())
     decisions = decide(scene.sequence, Config())

@@ -100,7 +100,7 @@ from ..data.sequence import Sequence
 from ..estimator.health import SCALE_MIN_EFFECT, SCALE_MIN_STEPS, ScaleCheck
 from .two_view import fit_pairs
 
-__all__ = ["StereoOffset", "identify_stereo_offset", "camera_rate_y", "offset_by_imu_scale"]
+__all__ = ["StereoOffset", "OffsetMeasurement", "identify_stereo_offset", "camera_rate_y", "offset_by_imu_scale"]
 
 #: A term is applied when its estimate exceeds this many standard errors (``auto``).
 SIGNIFICANCE = 4.0
@@ -236,6 +236,19 @@ class StereoOffset:
         return text
 
 
+@dataclass(frozen=True)
+class OffsetMeasurement:
+    """A measurement of the disparity offset: the tracks' (D3), the IMU's scale's (D5) or both (D6)."""
+
+    px: float
+    se_px: float  # its standard error
+
+    def combined(self, other: "OffsetMeasurement") -> "OffsetMeasurement":
+        """The inverse-variance mean of two independent measurements (D6)."""
+        w, w_other = self.se_px**-2, other.se_px**-2
+        return OffsetMeasurement((w * self.px + w_other * other.px) / (w + w_other), (w + w_other) ** -0.5)
+
+
 def camera_rate_y(angular_velocity: np.ndarray, imu_T_cam: np.ndarray) -> np.ndarray:
     """omega about the camera's y axis (N,) from IMU-frame angular rates (N,3): R_cam_imu w."""
     R_cam_imu = np.asarray(imu_T_cam, dtype=float)[:3, :3].T
@@ -363,7 +376,7 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
     center = float(e["beta_mean_px"]) if np.isfinite(se) else offset.beta0_px
     half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d))
     # the tracks' measurement for D6, unless dead reckoning refused it (``decisions.decide``'s guard)
-    two_view = (center, se) if np.isfinite(se) and "rejected" not in e else None
+    tracks = OffsetMeasurement(center, se) if np.isfinite(se) and "rejected" not in e else None
     mean_only = config.with_values({"noise.stereo_offset_sigma": 0.0})  # no residual offset state in the trials
     tried: list[tuple[float, ScaleCheck]] = []  # (offset px, its check), in the order run
 
@@ -402,21 +415,17 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
     imu = _imu_offset(tried)
     if isinstance(imu, str):
         return kept(offset, why=imu)
-    if two_view is None:
-        fused = imu
-    else:
-        w_imu, w_tv = imu[1] ** -2, two_view[1] ** -2
-        fused = ((w_imu * imu[0] + w_tv * two_view[0]) / (w_imu + w_tv), (w_imu + w_tv) ** -0.5)  # (D6)
-    applied = abs(fused[0]) > max(FUSED_SIGNIFICANCE * fused[1], MIN_EFFECT_PX)
-    numbers = {"imu_px": imu[0], "imu_se_px": imu[1], "fused_px": fused[0], "fused_se_px": fused[1],
-               "with_tracks": two_view is not None, "applied": bool(applied)}
+    fused = imu if tracks is None else imu.combined(tracks)
+    applied = abs(fused.px) > max(FUSED_SIGNIFICANCE * fused.se_px, MIN_EFFECT_PX)
+    numbers = {"imu_px": imu.px, "imu_se_px": imu.se_px, "fused_px": fused.px, "fused_se_px": fused.se_px,
+               "with_tracks": tracks is not None, "applied": bool(applied)}
     if not applied:
         return kept(dataclasses.replace(offset, beta0_px=0.0, sigma_px=None), **numbers)
-    return kept(StereoOffset(fused[0], offset.kappa_px_s, e, f"{offset.source}, fused with the IMU's scale (D6)",
-                             sigma_px=fused[1]), **numbers)
+    return kept(StereoOffset(fused.px, offset.kappa_px_s, e, f"{offset.source}, fused with the IMU's scale (D6)",
+                             sigma_px=fused.se_px), **numbers)
 
 
-def _imu_offset(tried: list[tuple[float, ScaleCheck]]) -> tuple[float, float] | str:
+def _imu_offset(tried: list[tuple[float, ScaleCheck]]) -> OffsetMeasurement | str:
     """(D5) the offset with which the filter's scale is the IMU's and its standard error (px), through
     the two tested trials closest to a scale of 1; or why there is none."""
     tested = sorted((t for t in tried if t[1].tested), key=lambda t: abs(t[1].z))
@@ -426,5 +435,5 @@ def _imu_offset(tried: list[tuple[float, ScaleCheck]]) -> tuple[float, float] | 
     slope = (c1.scale - c2.scale) / (b1 - b2)
     if not slope < 0.0:
         return f"the filter's scale does not fall as the offset rises ({slope:+.4f} per px)"
-    return float(b1 + (1.0 - c1.scale) / slope), float(np.hypot(T_WIDENING * c1.standard_error / abs(slope),
-                                                                 MIN_EFFECT_PX))
+    return OffsetMeasurement(float(b1 + (1.0 - c1.scale) / slope),
+                             float(np.hypot(T_WIDENING * c1.standard_error / abs(slope), MIN_EFFECT_PX)))
