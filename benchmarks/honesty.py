@@ -13,7 +13,7 @@ Tables:
 3. the synthetic grid (``synth.grid``): every scene with the defaults, the tuning and held-out parts
    apart, against dead reckoning;
 4. random scenes off the grid (``synth.grid.random_spec``, seeds ``--random-seeds``), drawn after
-   every option was chosen: the defaults against the tracks' disparity offset alone (without D5).
+   every option was chosen: the defaults against the tracks' disparity offset alone (without D5 and D6).
 
 Usage: python benchmarks/honesty.py [--tables 1,2,3,4] [--random-seeds 700-739] [--workers 2] [--shared ../shared]
 """
@@ -191,7 +191,7 @@ def table_grid(pool) -> None:
                   f"median {np.median(nees):.1f}")
 
 
-#: Table 4's alternative: the disparity offset from the tracks alone, not set by the IMU's scale (D5)
+#: Table 4's alternative: the disparity offset from the tracks alone, without the IMU's scale (D5, D6)
 TRACKS_ALONE = ["conventions.stereo_offset_by_imu=false"]
 
 

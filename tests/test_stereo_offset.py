@@ -315,7 +315,7 @@ def test_an_offset_dead_reckoning_contradicts_is_not_removed(monkeypatch):
     reprojection = refused.estimate["dead_reckoning_reprojection_px"]
     assert reprojection["with"] > decisions.GUARD_TOLERANCE * reprojection["without"]
     rescued = decisions.decide(seq, config).stereo_offset
-    assert "rejected" in rescued.estimate and rescued.source.endswith("fused with the IMU's scale (D6)")
+    assert "rejected" in rescued.estimate and rescued.source.endswith("set by the IMU's scale (D6)")
     check = rescued.estimate["imu_scale"]
     assert abs(rescued.beta0_px + 1.0) < 0.3 and rescued.beta0_px == check["imu_px"] == check["fused_px"], check
 

@@ -421,7 +421,8 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
                "with_tracks": tracks is not None, "applied": bool(applied)}
     if not applied:
         return kept(dataclasses.replace(offset, beta0_px=0.0, sigma_px=None), **numbers)
-    return kept(StereoOffset(fused.px, offset.kappa_px_s, e, f"{offset.source}, fused with the IMU's scale (D6)",
+    how = "fused with" if tracks is not None else "set by"  # the IMU's alone where the tracks gave none
+    return kept(StereoOffset(fused.px, offset.kappa_px_s, e, f"{offset.source}, {how} the IMU's scale (D6)",
                              sigma_px=fused.se_px), **numbers)
 
 
