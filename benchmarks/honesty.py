@@ -12,8 +12,9 @@ Tables:
    (``benchmarks/noise_draws.py``'s model);
 3. the synthetic grid (``synth.grid``): every scene with the defaults, the tuning and held-out parts
    apart, against dead reckoning;
-4. random scenes off the grid (``synth.grid.random_spec``, seeds ``--random-seeds``), drawn after
-   every option was chosen: the defaults against the tracks' disparity offset alone (without D5 and D6).
+4. random scenes off the grid (``synth.grid.random_spec``, seeds ``--random-seeds``: 700-739, on
+   which D6's threshold was chosen, or 800-839, drawn after every option was): the defaults against
+   the tracks' disparity offset alone (without D5 and D6).
 
 Usage: python benchmarks/honesty.py [--tables 1,2,3,4] [--random-seeds 700-739] [--workers 2] [--shared ../shared]
 """
