@@ -104,29 +104,16 @@ def _draw_job(args):
     return evaluate(noisy, Config().with_assignments(assignments), gt)
 
 
-def _grid_job(args):
-    from vislam.synth.grid import GRID
+def _scene_job(args):
+    """A grid scene or a random one (its ``GridSpec``) run with ``assignments``: evaluate()'s numbers,
+    the scene's name and part."""
     from vislam.synth.scene import make_scene
 
-    name, assignments = args
-    spec = next(s for s in GRID if s.name == name)
+    spec, assignments = args
     scene = make_scene(spec.scene_config())
     out = evaluate(scene.sequence, Config().with_assignments(assignments),
                    (scene.sequence.time_stamps, scene.world_T_imu_true))
-    out["part"] = spec.part
-    return out
-
-
-def _random_job(args):
-    from vislam.synth.grid import random_spec
-    from vislam.synth.scene import make_scene
-
-    seed, assignments = args
-    spec = random_spec(seed)
-    scene = make_scene(spec.scene_config())
-    out = evaluate(scene.sequence, Config().with_assignments(assignments),
-                   (scene.sequence.time_stamps, scene.world_T_imu_true))
-    out["name"] = spec.name
+    out.update(name=spec.name, part=spec.part)
     return out
 
 
@@ -169,27 +156,31 @@ def table_draws(pool, shared: Path, draws: int = 6) -> None:
               f"{nees.mean():.1f}; steps inside the 95 % ellipsoid {100 * inside.mean():.0f} % on average")
 
 
+def _summary(rows: list[dict]) -> str:
+    """ATE against dead reckoning and the position NEES over a set of scenes, one line."""
+    ratio = np.array([r["ate"] / r["dr"] for r in rows])
+    nees = np.array([r["nees"] for r in rows])
+    return (f"ATE / dead reckoning median {np.median(ratio):.2f}, worse than dead reckoning on "
+            f"{int((ratio > 1).sum())}; position NEES mean <= 9 on {int((nees <= 9).sum())}, median "
+            f"{np.median(nees):.1f}")
+
+
 def table_grid(pool) -> None:
     from vislam.synth.grid import GRID
 
-    names = [s.name for s in GRID]
-    rows = list(pool.map(_grid_job, [(n, []) for n in names]))
-    constant = list(pool.map(_grid_job, [(n, ALTERNATIVES[CONSTANT_WALK]) for n in names]))
+    rows = list(pool.map(_scene_job, [(spec, []) for spec in GRID]))
+    constant = list(pool.map(_scene_job, [(spec, ALTERNATIVES[CONSTANT_WALK]) for spec in GRID]))
     print("| scene | part | ATE m | dead reckoning m | ratio | NIS | position NEES mean / inside | a constant landmark "
           "walk, one pixel sigma: ATE m, NEES mean / inside |")
     print("|---|---|---|---|---|---|---|---|")
-    for name, r, c in zip(names, rows, constant):
-        print(f"| {name} | {r['part']} | {r['ate']:.3f} | {r['dr']:.3f} | {r['ate'] / r['dr']:.2f} | {_fmt(r['nis'])} "
-              f"| {_fmt(r['nees'], 1)} / {100 * r['inside']:.0f} % | {c['ate']:.3f}, {_fmt(c['nees'], 1)} / "
+    for r, c in zip(rows, constant):
+        print(f"| {r['name']} | {r['part']} | {r['ate']:.3f} | {r['dr']:.3f} | {r['ate'] / r['dr']:.2f} "
+              f"| {_fmt(r['nis'])} | {_fmt(r['nees'], 1)} / {100 * r['inside']:.0f} % | {c['ate']:.3f}, {_fmt(c['nees'], 1)} / "
               f"{100 * c['inside']:.0f} % |")
     for label, table in (("defaults", rows), ("a constant landmark walk, one pixel sigma", constant)):
         for part in ("tuning", "held_out"):
             sel = [r for r in table if r["part"] == part]
-            ratio = np.array([r["ate"] / r["dr"] for r in sel])
-            nees = np.array([r["nees"] for r in sel])
-            print(f"\n{label}, {part} ({len(sel)} scenes): ATE / dead reckoning median {np.median(ratio):.2f}, worse "
-                  f"than dead reckoning on {int((ratio > 1).sum())}; position NEES mean <= 9 on {int((nees <= 9).sum())}, "
-                  f"median {np.median(nees):.1f}")
+            print(f"\n{label}, {part} ({len(sel)} scenes): {_summary(sel)}")
 
 
 #: Table 4's alternative: the disparity offset from the tracks alone, without the IMU's scale (D5, D6)
@@ -197,8 +188,11 @@ TRACKS_ALONE = ["conventions.stereo_offset_by_imu=false"]
 
 
 def table_random(pool, seeds: range) -> None:
-    rows = list(pool.map(_random_job, [(s, []) for s in seeds]))
-    alone = list(pool.map(_random_job, [(s, TRACKS_ALONE) for s in seeds]))
+    from vislam.synth.grid import random_spec
+
+    specs = [random_spec(seed) for seed in seeds]
+    rows = list(pool.map(_scene_job, [(spec, []) for spec in specs]))
+    alone = list(pool.map(_scene_job, [(spec, TRACKS_ALONE) for spec in specs]))
     print("| scene | ATE m | dead reckoning m | ratio | position NEES mean / inside | seconds | the tracks' offset "
           "alone (conventions.stereo_offset_by_imu=false): ATE m, NEES mean / inside, seconds |")
     print("|---|---|---|---|---|---|---|")
@@ -207,11 +201,8 @@ def table_random(pool, seeds: range) -> None:
               f"{100 * r['inside']:.0f} % | {r['seconds']:.1f} | {a['ate']:.3f}, {_fmt(a['nees'], 1)} / "
               f"{100 * a['inside']:.0f} %, {a['seconds']:.1f} |")
     for label, table in (("defaults", rows), ("the tracks' offset alone", alone)):
-        ratio = np.array([r["ate"] / r["dr"] for r in table])
-        nees = np.array([r["nees"] for r in table])
-        print(f"\n{label} ({len(table)} scenes): ATE / dead reckoning median {np.median(ratio):.2f}, worse than dead "
-              f"reckoning on {int((ratio > 1).sum())}; position NEES mean <= 9 on {int((nees <= 9).sum())}, median "
-              f"{np.median(nees):.1f}; {sum(r['seconds'] for r in table):.0f} s of runs in all")
+        print(f"\n{label} ({len(table)} scenes): {_summary(table)}; {sum(r['seconds'] for r in table):.0f} s of runs "
+              "in all")
 
 
 def main() -> int:

@@ -25,7 +25,8 @@ import numpy as np
 from .scene import SceneConfig
 from .track_errors import KITTI_LIKE, TrackErrors
 
-__all__ = ["GridSpec", "GRID", "PARTS", "DRIFT_LEVELS", "VELOCITY_NOISE", "part_of", "specs", "scenes", "random_spec"]
+__all__ = ["GridSpec", "GRID", "PARTS", "DRIFT_LEVELS", "VELOCITY_NOISE", "part_of", "spec", "specs", "scenes",
+           "random_spec"]
 
 PARTS = ("tuning", "held_out")
 
@@ -125,6 +126,14 @@ def specs(part: str) -> tuple[GridSpec, ...]:
     if part not in PARTS:
         raise ValueError(f"part must be one of {', '.join(PARTS)}, got {part!r}")
     return tuple(spec for spec in GRID if spec.part == part)
+
+
+def spec(name: str) -> GridSpec:
+    """The grid scene named ``name``, or the one whose name starts with it (``"aerial-s210"``)."""
+    found = [s for s in GRID if s.name == name] or [s for s in GRID if s.name.startswith(name)]
+    if len(found) != 1:
+        raise ValueError(f"{name!r} names {len(found)} grid scenes, not one")
+    return found[0]
 
 
 def scenes(part: str) -> Iterator[tuple[str, SceneConfig]]:

@@ -22,6 +22,7 @@ from vislam.backend.run.runner import run_sequence
 from vislam.backend.run.stereo_offset import (
     FUSED_SIGNIFICANCE, MIN_EFFECT_PX, T_WIDENING, OffsetMeasurement, _imu_offset,
 )
+from vislam.synth import grid
 from vislam.synth.grid import random_spec
 from vislam.synth.scene import SceneConfig, make_scene
 
@@ -119,9 +120,7 @@ def test_a_run_at_the_wrong_scale_says_so_and_a_right_one_does_not():
 
 
 def _grid_scene(name: str):
-    from vislam.synth.grid import GRID
-
-    spec = next(s for s in GRID if s.name.startswith(name))
+    spec = grid.spec(name)
     assert spec.part == "tuning"
     return spec, make_scene(spec.scene_config())
 

@@ -334,9 +334,9 @@ def test_pairs_whose_noise_raised_beta_do_not_outweigh_the_rest(name, planted):
     about 0.4-0.7 here), so inverse-variance weights found +4 px on s206 where none was planted, and
     removed it. The two means disagree there, the points' one is taken: within 3 standard errors of
     the planted offset, and an offset is removed only where one was planted."""
-    from vislam.synth.grid import GRID
+    from vislam.synth.grid import spec as grid_spec
 
-    spec = next(s for s in GRID if s.name.startswith(name))
+    spec = grid_spec(name)
     assert spec.disparity_offset == planted
     seq = make_scene(spec.scene_config()).sequence
     offset = identify_stereo_offset(seq, seq.imu_T_cam)

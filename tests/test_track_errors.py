@@ -412,6 +412,11 @@ def test_grid_names_parts_and_determinism():
         assert {c.track_errors.outlier_share for c in configs} == {0.0, 0.03}
     with pytest.raises(ValueError):
         list(grid.scenes("test"))
+    for spec in grid.GRID:  # by its whole name or a prefix naming one scene; none or several refused
+        assert grid.spec(spec.name) is spec and grid.spec(spec.name[:11]) is spec
+    for name in ("aerial-s2", "street-s999", ""):
+        with pytest.raises(ValueError, match="grid scenes, not one"):
+            grid.spec(name)
     scene = make_scene(dataclasses.replace(held_out[-1][1], steps=40))
     assert scene.sequence.tracker == "synthetic-drifting" and scene.sequence.num_observations > 1000
 

@@ -13,6 +13,9 @@ observation compares candidates on the same observations.                       
 from __future__ import annotations
 
 import dataclasses
+import itertools
+from contextlib import contextmanager
+from typing import Iterator
 
 import numpy as np
 
@@ -27,46 +30,41 @@ __all__ = ["log_likelihood", "first_steps_scale", "LIKELIHOOD_STEPS"]
 LIKELIHOOD_STEPS = 300
 
 
-def _first_steps(seq: Sequence, decisions, config: Config, steps: int, likelihood: bool = False):
-    """An ``OnlineRun`` (health silent: a trial of the decisions, not the user's run) over the first
-    ``steps`` steps of ``seq``: (the run, the summed log-likelihood, the observations it tested), the
-    last two 0 unless ``likelihood``. The caller closes ``run.ekf``."""
+@contextmanager
+def _trial_run(seq: Sequence, decisions, config: Config, likelihood: bool) -> Iterator:
+    """An ``OnlineRun`` of ``decisions`` over ``seq`` (health silent: a trial of the decisions, not the
+    user's run; the innovation likelihood tracked where ``likelihood``), closed on leaving."""
     from .online import OnlineRun  # the run layer above: imported when a comparison runs
 
     run = OnlineRun(StereoCamera(seq.K, seq.baseline), decisions, config)
     run.ekf.track_likelihood = likelihood
     run.ekf.health.silent = True
-    total, count = 0.0, 0
     try:
-        for k, step in enumerate(seq.steps()):
-            if k >= steps:
-                break
-            stats = run.step(*step)
-            if likelihood and stats is not None:
-                total += stats.log_likelihood
-                count += stats.tested
-    except BaseException:
+        yield run
+    finally:
         run.ekf.close()
-        raise
-    return run, total, count
 
 
 def log_likelihood(seq: Sequence, decisions, config: Config, steps: int = LIKELIHOOD_STEPS) -> tuple[float, int]:
     """(L2) (mean log-likelihood per observation, observations) of the first ``steps`` steps of ``seq``
     under ``decisions`` (a ``backend.run.decisions.Decisions``); (-inf, 0) when none was tested."""
-    run, total, count = _first_steps(seq, decisions, config, steps, likelihood=True)
-    run.ekf.close()
+    total, count = 0.0, 0
+    with _trial_run(seq, decisions, config, likelihood=True) as run:
+        for step in itertools.islice(seq.steps(), steps):
+            stats = run.step(*step)
+            if stats is not None:
+                total += stats.log_likelihood
+                count += stats.tested
     return (total / count, count) if count else (-np.inf, 0)
 
 
 def first_steps_scale(seq: Sequence, decisions, config: Config, steps: int = LIKELIHOOD_STEPS) -> ScaleCheck:
     """(H4) the filter's scale against the IMU's over the first ``steps`` steps of ``seq`` under
     ``decisions``."""
-    run, _, _ = _first_steps(seq, decisions, config, steps)
-    try:
+    with _trial_run(seq, decisions, config, likelihood=False) as run:
+        for step in itertools.islice(seq.steps(), steps):
+            run.step(*step)
         return run.scale_check()
-    finally:
-        run.ekf.close()
 
 
 def with_imu(decisions, linear_sigma: np.ndarray | None = None, angular_sigma: np.ndarray | None = None):

@@ -370,13 +370,13 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
     d = seq.obs_pixels[:, 0] - seq.obs_pixels[:, 2] - offset.beta0_px
     d = d[d > 0]
     se = float(e.get("beta_mean_se", np.inf))
-    se = se if np.isfinite(se) else np.inf
-    if d.size == 0 or not se * float(np.median(1.0 / d)) > SCALE_MIN_EFFECT:
+    estimated = bool(np.isfinite(se))  # the tracks gave an estimate (D3)
+    if d.size == 0 or (estimated and not se * float(np.median(1.0 / d)) > SCALE_MIN_EFFECT):
         return offset
-    center = float(e["beta_mean_px"]) if np.isfinite(se) else offset.beta0_px
-    half = SIGNIFICANCE * se if np.isfinite(se) else 0.5 * float(np.median(d))
+    center = float(e["beta_mean_px"]) if estimated else offset.beta0_px
+    half = SIGNIFICANCE * se if estimated else 0.5 * float(np.median(d))
     # the tracks' measurement for D6, unless dead reckoning refused it (``decisions.decide``'s guard)
-    tracks = OffsetMeasurement(center, se) if np.isfinite(se) and "rejected" not in e else None
+    tracks = OffsetMeasurement(center, se) if estimated and "rejected" not in e else None
     mean_only = config.with_values({"noise.stereo_offset_sigma": 0.0})  # no residual offset state in the trials
     tried: list[tuple[float, ScaleCheck]] = []  # (offset px, its check), in the order run
 
@@ -404,14 +404,11 @@ def offset_by_imu_scale(seq: Sequence, decisions, config: Config) -> StereoOffse
         if any(beta == b for b, _ in tried):
             break
         check = trial(beta)
-        f = check.scale - 1.0
-        if not check.tested or abs(f) <= check.standard_error:
+        if not check.tested or abs(check.scale - 1.0) <= check.standard_error:
             break
-        b_prev, c_prev = tried[-2]
-        slope = (f - (c_prev.scale - 1.0)) / (beta - b_prev)
+        slope, beta = _secant(tried[-1], tried[-2])
         if not slope < 0.0:  # the scale falls as the offset rises: else the offset does not explain it
             break
-        beta -= f / slope
     imu = _imu_offset(tried)
     if isinstance(imu, str):
         return kept(offset, why=imu)
@@ -432,9 +429,16 @@ def _imu_offset(tried: list[tuple[float, ScaleCheck]]) -> OffsetMeasurement | st
     tested = sorted((t for t in tried if t[1].tested), key=lambda t: abs(t[1].z))
     if len(tested) < 2:
         return "fewer than two trials could be tested"
-    (b1, c1), (b2, c2) = tested[:2]
-    slope = (c1.scale - c2.scale) / (b1 - b2)
+    slope, root = _secant(tested[0], tested[1])
     if not slope < 0.0:
         return f"the filter's scale does not fall as the offset rises ({slope:+.4f} per px)"
-    return OffsetMeasurement(float(b1 + (1.0 - c1.scale) / slope),
-                             float(np.hypot(T_WIDENING * c1.standard_error / abs(slope), MIN_EFFECT_PX)))
+    return OffsetMeasurement(root, float(np.hypot(T_WIDENING * tested[0][1].standard_error / abs(slope),
+                                                  MIN_EFFECT_PX)))
+
+
+def _secant(trial: tuple[float, ScaleCheck], other: tuple[float, ScaleCheck]) -> tuple[float, float]:
+    """The line s(beta) through two trials (offset px, check): (its slope per px, the offset at which it
+    is 1, reached from ``trial``)."""
+    (b1, c1), (b2, c2) = trial, other
+    slope = float((c1.scale - c2.scale) / (b1 - b2))
+    return slope, (float(b1 + (1.0 - c1.scale) / slope) if slope != 0.0 else math.nan)
