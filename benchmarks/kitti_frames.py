@@ -39,7 +39,7 @@ BIAS = np.array([0.01, -0.01, 0.01])
 
 def noisy_copy(src: Path, dst: Path, seed: int) -> None:
     """The course file with the 2020 files' velocity noise and a gyro bias added (2019 layout kept)."""
-    with np.load(src) as d:
+    with np.load(src, allow_pickle=False) as d:
         data = {k: d[k] for k in d.files}
     rng = np.random.default_rng(seed)
     n = data["linear_velocity"].shape[1]
