@@ -175,8 +175,8 @@ def table_grid(pool) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for r, c in zip(rows, constant):
         print(f"| {r['name']} | {r['part']} | {r['ate']:.3f} | {r['dr']:.3f} | {r['ate'] / r['dr']:.2f} "
-              f"| {_fmt(r['nis'])} | {_fmt(r['nees'], 1)} / {100 * r['inside']:.0f} % | {c['ate']:.3f}, {_fmt(c['nees'], 1)} / "
-              f"{100 * c['inside']:.0f} % |")
+              f"| {_fmt(r['nis'])} | {_fmt(r['nees'], 1)} / {100 * r['inside']:.0f} % | {c['ate']:.3f}, "
+              f"{_fmt(c['nees'], 1)} / {100 * c['inside']:.0f} % |")
     for label, table in (("defaults", rows), ("a constant landmark walk, one pixel sigma", constant)):
         for part in ("tuning", "held_out"):
             sel = [r for r in table if r["part"] == part]
