@@ -150,11 +150,14 @@ class UpdateOptions(OptionTable):
     ransac_threshold_px: float = 2.0  # 1-point RANSAC inlier threshold (px, norm of the 4-vector); 0: off
     persistent_outlier_steps: int = 10  # a track RANSAC rejects this many steps in a row is no longer rescued (0: always)
     max_consecutive_gated: int = 3  # a landmark gated this many times in a row is dropped (bad initialization)
+    huber_probability: float = 0.0  # Huber weights (U8): an observation whose NIS exceeds this chi-square (4 dof) quantile, below the gate, counts with its noise variance times sqrt(NIS / quantile); 0: off
     second_order: bool = True  # the stereo prediction's second-order terms: residual less 1/2 tr(H_j Sigma_q), S plus their covariance (U7, backend.estimator.update)
     zero_velocity: bool = True  # a real IMU's SLAM run: at frames where the IMU, the tracks and the filter's velocity say the rig stands still, v = 0 is measured before the frame's observations (backend.estimator.zero_velocity, Z6-Z9)
 
     def check(self) -> None:
         self.require("gate_probability", 0.5 < self.gate_probability < 1.0, "must lie in (0.5, 1)")
+        self.require("huber_probability", self.huber_probability == 0.0 or 0.5 < self.huber_probability < 1.0,
+                     "must be 0 (off) or lie in (0.5, 1)")
         self.require_at_least(0.0, "ransac_threshold_px", "persistent_outlier_steps")
         self.require_at_least(1, "max_consecutive_gated")
 
@@ -186,9 +189,14 @@ class DriftOptions(OptionTable):
     reanchor_observations: int = 3  # with track drift, a landmark is re-triangulated after this many observations (0: never)
     reanchor_far_observations: int = 25  # ... this many when anchored with disparity < reanchor_far_disparity (0: never)
     reanchor_far_disparity: float = 6.0  # px
+    track_test_probability: float = 0.0  # (R4) a track whose whitened innovations, summed over its life, exceed this chi-square (3 dof) tail is dropped for good (runs with landmarks in the state: not a real IMU's window); 0: off
+    track_test_min_observations: int = 3  # (R4) ... tested from this many of its observations on
 
     def check(self) -> None:
         self.require_at_least(0.0, "reanchor_observations", "reanchor_far_observations", "reanchor_far_disparity")
+        self.require("track_test_probability", 0.0 <= self.track_test_probability < 0.5,
+                     "must be 0 (off) or a tail probability in (0, 0.5)")
+        self.require_at_least(1, "track_test_min_observations")
         for key in ("landmark_random_walk", "pixel_walk", "pixel_walk_per_disparity"):
             if getattr(self, key) is not None:
                 self.require_at_least(0.0, key)

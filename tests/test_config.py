@@ -104,6 +104,8 @@ def _strategy_of(key: str, kind: type, optional: bool) -> st.SearchStrategy:
         "update.gate_probability": st.floats(0.5, 1.0, exclude_min=True, exclude_max=True),
         "health.nis_warn_factor": st.floats(1.0, 1e100, exclude_min=True),
         "estimator.window": st.one_of(st.just(0), st.integers(2, 10**9)),  # 0: off, else at least 2 clones
+        "update.huber_probability": st.one_of(st.just(0.0), st.floats(0.5, 1.0, exclude_min=True, exclude_max=True)),
+        "drift.track_test_probability": st.one_of(st.just(0.0), st.floats(1e-300, 0.5, exclude_max=True)),
     }
     if key in special:
         values = special[key]

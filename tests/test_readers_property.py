@@ -1078,6 +1078,8 @@ RULE_KEYS = {("estimator", "error_model"): "estimator.error_model",
              ("input", "image_width"): "input.image_width", ("input", "image_height"): "input.image_width"}
 #: keys the per-table check() limits beyond "> 0" / ">= 0" / ">= 1"
 VALID_FLOATS = {("update", "gate_probability"): st.floats(0.501, 0.9999),
+                ("update", "huber_probability"): st.just(0) | st.floats(0.501, 0.9999),  # 0: off
+                ("drift", "track_test_probability"): st.just(0) | st.floats(1e-9, 0.499),  # 0: off
                 ("health", "nis_warn_factor"): st.floats(1.001, 1e6)}
 #: integer options whose valid values are not 1 .. 10^6
 VALID_INTS = {("estimator", "window"): st.just(0) | st.integers(2, 10**6)}  # 0: off, else at least 2 clones

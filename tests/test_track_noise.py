@@ -1,7 +1,8 @@
 """The error model of real tracks, decided on the tracks: pixel noise growing with disparity (N5 of
 ``backend.run.noise``), the tracks' pixel random walk and its calibration (T3, T4 of
-``backend.run.drift``), each landmark's walk by its depth (R3 of ``backend.estimator.ekf``) and
-observations of unequal noise in the compiled update (U6 of ``backend.estimator.update``).
+``backend.run.drift``), each landmark's walk by its depth (R3 of ``backend.estimator.ekf``), the
+per-track test of the innovations (R4 of ``backend.estimator.tracks``), observations of unequal
+noise in the compiled update (U6 of ``backend.estimator.update``) and Huber's weights (U8).
 
 Each recovers what is planted in a synthetic scene, or equals the textbook formula it replaces."""
 
@@ -178,6 +179,132 @@ def test_the_likelihood_of_a_whitened_innovation_is_that_of_its_own_variances():
         n = residual[i] @ np.linalg.solve(S_true[b, b], residual[i]) + off_row[i] ** 2 / obs_var[i]
         expected += -0.5 * ((nu + 4) * np.log1p(n / nu) + np.linalg.slogdet(S_true[b, b])[1] + np.log(obs_var[i]))
     assert tested == slots.size and total == pytest.approx(expected, rel=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------- U8
+def test_huber_weights_inflate_the_variance_between_threshold_and_gate():
+    """(U8): factor 1 up to the threshold, sqrt(NIS / threshold) above it (Huber's c / d on the
+    Mahalanobis distance d), 1 beyond the gate (gated anyway); None where no observation exceeds
+    the threshold."""
+    threshold, gate = 9.0, 18.0
+    nis = np.array([0.5, 9.0, 12.0, 16.0, 18.0, 30.0])
+    np.testing.assert_allclose(update.huber_inflation(nis, threshold, gate),
+                               [1.0, 1.0, np.sqrt(12.0 / 9.0), 4.0 / 3.0, np.sqrt(2.0), 1.0])
+    assert update.huber_inflation(np.array([0.1, 8.9, 40.0]), threshold, gate) is None
+
+
+def test_huber_weights_leave_the_reported_nis_and_change_the_update_of_an_outlying_observation():
+    """(U8) in the filter: one landmark's second observation moved sideways by 7 px, the others
+    exact, so the step's NIS sum is that observation's, between the Huber threshold (chi-square 4
+    dof, 0.95: 9.49) and the gate (0.999: 18.47): the NIS sum the health check reads is the same
+    with Huber's weights as without (the noise model's), every observation is still used, and the
+    pose moves less toward the moved one with the weights than without."""
+    rng = np.random.default_rng(3)
+    depths = rng.uniform(6.0, 30.0, 12)
+    pixels = _points_at_depths(depths)
+    pixels[:, 1] += rng.uniform(-60.0, 60.0, depths.size)
+    pixels[:, 3] = pixels[:, 1]
+    ids = np.arange(depths.size)
+    moved = pixels.copy()
+    moved[0, [0, 2]] += 7.0
+    base = {"noise.pixel_sigma": 0.3, "drift.track_drift": "no", "update.ransac_threshold_px": 0.0}
+
+    def second_step(values: dict):
+        ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config({**base, **values}), NOISE)
+        ekf.update(ids, pixels)
+        ekf.predict(0.1, np.zeros(3), np.zeros(3))
+        stats = ekf.update(ids, moved)
+        return stats, ekf.world_T_imu[:3, 3].copy()
+
+    plain, moved_plain = second_step({})
+    huber, moved_huber = second_step({"update.huber_probability": 0.95})
+    assert plain.used == huber.used == ids.size
+    assert 9.49 < plain.nis_sum < 18.47
+    assert huber.nis_sum == pytest.approx(plain.nis_sum, rel=1e-12)
+    assert 0.0 < np.linalg.norm(moved_huber) < np.linalg.norm(moved_plain)
+
+
+def test_huber_probability_is_checked():
+    """``update.huber_probability`` is 0 (off) or a probability in (0.5, 1)."""
+    from vislam.backend.errors import ConfigError
+
+    assert Config().update.huber_probability == 0.0
+    for bad in ("1.0", "0.3", "-0.1"):
+        with pytest.raises(ConfigError, match="huber_probability"):
+            Config().with_assignments([f"update.huber_probability={bad}"])
+
+
+# ---------------------------------------------------------------------------------------------- R4
+def test_whitened_residuals_are_the_nis_square_roots_of_the_blocks():
+    """(R4): e_i = L_i^-1 r_i with S_ii = L_i L_i^T, so |e_i|^2 = r_i^T S_ii^-1 r_i, for the rows asked."""
+    P, H, residual, off_row, obs_var, inn = _whitened_problem(6, k=5)
+    rows = np.array([0, 2, 4])
+    e = update.whitened_residuals(inn.S, inn.residual, rows)
+    for j, i in enumerate(rows):
+        b = slice(3 * i, 3 * i + 3)
+        assert e[j] @ e[j] == pytest.approx(inn.residual[i] @ np.linalg.solve(inn.S[b, b], inn.residual[i]), rel=1e-10)
+        np.testing.assert_allclose(np.linalg.cholesky(inn.S[b, b]) @ e[j], inn.residual[i], rtol=1e-10)
+
+
+def test_the_track_test_rejects_a_biased_track_and_holds_its_false_alarm_rate():
+    """(R4): a track whose whitened innovations are (3, 0, 0) each time is rejected at its third
+    observation (T = 81 / 3 = 27 > chi2_3^-1(0.999) = 16.27), not before (n_min = 3), and stays out;
+    on tracks of white N(0, I3) innovations T ~ chi2(3), so the share rejected at the third
+    observation is p (20000 tracks, p = 0.01: 200 expected, 4 standard deviations allowed)."""
+    from vislam.backend.estimator.tracks import TrackTest
+
+    test = TrackTest(0.001, 3)
+    ids = np.array([5, 9])
+    for n in range(1, 4):
+        out = test.add(ids, np.array([[3.0, 0.0, 0.0], [0.1, -0.2, 0.0]]))
+        assert out.tolist() == [n == 3, False]
+    assert test.admitted(np.array([9, 5, 11])).tolist() == [True, False, True] and test.num_rejected == 1
+
+    rng = np.random.default_rng(0)
+    white = TrackTest(0.01, 3)
+    tracks = np.arange(20000)
+    rejected = [white.add(tracks, rng.normal(size=(tracks.size, 3))) for _ in range(3)]
+    assert not rejected[0].any() and not rejected[1].any()
+    assert abs(int(rejected[2].sum()) - 200) < 4 * np.sqrt(200)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_track_test_rejects_the_fast_drifting_tracks(seed):
+    """(R4) in a run: on a street with 6 % bad tracks (half of them drifting 0.5-1.5 px a step) among
+    tracks of 0.3 px white noise, the tracks the test rejects are mostly the fast ones (>= 80 %), it
+    rejects at most 0.2 % of the good tracks, and the run says how many it rejected (summary.json and
+the screen; nothing on the screen where it rejected none)."""
+    from vislam.backend.run.runner import run_sequence
+    from vislam.synth.track_errors import FAST, GOOD
+    from vislam.tools.report import format_summary, summary_dict
+
+    scene = _scene(seed=seed, steps=250, pixel_sigma=0.3, bad_share=0.06, bad_drift=1.0)
+    seen = {}
+    result = run_sequence(scene.sequence, Config().with_assignments(["drift.track_test_probability=0.001"]),
+                          observer=lambda k, ekf, stats: seen.update(ekf=ekf))
+    rejected = np.flatnonzero(seen["ekf"].track_test.rejected)
+    kind = scene.track_errors.bad[rejected]
+    assert rejected.size == result.stats.tracks_rejected > 0
+    assert (kind == FAST).mean() >= 0.8
+    assert (kind == GOOD).sum() <= 0.002 * (scene.track_errors.bad == GOOD).sum()
+    summary = summary_dict(result, "scene")
+    assert summary["landmarks"]["tracks_rejected_by_test"] == rejected.size
+    assert f"the per-track test rejected {rejected.size} tracks" in format_summary(summary)
+    summary["landmarks"]["tracks_rejected_by_test"] = 0
+    assert "per-track test" not in format_summary(summary)
+
+
+def test_the_track_test_is_off_by_default_and_checked():
+    """``drift.track_test_probability`` is 0 (off: no test object in the filter) or a tail
+    probability in (0, 0.5); its minimum number of observations at least 1."""
+    from vislam.backend.errors import ConfigError
+
+    ekf = VisualInertialEKF(CAMERA, IMU_T_CAM, bare_config(), NOISE)
+    assert ekf.track_test is None
+    for bad in ("drift.track_test_probability=0.5", "drift.track_test_probability=-0.01",
+                "drift.track_test_min_observations=0"):
+        with pytest.raises(ConfigError, match="track_test"):
+            Config().with_assignments([bad])
 
 
 # ---------------------------------------------------------------------------------------------- R3

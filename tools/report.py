@@ -65,6 +65,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
         "landmarks": {
             "initialized": stats.landmarks_initialized,
             "dropped_as_outliers": stats.landmarks_dropped,
+            "tracks_rejected_by_test": stats.tracks_rejected,
             "reanchored": stats.landmarks_reanchored,
             "frozen_steps": stats.frozen_steps,
             "mapped": stats.landmarks_mapped,
@@ -228,6 +229,10 @@ def format_summary(summary: dict, out_dir: Optional[Path] = None) -> str:
     if obs.get("still_frames"):
         lines.append(f"standing still at {obs['still_frames']} of {summary['steps']} frames (the tracks, the IMU and the "
                      "filter's velocity agreed): v = 0 measured there (update.zero_velocity)")
+    if lm.get("tracks_rejected_by_test"):
+        lines.append(f"the per-track test rejected {lm['tracks_rejected_by_test']} tracks (their innovations kept one "
+                     "direction beyond drift.track_test_probability, R4): their landmarks dropped, their later "
+                     "observations not used")
     if t.get("kernel_seconds", 0.0) >= 2.0:
         where = "counted above as kernels" if "process_seconds" in t else "not in the wall time above"
         lines.append(f"compiled the filter's kernels in {t['kernel_seconds']:.1f} s first (once after an install; "

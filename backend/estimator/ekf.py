@@ -46,8 +46,8 @@ from .offset import OffsetEstimate, corrected_pixels, offset_innovation
 from .propagation import ImuNoise
 from .state import FilterState
 from .state_helper import CoreTransition, StateHelper
-from .tracks import admit_landmarks, plan_update
-from .update import pixel_variance, second_order_inplace, whiten
+from .tracks import TrackTest, admit_landmarks, plan_update
+from .update import huber_inflation, pixel_variance, second_order_inplace, whiten, whitened_residuals
 from .window import WindowStep, WindowUpdater, retract_clones, window_in_use
 from .zero_velocity import ZeroVelocityUpdater
 
@@ -70,6 +70,7 @@ class StepStats:
     marginalized: int = 0  # landmarks moved from the state to the map
     reanchored: int = 0  # landmarks re-triangulated from their current observation (drifting tracks, R1)
     dropped: int = 0  # landmarks removed as repeatedly gated
+    rejected: int = 0  # tracks the per-track test rejected (R4): their landmarks removed, their later observations ignored
     nis_sum: float = 0.0  # sum over used observations of their NIS (expectation 4 each, U4; a window's: W5)
     nis_dof: int = 0  # the degrees of freedom of nis_sum, its expectation: 4 a used observation; 4n - 3 a window's feature seen n times (W5)
     log_likelihood: float = 0.0  # sum over observations in front of the camera of their Student-t log-likelihood (L1)
@@ -237,6 +238,11 @@ class VisualInertialEKF:
         self._pixel_walk = ((drift.pixel_walk or 0.0, drift.pixel_walk_per_disparity or 0.0)
                             if walking and constant is None else (0.0, 0.0))  # (R3) px^2 a step: at d = 0, per px of d
         self._gate = chi2.quantile(4, config.update.gate_probability)  # chi2(4) quantile (U4)
+        hp = config.update.huber_probability
+        self._huber = chi2.quantile(4, hp) if hp else 0.0  # (U8)
+        dr = config.drift
+        self.track_test = TrackTest(dr.track_test_probability, dr.track_test_min_observations) \
+            if dr.track_test_probability else None  # (R4)
         self._reanchor = (drifting and not est.full_state
                           and (drift.reanchor_observations > 0 or drift.reanchor_far_observations > 0))
         self._near_limit = drift.reanchor_observations or _NEVER
@@ -376,6 +382,10 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self.use_vision:
             return stats
+        if self.track_test is not None and self.window is None and ids.size:  # (R4) rejected tracks stay out
+            admitted = self.track_test.admitted(ids)
+            if not admitted.all():
+                ids, pixels = ids[admitted], pixels[admitted]
         if self.zero_velocity is not None:  # (Z6-Z9) standing still: v = 0 measured, then the frame's vision as always
             stats.still = self.zero_velocity.step(self.state, ids, pixels, self._correct)
         if self.window is not None:
@@ -447,9 +457,15 @@ class VisualInertialEKF:
             cam = self.camera
             second_order_inplace(inn.residual, inn.S, inn.off_row, inn.nis, inn.in_front, pixels, cam.fx, cam.fy,
                                  cam.cx, cam.cy, cam.baseline, pixel_var)
-        if obs_var is not None:
-            inn = whiten(inn, obs_var, pixel_var)
         upd = self.config.update
+        if obs_var is not None:
+            inn, unwhitened = whiten(inn, obs_var, pixel_var), inn
+        nis = inn.nis  # the NIS under the noise model, what the health check reads (U4)
+        if self._huber:  # (U8) Huber's weights from the prior NIS: their observations' variances inflated
+            inflate = huber_inflation(nis, self._huber, self._gate)
+            if inflate is not None:
+                base = obs_var if obs_var is not None else np.full(inflate.size, pixel_var)
+                inn = whiten(unwhitened if obs_var is not None else inn, base * inflate, pixel_var)
         result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, pixel_var,
                                     upd.persistent_outlier_steps)
         use = result.used
@@ -460,12 +476,17 @@ class VisualInertialEKF:
             self._correct(st, result.dx)
         stats.used = int(use.sum())
         stats.gated = int(slots.size - stats.used)
-        stats.nis_sum = float(inn.nis[use].sum())
+        stats.nis_sum = float(nis[use].sum())
         if self.track_likelihood:
             stats.log_likelihood, stats.tested = self._log_likelihood(inn, pixel_var)
         bad = st.gated_run >= upd.max_consecutive_gated
+        stats.dropped = int(bad.sum())
+        if self.track_test is not None and use.any() and not result.status:  # (R4)
+            rows = np.flatnonzero(use)
+            rejected = self.track_test.add(st.ids[slots[rows]], whitened_residuals(inn.S, inn.residual, rows))
+            stats.rejected = int(rejected.sum())
+            bad[slots[rows[rejected]]] = True
         if bad.any():
-            stats.dropped = int(bad.sum())
             self._remove(bad, to_map=False)
 
     def _observation_variance(self, pixels: np.ndarray) -> np.ndarray:

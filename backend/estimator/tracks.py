@@ -24,13 +24,66 @@ segment of each track is shortened so that landmarks born together are not all r
 once:                                                                                        (R2)
 
     count_0 = 1 + (id mod limit)     (a track's first landmark; 1 for a re-anchored one)
+
+A per-track test (optional, ``drift.track_test_probability``; Tsotsos, Chiuso and Soatto, "Robust
+Inference for Visual-Inertial Sensor Fusion", ICRA 2015): under the filter's model each used
+observation's innovation, whitened by its 3x3 block of S (e = L^-1 r, S_ii = L L^T, U1), is
+N(0, I3) and white over the track's life, re-anchorings included; a track that drifts keeps
+pushing its innovations one way. Over its n used observations so far
+
+    T = |sum_i e_i|^2 / n  ~  chi2(3),   T > chi2_3^-1(1 - p)  (n >= n_min)  =>  the landmark is
+    dropped and the track's later observations are ignored                                      (R4)
+
+(:class:`TrackTest`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .. import chi2
 from ..compiled import jit, warms_up
+
+
+class TrackTest:
+    """(R4) the running sum of each track's whitened innovations and the tracks it rejected, by
+    track id (the feature column), over re-anchorings."""
+
+    def __init__(self, probability: float, min_observations: int) -> None:
+        self.threshold = chi2.quantile(3, 1.0 - probability)
+        self.min_observations = int(min_observations)
+        self.sums = np.zeros((0, 3))
+        self.counts = np.zeros(0, dtype=np.int64)
+        self.rejected = np.zeros(0, dtype=bool)
+
+    def _grow(self, ids: np.ndarray) -> None:
+        n = int(ids.max()) + 1 if ids.size else 0
+        if n > self.rejected.size:
+            extra = n - self.rejected.size
+            self.sums = np.concatenate([self.sums, np.zeros((extra, 3))])
+            self.counts = np.concatenate([self.counts, np.zeros(extra, dtype=np.int64)])
+            self.rejected = np.concatenate([self.rejected, np.zeros(extra, dtype=bool)])
+
+    def admitted(self, ids: np.ndarray) -> np.ndarray:
+        """(k,) bool: the observations of ``ids`` whose track has not been rejected."""
+        self._grow(ids)
+        return ~self.rejected[ids]
+
+    def add(self, ids: np.ndarray, whitened: np.ndarray) -> np.ndarray:
+        """Add the whitened innovations ``whitened`` (k,3) of the tracks ``ids`` (k,) (distinct);
+        returns (k,) bool: the tracks (R4) rejects now (marked rejected)."""
+        self._grow(ids)
+        self.sums[ids] += whitened
+        self.counts[ids] += 1
+        n = self.counts[ids]
+        T = np.einsum("ka,ka->k", self.sums[ids], self.sums[ids]) / n
+        out = (n >= self.min_observations) & (T > self.threshold)
+        self.rejected[ids[out]] = True
+        return out
+
+    @property
+    def num_rejected(self) -> int:
+        return int(self.rejected.sum())
 
 
 @jit

@@ -271,6 +271,28 @@ def pixel_variance(sigma2: float, per_disparity: float, disparity: np.ndarray) -
     return sigma2 + per_disparity * np.maximum(np.asarray(disparity, dtype=float), 0.0)
 
 
+def whitened_residuals(S: np.ndarray, residual: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(R4) e_i = L_i^-1 r_i (n,3) of the observations ``rows`` (n,) of an innovation (3-row form,
+    U1), S_ii = L_i L_i^T its 3x3 block of ``S`` (3k,3k); N(0, I3) under the filter's model."""
+    idx = 3 * np.asarray(rows)[:, None] + np.arange(3)
+    L = np.linalg.cholesky(S[idx[:, :, None], idx[:, None, :]])
+    return np.linalg.solve(L, residual[rows][:, :, None])[:, :, 0]
+
+
+def huber_inflation(nis: np.ndarray, threshold: float, gate: float) -> np.ndarray | None:
+    """(U8) Huber's weights on each observation's Mahalanobis distance d = sqrt(NIS) (4 dof), as
+    factors on its noise variance: 1 up to d^2 = ``threshold``, d / sqrt(threshold) beyond (the
+    weight psi(d) / d = c / d of Huber's loss), 1 again beyond the ``gate``, which rejects those
+    anyway (U4). None when every factor is 1. (k,)"""
+    nis = np.asarray(nis, dtype=float)
+    down = (nis > threshold) & (nis <= gate)
+    if not down.any():
+        return None
+    out = np.ones(nis.size)
+    out[down] = np.sqrt(nis[down] / threshold)
+    return out
+
+
 def whiten(inn: Innovation, obs_var: np.ndarray, ref_var: float) -> Innovation:
     """(U6) observations of their own pixel variances ``obs_var`` (k,) (N5) as observations of the
     one variance ``ref_var`` the compiled update takes: ``inn`` was formed with R = ref_var I, so

@@ -43,6 +43,7 @@ class RunStats:
     repeated_frames: int = 0  # steps whose pixels repeat the previous step's exactly (vision skipped)
     landmarks_initialized: int = 0
     landmarks_dropped: int = 0  # removed after repeated gating
+    tracks_rejected: int = 0  # rejected by the per-track test (R4, drift.track_test_probability)
     landmarks_reanchored: int = 0  # re-triangulated after reanchor_observations (tracker drift)
     frozen_steps: int = 0  # repeated frames carried through with their landmarks (repeated_frames = freeze)
     still_frames: int = 0  # a real IMU's frames at which the rig stood still: v = 0 measured (Z9)
@@ -109,6 +110,7 @@ class RunBook:
         stats.observations_gated += step_stats.gated
         stats.landmarks_initialized += step_stats.initialized
         stats.landmarks_dropped += step_stats.dropped
+        stats.tracks_rejected += step_stats.rejected
         stats.landmarks_reanchored += step_stats.reanchored
         stats.still_frames += step_stats.still
         stats.active_landmarks_max = max(stats.active_landmarks_max, step_stats.active)
