@@ -32,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from honesty import DRIVES, _draw_job, _drive_job, _scene_job  # noqa: E402
+from honesty import DRIVES, _draw_job, _drive_job, _scene_job, scene_counts  # noqa: E402
 
 from vislam.synth.grid import GRID, random_spec  # noqa: E402
 
@@ -44,10 +44,8 @@ MODELS = {
 
 
 def _scenes(pool, specs, assignments) -> str:
-    rows = list(pool.map(_scene_job, [(s, assignments) for s in specs]))
-    ratio = np.array([r["ate"] / r["dr"] for r in rows])
-    nees = np.array([r["nees"] for r in rows])
-    return f"{np.median(ratio):.2f}, {int((ratio > 1).sum())}, {int((nees <= 9).sum())}/{len(rows)}"
+    c = scene_counts(list(pool.map(_scene_job, [(s, assignments) for s in specs])))
+    return f"{c['ratio']:.2f}, {c['worse']}, {c['honest']}/{c['scenes']}"
 
 
 def anatomy(pool, specs) -> None:
@@ -58,16 +56,16 @@ def anatomy(pool, specs) -> None:
                 "no drift": dict(drift="off")}
     print("| scene | defaults: ATE / DR, NEES | " + " | ".join(variants) + " |")
     print("|---|---|" + "---|" * len(variants))
-    for spec in failing:
-        cells = []
-        for values in variants.values():
-            if all(getattr(spec, k) == v for k, v in values.items()):
-                cells.append("(none)")
-                continue
-            r = _scene_job((dataclasses.replace(spec, **values), []))
-            cells.append(f"{r['ate'] / r['dr']:.2f}, {r['nees']:.1f}")
+    # every variant of every failing scene in one pass of the pool; a scene without that error: None
+    jobs = [None if all(getattr(spec, k) == v for k, v in values.items()) else dataclasses.replace(spec, **values)
+            for spec in failing for values in variants.values()]
+    done = iter(pool.map(_scene_job, [(j, []) for j in jobs if j is not None]))
+    cells = ["(none)" if j is None else (lambda r: f"{r['ate'] / r['dr']:.2f}, {r['nees']:.1f}")(next(done))
+             for j in jobs]
+    for i, spec in enumerate(failing):
         r = rows[specs.index(spec)]
-        print(f"| {spec.name} | {r['ate'] / r['dr']:.2f}, {r['nees']:.1f} | " + " | ".join(cells) + " |", flush=True)
+        print(f"| {spec.name} | {r['ate'] / r['dr']:.2f}, {r['nees']:.1f} | "
+              + " | ".join(cells[i * len(variants):(i + 1) * len(variants)]) + " |")
     print(f"\n{len(failing)} of {len(specs)} scenes worse than dead reckoning or NEES > 9 under the defaults")
 
 

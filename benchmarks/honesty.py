@@ -60,9 +60,10 @@ ALTERNATIVES = {
 DRIVES = ("ece276a_0027", "ece276a2019_0042", "ece276a_03")
 
 
-def max_tilt_deg(poses: np.ndarray) -> float:
-    z0 = poses[0, :3, 2]
-    return float(np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ z0, -1.0, 1.0))).max())
+def max_tilt_deg(poses: np.ndarray, up: np.ndarray | None = None) -> float:
+    """The largest angle (deg) of the IMU's z axis of ``poses`` (N,4,4) from ``up`` (3,), by default its first direction."""
+    up = poses[0, :3, 2] if up is None else up
+    return float(np.degrees(np.arccos(np.clip(poses[:, :3, 2] @ up, -1.0, 1.0))).max())
 
 
 def evaluate(seq, config: Config, gt) -> dict:
@@ -156,13 +157,20 @@ def table_draws(pool, shared: Path, draws: int = 6) -> None:
               f"{nees.mean():.1f}; steps inside the 95 % ellipsoid {100 * inside.mean():.0f} % on average")
 
 
-def _summary(rows: list[dict]) -> str:
-    """ATE against dead reckoning and the position NEES over a set of scenes, one line."""
+def scene_counts(rows: list[dict]) -> dict:
+    """Over a set of scenes' ``evaluate`` rows: the ATE / dead reckoning median, the scenes worse than
+    dead reckoning, the scenes with position NEES mean <= 9 and the NEES median."""
     ratio = np.array([r["ate"] / r["dr"] for r in rows])
     nees = np.array([r["nees"] for r in rows])
-    return (f"ATE / dead reckoning median {np.median(ratio):.2f}, worse than dead reckoning on "
-            f"{int((ratio > 1).sum())}; position NEES mean <= 9 on {int((nees <= 9).sum())}, median "
-            f"{np.median(nees):.1f}")
+    return {"ratio": float(np.median(ratio)), "worse": int((ratio > 1).sum()), "honest": int((nees <= 9).sum()),
+            "nees": float(np.median(nees)), "scenes": len(rows)}
+
+
+def _summary(rows: list[dict]) -> str:
+    """ATE against dead reckoning and the position NEES over a set of scenes, one line."""
+    c = scene_counts(rows)
+    return (f"ATE / dead reckoning median {c['ratio']:.2f}, worse than dead reckoning on {c['worse']}; "
+            f"position NEES mean <= 9 on {c['honest']}, median {c['nees']:.1f}")
 
 
 def table_grid(pool) -> None:

@@ -258,7 +258,7 @@ def test_the_track_test_rejects_a_biased_track_and_holds_its_false_alarm_rate():
     for n in range(1, 4):
         out = test.add(ids, np.array([[3.0, 0.0, 0.0], [0.1, -0.2, 0.0]]))
         assert out.tolist() == [n == 3, False]
-    assert test.admitted(np.array([9, 5, 11])).tolist() == [True, False, True] and test.num_rejected == 1
+    assert test.admitted(np.array([9, 5, 11])).tolist() == [True, False, True] and test.rejected.sum() == 1
 
     rng = np.random.default_rng(0)
     white = TrackTest(0.01, 3)

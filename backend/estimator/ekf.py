@@ -240,9 +240,8 @@ class VisualInertialEKF:
         self._gate = chi2.quantile(4, config.update.gate_probability)  # chi2(4) quantile (U4)
         hp = config.update.huber_probability
         self._huber = chi2.quantile(4, hp) if hp else 0.0  # (U8)
-        dr = config.drift
-        self.track_test = TrackTest(dr.track_test_probability, dr.track_test_min_observations) \
-            if dr.track_test_probability else None  # (R4)
+        self.track_test = (TrackTest(drift.track_test_probability, drift.track_test_min_observations)
+                           if drift.track_test_probability and not window else None)  # (R4): the landmark update's
         self._reanchor = (drifting and not est.full_state
                           and (drift.reanchor_observations > 0 or drift.reanchor_far_observations > 0))
         self._near_limit = drift.reanchor_observations or _NEVER
@@ -382,7 +381,7 @@ class VisualInertialEKF:
         stats = StepStats(observed=ids.size)
         if not self.use_vision:
             return stats
-        if self.track_test is not None and self.window is None and ids.size:  # (R4) rejected tracks stay out
+        if self.track_test is not None and ids.size:  # (R4) rejected tracks stay out
             admitted = self.track_test.admitted(ids)
             if not admitted.all():
                 ids, pixels = ids[admitted], pixels[admitted]
@@ -458,14 +457,14 @@ class VisualInertialEKF:
             second_order_inplace(inn.residual, inn.S, inn.off_row, inn.nis, inn.in_front, pixels, cam.fx, cam.fy,
                                  cam.cx, cam.cy, cam.baseline, pixel_var)
         upd = self.config.update
+        formed = inn  # with R = pixel_var I
         if obs_var is not None:
-            inn, unwhitened = whiten(inn, obs_var, pixel_var), inn
+            inn = whiten(formed, obs_var, pixel_var)
         nis = inn.nis  # the NIS under the noise model, what the health check reads (U4)
         if self._huber:  # (U8) Huber's weights from the prior NIS: their observations' variances inflated
             inflate = huber_inflation(nis, self._huber, self._gate)
             if inflate is not None:
-                base = obs_var if obs_var is not None else np.full(inflate.size, pixel_var)
-                inn = whiten(unwhitened if obs_var is not None else inn, base * inflate, pixel_var)
+                inn = whiten(formed, (pixel_var if obs_var is None else obs_var) * inflate, pixel_var)
         result = StateHelper.update(st, inn, slots, self._gate, upd.ransac_threshold_px, pixel_var,
                                     upd.persistent_outlier_steps)
         use = result.used

@@ -81,10 +81,6 @@ class TrackTest:
         self.rejected[ids[out]] = True
         return out
 
-    @property
-    def num_rejected(self) -> int:
-        return int(self.rejected.sum())
-
 
 @jit
 def slots_of(ids, ids_sorted, ids_order):
