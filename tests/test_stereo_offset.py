@@ -170,7 +170,7 @@ def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch, extra_noise):
 def test_fit_pairs_fits_the_pixels_matched_pair_by_pair(extra_noise):
     """fit_pairs (the tracks of all pairs matched in one compiled call, a SIMEX re-fit's noise drawn at
     once) gives, bit for bit, what matching each pair (``matched_pixels``, the noise drawn pair by pair
-    in step order) and fitting it alone gives."""
+    in step order) and fitting it alone, with the sequence's tolerances, gives."""
     from vislam.backend.run import two_view
 
     seq = _scene(3, 0.5).sequence
@@ -182,7 +182,8 @@ def test_fit_pairs_fits_the_pixels_matched_pair_by_pair(extra_noise):
     alone = []
     for k in steps:
         za, zb = two_view.matched_pixels(seq, int(k), int(k) + 2, rng, extra_noise)
-        fit = fit_pair(za, zb, cam, offset=True, step=int(k), gap=2) if za.shape[0] >= 12 else None
+        fit = fit_pair(za, zb, cam, offset=True, step=int(k), gap=2,
+                       tolerance=two_view.tolerances(seq.obs_pixels)) if za.shape[0] >= 12 else None
         alone += [fit] if fit is not None else []
     assert len(fits) == len(alone) >= 30
     for a, b in zip(fits, alone):

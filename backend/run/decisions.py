@@ -213,9 +213,9 @@ WHITE_NOISE = "white noise of the samples"
 
 def _imu_noise(config: Config, white_lin: np.ndarray, white_ang: np.ndarray,
                vision: ImuVsVision | None) -> ImuNoiseDecision:
-    """Per kind (linear, angular): the configured value wins; else (N3) where vision is the smaller part
-    of the scatter, at least the white noise; else the white noise (N1)."""
-    usable = vision is not None and vision.vision_share < 0.5
+    """Per kind (linear, angular): the configured value wins; else (N3) where vision is at most
+    ``VISION_SHARE_MAX`` of the scatter, at least the white noise; else the white noise (N1)."""
+    usable = vision is not None and vision.measures_imu()
 
     def one(configured, measured, white) -> tuple[np.ndarray, str]:
         if configured:

@@ -4,7 +4,7 @@ A two-view fit of steps k and k+h (D2, ``backend.run.two_view``) fits the motion
 so white pixel noise leaves residuals of the same scale whatever the gap h; a track whose pixels
 wander (a tracker that slides off its feature) leaves residuals that grow with h. Real drift is
 heavy-tailed (most tracks hold, a few slide fast), so the test compares the pooled RMS of the
-residuals (within ``TRIM_PX``: the tail included, gross mismatches not), not a robust scale that
+residuals (within the fits' trim: the tail included, gross mismatches not), not a robust scale that
 would ignore the few, at each longer gap h measured (``backend.run.decisions.DRIFT_GAPS``) with the
 one at gap 1:
 

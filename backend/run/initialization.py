@@ -156,11 +156,12 @@ def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
 CHAIN_MIN_POINTS = 6
 
 
-def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
+def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, tolerance, min_points: int = 12):
     """The two-view fit (D2) of frames a and b, started from the gyro's rotation ``Ia_R_Ib`` (3,3) and a
     robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
-    mismatches, which an undamped fit can follow even from the right answer, left out); None when
-    fewer than ``min_points`` remain or the fit fails."""
+    mismatches, which an undamped fit can follow even from the right answer, left out), with the
+    sequence's ``tolerance`` (``two_view.tolerances``); None when fewer than ``min_points`` remain or
+    the fit fails."""
     from .two_view import fit_pair, matched_pixels
 
     K = seq.K
@@ -172,7 +173,8 @@ def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, min_points: int = 12):
     guess, agree = _motion_guess(za, zb, cam, R_ic.T @ Ia_R_Ib.T @ R_ic)
     if agree.sum() < min_points:
         return None
-    return fit_pair(za[agree], zb[agree], cam, min_points=min_points, step=a, gap=b - a, initial=guess)
+    return fit_pair(za[agree], zb[agree], cam, min_points=min_points, step=a, gap=b - a, initial=guess,
+                    tolerance=tolerance)
 
 
 def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> VisionMotion | None:
@@ -182,19 +184,21 @@ def vision_motion(seq, window: float, gyro_bias: np.ndarray) -> VisionMotion | N
     on at least ``CHAIN_MIN_POINTS`` tracks), with their covariance (module docstring); None when
     neither can be fitted."""
     from ..geometry import se3
+    from .two_view import tolerances
 
     t = seq.time_stamps
     last = int(np.searchsorted(t, t[0] + window, side="right")) - 1
     if last < 1:
         return None
     R = integrate_samples(seq.imu, t[:last + 1], gyro_bias)[0]
-    direct = _fit_frames(seq, 0, last, R[last])
+    tolerance = tolerances(seq.obs_pixels)
+    direct = _fit_frames(seq, 0, last, R[last], tolerance)
     if direct is not None:
         T, cov, links = direct.b_T_a, direct.motion_covariance, 1
     else:
         T, cov, links = np.eye(4), np.zeros((6, 6)), last
         for k in range(1, last + 1):
-            step = _fit_frames(seq, k - 1, k, R[k - 1].T @ R[k], CHAIN_MIN_POINTS)
+            step = _fit_frames(seq, k - 1, k, R[k - 1].T @ R[k], tolerance, CHAIN_MIN_POINTS)
             if step is None:
                 return None
             A = se3.adjoint(step.b_T_a)  # the chain so far seen through this link (left perturbations)
@@ -345,6 +349,9 @@ def _chain_vision(seq, frames: range, min_points: int, imu_rotations: np.ndarray
     gives the metric scale), each started from the gyro's rotation ``imu_rotations`` (one per frame of
     ``frames``, I0_R_Ik); a frame that cannot be fitted to the last chained one is skipped (at most
     ``max_skip`` in a row); (None, None, None) when the chain breaks."""
+    from .two_view import tolerances
+
+    tolerance = tolerances(seq.obs_pixels)
     imu_T_cam = np.asarray(seq.imu_T_cam, dtype=float)
     cam_T_imu = np.linalg.inv(imu_T_cam)
     R_ic = imu_T_cam[:3, :3]
@@ -355,7 +362,8 @@ def _chain_vision(seq, frames: range, min_points: int, imu_rotations: np.ndarray
     while a < frames[-1]:
         fit = None
         for b in range(a + 1, min(a + 1 + max_skip, frames[-1] + 1)):
-            fit = _fit_frames(seq, a, b, imu_rotations[a - frames[0]].T @ imu_rotations[b - frames[0]], min_points)
+            fit = _fit_frames(seq, a, b, imu_rotations[a - frames[0]].T @ imu_rotations[b - frames[0]], tolerance,
+                              min_points)
             if fit is not None:
                 break
         if fit is None:

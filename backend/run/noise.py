@@ -2,8 +2,8 @@
 
 Pixel noise (N2). The two-view fits of step pairs (D2, ``backend.run.two_view``) leave residuals
 that are the tracks' own error once motion and points are fitted: white noise, and for drifting
-tracks whatever accumulated between the two frames. Their pooled RMS (residuals within
-``TRIM_PX``, over the degrees of freedom) over the gaps h = 1 .. h_max the filter's landmarks live
+tracks whatever accumulated between the two frames. Their pooled RMS (residuals within the
+fits' trim, over the degrees of freedom) over the gaps h = 1 .. h_max the filter's landmarks live
 through keeps the heavy tail of real tracks that a robust scale leaves out:
 
     sigma_px^2 = sum_pairs sum_{|r| <= trim} r^2 / sum_pairs dof                                    (N2)
@@ -14,8 +14,8 @@ std of (vL - vR) / sqrt 2 (on a rectified pair both rows see the same point).
 Pixel noise by disparity (N5). Some trackers' errors grow with a point's nearness (the course
 files': their gap-1 residuals' variance grows about linearly with the disparity, the image motion
 explaining nothing once disparity is in; vislam's own tracker and synthetic tracks show no
-growth). Each point of a gap-1 fit estimates its own variance, y_i = (sum of its squared residuals
-within ``TRIM_PX``) n / dof (its share of the fit's degrees of freedom), and an ordinary least
+growth). Each point of a gap-1 fit estimates its own variance, y_i = (sum of its squared residuals)
+n / dof (its share of the fit's degrees of freedom), and an ordinary least
 squares line with heteroscedasticity-consistent (HC0) standard errors tells the growth:
 
     y_i = a + b d_i + e_i,   growth  <=>  b > DISPARITY_Z SE(b)                                   (N5)
@@ -46,7 +46,12 @@ r: where the IMU's velocity is measured, relative to the frame the extrinsic def
 the file does not state); c: a constant velocity offset; b: the gyro bias. (r, c) come from a
 generalized least squares with Huber weights and a weak prior (``LEVER_PRIOR_M``,
 ``OFFSET_PRIOR_M_S``: components the motion does not excite stay near zero), the noise per axis
-from the residuals' robust variance less the vision twist's own. The correction
+from the residuals' robust variance less the vision twist's own. That difference is taken only where
+vision is at most ``VISION_SHARE_MAX`` of the scatter: with vision's share s, an error of a factor f
+in vision's variance (tracks that drift, jitter: what the fits' covariance does not hold) moves the
+IMU's variance by (f - 1) s / (1 - s), a third at s = 1/4 and f = 2, but the whole of it at s = 1/2
+(synthetic scenes with 0.05 m/s of white velocity noise at s 0.45-0.49: 1.0-6.4 times the truth, the
+most with heavily drifting tracks, where the samples' white noise N1 is within 10 %). The correction
 v <- v - omega x r - c is applied when (r, c) is significant (chi-square) and changes the
 velocities by a visible amount (``backend.run.decisions`` also checks it against dead reckoning).
 """
@@ -61,7 +66,7 @@ from ..chi2 import quantile as chi2_quantile
 from ..data.sequence import Sequence
 from ..estimator.update import pixel_variance
 from ..geometry import se3
-from .two_view import TRIM_PX, TwoViewFit, pooled_mean_square
+from .two_view import Tolerances, TwoViewFit, pooled_mean_square, tolerances
 
 __all__ = ["estimate_white_noise", "rows_sigma", "PixelNoise", "pixel_noise", "DisparityNoise", "disparity_noise",
            "point_variances", "variance_line", "with_disparity_noise", "ImuVsVision", "imu_vs_vision", "ImuNoiseDecision", "VelocityCorrection"]
@@ -101,11 +106,12 @@ def hold_error(signal: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((0.5 * np.diff(signal, axis=0)) ** 2, axis=0))
 
 
-def rows_sigma(seq: Sequence, max_row_px: float = 2.0) -> float:
+def rows_sigma(seq: Sequence, tolerance: Tolerances | None = None) -> float:
     """Robust std (px) of (vL - vR) / sqrt 2 over the observations whose rows agree within
-    ``max_row_px`` (the rest are mismatches, not noise); nan without observations."""
+    ``tolerance`` (default: the sequence's ``two_view.tolerances``; the rest are mismatches, not
+    noise); nan without observations."""
     d = seq.obs_pixels[:, 1] - seq.obs_pixels[:, 3]
-    d = d[np.abs(d) <= max_row_px]
+    d = d[np.abs(d) <= (tolerance or tolerances(seq.obs_pixels)).rows_px]
     if d.size < 10:
         return float("nan")
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
@@ -124,6 +130,7 @@ class PixelNoise:
     variance_per_disparity: float = 0.0  # px^2 per px of disparity (N5): sigma_i^2 = sigma^2 + this d_i
     disparity: "DisparityNoise | None" = None  # the test (N5) behind it
     pooled_sigma: float = float("nan")  # (N2) over the fits' points, before the disparity model
+    tolerance: Tolerances = Tolerances()  # the fits' and the rows' (two_view.tolerances)
 
     def variance(self, disparity: np.ndarray) -> np.ndarray:
         """sigma_i^2 (N5) of observations of ``disparity`` (n,) px."""
@@ -133,11 +140,15 @@ class PixelNoise:
         return {"sigma_px": self.sigma, "decided_by": self.source, "stereo_rows_px": self.rows_px,
                 "pooled_over_gaps": self.used_gaps, "pooled_sigma_px": self.pooled_sigma,
                 "variance_per_disparity_px2_per_px": self.variance_per_disparity,
+                "row_tolerance_px": self.tolerance.rows_px, "trim_px": self.tolerance.trim_px,
                 "disparity_test": None if self.disparity is None else self.disparity.as_dict(),
                 "two_view": [{"gap": g, "pairs": n, "robust_px": s, "rms_px": r} for g, n, s, r in self.gaps]}
 
     def describe(self) -> str:
         text = self._describe_sigma()
+        if self.tolerance != Tolerances():
+            text += (f"; from matches whose rows agree within {self.tolerance.rows_px:.3g} px and fits' residuals "
+                     f"within {self.tolerance.trim_px:.3g} px (the rows' own spread)")
         if self.disparity is not None:
             text += "; " + self.disparity.describe(self)
         return text
@@ -187,17 +198,18 @@ NO_OBSERVATIONS = "no observations to measure it: 1 px"
 def pixel_noise(seq: Sequence, gaps: tuple, used_gaps: int, configured: float | None) -> PixelNoise:
     """(N2) the pooled RMS over the ``gaps`` statistics (:func:`gap_statistics`) up to ``used_gaps``;
     the stereo rows without fits; ``configured`` (not None) wins."""
-    rows = rows_sigma(seq)
+    tolerance = tolerances(seq.obs_pixels)
+    rows = rows_sigma(seq, tolerance)
     if configured is not None:
-        return PixelNoise(float(configured), "configured", gaps, rows, used_gaps)
+        return PixelNoise(float(configured), "configured", gaps, rows, used_gaps, tolerance=tolerance)
     used = [(n, r) for g, n, s, r in gaps if g <= used_gaps and np.isfinite(r)]
     if used:
         weights = np.array([n for n, _ in used], dtype=float)
         sigma = float(np.sqrt(np.sum(weights * np.array([r for _, r in used]) ** 2) / weights.sum()))
-        return PixelNoise(sigma, "two-view fits", gaps, rows, used_gaps)
+        return PixelNoise(sigma, "two-view fits", gaps, rows, used_gaps, tolerance=tolerance)
     if np.isfinite(rows) and rows > 0:
-        return PixelNoise(rows, "stereo rows", gaps, rows, used_gaps)
-    return PixelNoise(1.0, NO_OBSERVATIONS, gaps, rows, used_gaps)
+        return PixelNoise(rows, "stereo rows", gaps, rows, used_gaps, tolerance=tolerance)
+    return PixelNoise(1.0, NO_OBSERVATIONS, gaps, rows, used_gaps, tolerance=tolerance)
 
 
 #: (N5): the variance grows with disparity when the slope exceeds this many standard errors ...
@@ -229,36 +241,36 @@ class DisparityNoise:
                 f"{self.points} points{used})")
 
 
-def point_variances(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[np.ndarray, np.ndarray]:
+def point_variances(fits: list[TwoViewFit]) -> tuple[np.ndarray, np.ndarray]:
     """(y (n,), d (n,)): each fitted point's variance estimate, the sum of its squared residuals
-    within ``trim`` times its share n / dof of the fit's degrees of freedom, and its disparity (px)."""
+    times its share n / dof of the fit's degrees of freedom, and its disparity (px)."""
     ys, ds = [], []
     for f in fits:
         if f.disparity is None or f.dof <= 0:
             continue
         r = f.residuals
-        ys.append(np.sum(np.where(np.abs(r) <= trim, r, 0.0) ** 2, axis=1) * (r.shape[0] / f.dof))
+        ys.append(np.sum(r**2, axis=1) * (r.shape[0] / f.dof))
         ds.append(f.disparity)
     if not ys:
         return np.zeros(0), np.zeros(0)
     return np.concatenate(ys), np.concatenate(ds)
 
 
-def variance_line(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def variance_line(fits: list[TwoViewFit]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The least-squares line y = a + b d of the fits' points' variances on their disparities
     (:func:`point_variances`): ((a, b), their HC0 standard errors, y (n,), d (n,)); nans with
     fewer than 3 points."""
-    y, d = point_variances(fits, trim)
+    y, d = point_variances(fits)
     if y.size < 3:
         return np.full(2, np.nan), np.full(2, np.nan), y, d
     coef, se = _ols_hc0(np.column_stack([np.ones_like(d), d]), y)
     return coef, se, y, d
 
 
-def disparity_noise(fits: list[TwoViewFit], trim: float = TRIM_PX) -> DisparityNoise | None:
+def disparity_noise(fits: list[TwoViewFit]) -> DisparityNoise | None:
     """(N5) from gap-1 fits that carry their points' disparities; None with fewer than
     ``DISPARITY_MIN_POINTS`` points."""
-    coef, se, y, d = variance_line(fits, trim)
+    coef, se, y, d = variance_line(fits)
     if y.size < DISPARITY_MIN_POINTS:
         return None
     a, b, b_se = float(coef[0]), float(coef[1]), float(se[1])
@@ -313,6 +325,10 @@ class VelocityCorrection:
         return linear_velocity - np.cross(angular_velocity, self.lever_arm) - self.offset
 
 
+#: (N3) measures the IMU's noise only where vision's own variance is at most this share of the scatter.
+VISION_SHARE_MAX = 0.25
+
+
 @dataclass(frozen=True)
 class ImuVsVision:
     """(N3): the IMU's samples against the motion the two-view fits give."""
@@ -335,6 +351,10 @@ class ImuVsVision:
                 "chi2": self.chi2, "effect_rms_m_s": self.effect_rms.tolist(),
                 "linear_sigma_m_s": self.linear_sigma.tolist(), "angular_sigma_rad_s": self.angular_sigma.tolist(),
                 "gyro_bias_rad_s": self.gyro_bias.tolist(), "vision_share": self.vision_share}
+
+    def measures_imu(self) -> bool:
+        """Vision is at most ``VISION_SHARE_MAX`` of the scatter (N3): its noise sigmas are the IMU's."""
+        return self.vision_share <= VISION_SHARE_MAX
 
     def significant(self, white_linear: np.ndarray) -> bool:
         """The correction is shown (chi-square beyond ``CORRECTION_PROBABILITY``) and matters (RMS effect
@@ -430,6 +450,10 @@ class ImuNoiseDecision:
         def fmt(a):
             return "[" + ", ".join(f"{x:.3g}" for x in a) + "]"
 
+        unused = ""
+        if self.vision is not None and not self.vision.measures_imu():
+            unused = (f"; against vision not used: vision is {100 * self.vision.vision_share:.0f} % of the scatter "
+                      f"(at most {100 * VISION_SHARE_MAX:.0f} % measures the IMU, N3)")
         return (f"IMU noise: linear {fmt(self.linear_sigma)} m/s ({self.linear_source}), angular "
                 f"{fmt(self.angular_sigma)} rad/s ({self.angular_source}); white noise of the samples alone "
-                f"{fmt(self.white_linear)} m/s, {fmt(self.white_angular)} rad/s")
+                f"{fmt(self.white_linear)} m/s, {fmt(self.white_angular)} rad/s{unused}")

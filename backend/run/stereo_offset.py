@@ -17,7 +17,7 @@ a two-view bundle adjustment of the points seen at k and k+1: each point's true 
 at k, the free rigid motion k -> k+1 and ``beta_k`` minimize the robust (Huber, 1 px) error of
 all eight measured pixels (both images, both frames; Gauss-Newton, points eliminated by the
 Schur complement); pairs whose rows disagree are left out, and after a first fit the points
-with a residual beyond ``TRIM_PX`` are dropped and the fit repeated (gross mismatches)           (D2)
+with a residual beyond the trim are dropped and the fit repeated (gross mismatches)              (D2)
 
 A wrong offset warps depth non-uniformly (``z = fx b / (d - beta)``), which no rigid motion
 explains; so ``beta_k`` is observable where the step's points span a range of disparities.

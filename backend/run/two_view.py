@@ -11,9 +11,9 @@ disparity offset beta (D1 of ``backend.run.stereo_offset``). They minimize the r
 by Gauss-Newton with the points eliminated (Schur complement), one compiled call for many step
 pairs (:func:`_fit_batch`; numpy inverts their normal matrices after). Both frames' pixels are
 measurements, so pixel noise in either biases neither the motion nor beta (triangulating at k and
-fitting k+h alone would: errors in variables). Pairs whose rows disagree (|vL - vR| > ``ROW_PX``)
-are left out, and after a first fit the points with a residual beyond ``TRIM_PX`` are dropped and
-the fit repeated (gross mismatches).
+fitting k+h alone would: errors in variables). Pairs whose rows disagree (|vL - vR| beyond the
+sequence's :func:`tolerances`) are left out, and after a first fit the points with a residual beyond
+its trim are dropped and the fit repeated (gross mismatches).
 
 The fits serve three decisions of a run: the disparity offset (``stereo_offset``, with beta), the
 pixel noise and the track drift (``noise``, ``drift``: the residuals' scale for gaps h = 1..3),
@@ -33,14 +33,21 @@ from ..data.sequence import Sequence
 from ..estimator.linalg import inverse3, median_inplace, solve_small
 from ..geometry import se3
 
-__all__ = ["TwoViewFit", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps", "pooled_mean_square"]
+__all__ = ["TwoViewFit", "Tolerances", "tolerances", "fit_pair", "fit_pairs", "matched_pixels", "pair_steps",
+           "pooled_mean_square"]
 
 #: Huber threshold (px) of the fit.
 HUBER_PX = 1.0
-#: A pair is used only if its rows agree within this (px) in both frames ...
+#: A pair is used only if its rows agree in both frames: |vL - vR| within this (px), or, where the
+#: sequence's rows are noisier, within ``ROW_SPREADS`` robust standard deviations of its row
+#: differences beyond their median (:func:`tolerances`: noise of 1 px per pixel is 1.4 px of row
+#: difference, and a fixed 2 px would cut its tails and bias the measured noise low) ...
 ROW_PX = 2.0
-#: ... and, after a first fit, every one of its eight residuals is within this (px).
+ROW_SPREADS = 4.5
+#: ... and, after a first fit, every one of its eight residuals is within this (px), or within
+#: ``TRIM_SPREADS`` times the rows' noise per pixel where that is wider.
 TRIM_PX = 3.0
+TRIM_SPREADS = 3.0
 #: Gauss-Newton iterations of a fit at most (it stops earlier once a step is below 1e-6 in the
 #: motion and 1e-4 px in beta).
 ITERATIONS = 8
@@ -66,7 +73,7 @@ class TwoViewFit:
     dof: int  # residuals minus unknowns
     # computed with the fit (:func:`_fit_batch`, numpy's numbers), else from the residuals when asked:
     scale: float | None = field(default=None, repr=False)  # robust_scale()
-    sum_squares: float | None = field(default=None, repr=False)  # the residuals' sum of squares, all within TRIM_PX
+    sum_squares: float | None = field(default=None, repr=False)  # the residuals' sum of squares
     disparity: np.ndarray | None = field(default=None, repr=False)  # (n,) px, each kept point's uL - uR at k (N5, T3)
 
     @property
@@ -80,21 +87,19 @@ class TwoViewFit:
         r = self.residuals.ravel()
         return float(1.4826 * np.median(np.abs(r)) * np.sqrt(r.size / max(self.dof, 1)))
 
-    def mean_square(self, trim: float = TRIM_PX) -> tuple[float, int]:
-        """(sum of squared residuals within ``trim`` px, their degrees of freedom): a pooled RMS
-        that keeps the heavy tail of real tracks, which the robust scale leaves out."""
-        if self.sum_squares is not None and trim >= TRIM_PX:  # every residual is within trim
+    def mean_square(self) -> tuple[float, int]:
+        """(sum of squared residuals, their degrees of freedom): a pooled RMS that keeps the heavy
+        tail of real tracks (up to the fit's trim), which the robust scale leaves out."""
+        if self.sum_squares is not None:
             return self.sum_squares, self.dof
-        r = self.residuals.ravel()
-        kept = np.abs(r) <= trim
-        return float(np.sum(r[kept] ** 2)), int(kept.sum()) - (r.size - self.dof)
+        return float(np.sum(self.residuals**2)), self.dof
 
 
-def pooled_mean_square(fits: list[TwoViewFit], trim: float = TRIM_PX) -> tuple[float, float]:
+def pooled_mean_square(fits: list[TwoViewFit]) -> tuple[float, float]:
     """(the residuals' mean square pooled over ``fits`` (px^2), its standard error): each pair's
     :meth:`TwoViewFit.mean_square`, summed over the pairs' degrees of freedom; the error by the delta
     method over the pairs (their mean squares weighted by their degrees of freedom)."""
-    ms = np.array([f.mean_square(trim) for f in fits], dtype=float)  # (ssq, dof) per pair
+    ms = np.array([f.mean_square() for f in fits], dtype=float)  # (ssq, dof) per pair
     ssq, dof = ms[:, 0], np.maximum(ms[:, 1], 1.0)
     M = ssq.sum() / dof.sum()
     se = np.sqrt(np.sum(dof**2 * (ssq / dof - M) ** 2)) / dof.sum()
@@ -481,12 +486,13 @@ def _rows_within(r, limit):
 
 @jit
 def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points, iterations, huber, start,
-               with_initial):
+               with_initial, row_px, trim_px):
     """The compiled part of :func:`fit_pair` for many step pairs in one call (the GIL released
     throughout): pair k's matched pixels are ``za[begin[k]:end[k]]``, ``zb[...]`` (n,4);
     ``start`` (4,4) the motion to start from: the identity, or with ``with_initial`` a given one (the
     second fit then starts from the first's motion and is made even when no point was trimmed). Per
-    pair: the rows that agree, the first fit, the trimming, the second fit (or the first again), each
+    pair: the rows that agree (|vL - vR| <= ``row_px`` in both frames), the first fit, the trimming
+    (``trim_px``), the second fit (or the first again), each
     fit's noise (:func:`_noise_of`) and the final residuals' bound; what needs S^-1 is left to the
     caller (numpy's inverse, to keep its numbers). Returns
 
@@ -524,7 +530,7 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
         agree = np.empty(a1 - a0, dtype=np.int64)
         n = 0
         for i in range(a0, a1):
-            if abs(za[i, 1] - za[i, 3]) <= ROW_PX and abs(zb[i, 1] - zb[i, 3]) <= ROW_PX:
+            if abs(za[i, 1] - za[i, 3]) <= row_px and abs(zb[i, 1] - zb[i, 3]) <= row_px:
                 agree[n] = i
                 n += 1
         if n < min_points:
@@ -542,12 +548,12 @@ def _fit_batch(za, zb, begin, end, fx, fy, cx, cy, baseline, offset, min_points,
                 ok, sigma2 = _noise_of(r, g, squares)
             if not ok:
                 break
-            keep = _rows_within(r, TRIM_PX)
+            keep = _rows_within(r, trim_px)
             kept = 0
             for i in range(r.shape[0]):
                 kept += keep[i]
             if second:
-                ok = kept == r.shape[0]  # every residual of the final fit within TRIM_PX
+                ok = kept == r.shape[0]  # every residual of the final fit within trim_px
                 break
             if kept < max(min_points, 2 * n / 3):
                 ok = False
@@ -625,16 +631,19 @@ def _usable_inverses(S: np.ndarray, beta: np.ndarray, sigma2: np.ndarray,
 
 
 def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndarray, cam, offset: bool,
-          min_points: int, gap: int, initial: np.ndarray | None = None) -> list[TwoViewFit | None]:
+          min_points: int, gap: int, initial: np.ndarray | None = None,
+          tolerance: Tolerances | None = None) -> list[TwoViewFit | None]:
     """:func:`fit_pair` of each step pair k (``steps[k]``, pixels ``za[begin[k]:end[k]]``,
-    ``zb[...]``, (n,4) float64 C-ordered): one compiled call for them all (:func:`_fit_batch`), then
+    ``zb[...]``, (n,4) float64 C-ordered; ``tolerance``: the rows' and the trim's, by default the
+    fixed ones): one compiled call for them all (:func:`_fit_batch`), then
     numpy's inverse of the fits' S (:func:`_usable_inverses`)."""
     if len(steps) == 0:
         return []
     fx, fy, cx, cy, baseline = map(float, cam)
     status, T, beta, S, sigma2, dof, beta1, S1, sigma21, residuals, rows, scales, sums, disparities = _fit_batch(
         za, zb, begin, end, fx, fy, cx, cy, baseline, offset, int(min_points), ITERATIONS, HUBER_PX,
-        np.eye(4) if initial is None else np.ascontiguousarray(initial, dtype=float), initial is not None)
+        np.eye(4) if initial is None else np.ascontiguousarray(initial, dtype=float), initial is not None,
+        *(tolerance or Tolerances()).bounds())
     good = status > 0
     S_inv, usable = _usable_inverses(S[good], beta[good], sigma2[good], offset)
     ok = np.zeros(status.size, dtype=bool)
@@ -653,17 +662,44 @@ def _fits(steps, za: np.ndarray, zb: np.ndarray, begin: np.ndarray, end: np.ndar
 
 
 def fit_pair(za: np.ndarray, zb: np.ndarray, cam, offset: bool = False, min_points: int = 12,
-             step: int = 0, gap: int = 1, initial: np.ndarray | None = None) -> TwoViewFit | None:
+             step: int = 0, gap: int = 1, initial: np.ndarray | None = None,
+             tolerance: Tolerances | None = None) -> TwoViewFit | None:
     """The fit (D2) of one step pair's matched pixels ``za``, ``zb`` (n,4), or None: the pairs whose
     rows agree, then again from the start on the points whose eight residuals all stay within
-    ``TRIM_PX`` (gross mismatches removed, not only down-weighted; where none was, the first fit is
+    the trim (gross mismatches removed, not only down-weighted; where none was, the first fit is
     that fit); None when fewer than
     ``min_points`` remain, a third of them is trimmed, or the fit is degenerate.
     ``cam`` = (fx, fy, cx, cy, baseline); ``initial``: the motion to start from (default: none, for
-    the small motions of consecutive steps)."""
+    the small motions of consecutive steps); ``tolerance``: the rows' and the trim's (the
+    sequence's :func:`tolerances`; default the fixed ``ROW_PX``, ``TRIM_PX``)."""
     n = np.array([za.shape[0]])
     return _fits([step], np.ascontiguousarray(za, dtype=float), np.ascontiguousarray(zb, dtype=float), n * 0, n,
-                 cam, offset, min_points, gap, initial)[0]
+                 cam, offset, min_points, gap, initial, tolerance)[0]
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """What the fits (D2) of a sequence take for a match and a fitted point."""
+
+    rows_px: float = ROW_PX  # the largest |vL - vR| of a stereo match
+    trim_px: float = TRIM_PX  # the largest residual of a point of the final fit
+
+    def bounds(self) -> tuple[float, float]:
+        return float(self.rows_px), float(self.trim_px)
+
+
+def tolerances(obs_pixels: np.ndarray) -> Tolerances:
+    """The fits' tolerances for a sequence's observations ``obs_pixels`` (L,4), from its row
+    differences d = vL - vR (median m, robust spread s = 1.4826 MAD; mismatches are a minority, so
+    both are the matches'): rows within |m| + ``ROW_SPREADS`` s, a trim of ``TRIM_SPREADS`` s / sqrt 2
+    (the noise per pixel), each at least the fixed ``ROW_PX``, ``TRIM_PX``. A re-fit with added noise
+    (SIMEX, the walk's) keeps the sequence's: the same estimator on noisier pixels."""
+    d = obs_pixels[:, 1] - obs_pixels[:, 3]
+    if d.size < 10:
+        return Tolerances()
+    m = float(np.median(d))
+    s = 1.4826 * float(np.median(np.abs(d - m)))
+    return Tolerances(max(ROW_PX, abs(m) + ROW_SPREADS * s), max(TRIM_PX, TRIM_SPREADS * s / math.sqrt(2.0)))
 
 
 def pair_steps(num_steps: int, gap: int, max_pairs: int, skip: np.ndarray | None = None) -> np.ndarray:
@@ -705,8 +741,10 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
     both with a disparity above ``MIN_DISPARITY``. ``extra_noise`` > 0: white noise of that sigma
     (px, ``numpy.random.default_rng(seed)``) is added to every pixel first (a SIMEX re-fit);
     ``walk`` > 0: a displacement e ~ N(0, walk I2) px^2 is added to both images' pixels of every
-    point at k+``gap`` (the walk's re-fit, T4 of ``backend.run.drift``)."""
+    point at k+``gap`` (the walk's re-fit, T4 of ``backend.run.drift``). The sequence's
+    :func:`tolerances` hold."""
     K = seq.K
+    tolerance = tolerances(seq.obs_pixels)
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     ks = np.asarray(pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps, dtype=np.int64)
     a, b, ptr = _matched_rows(seq.obs_ids, seq.obs_ptr, ks, gap)  # the tracks seen at both, in id order
@@ -727,7 +765,7 @@ def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = 
 
     def fit(first: int, every: int = 1) -> list:
         return _fits(ks[first::every], za, zb, np.ascontiguousarray(begin[first::every]),
-                     np.ascontiguousarray(end[first::every]), cam, offset, min_points, gap)
+                     np.ascontiguousarray(end[first::every]), cam, offset, min_points, gap, tolerance=tolerance)
 
     if used.size < THREADED_PAIRS:
         return [f for f in fit(0) if f is not None]
