@@ -40,12 +40,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..data.inertial import ImuNoiseDensities, ImuSamples
 from ..estimator.inertial import BA, BG, CORE_INERTIAL, NU, PHI, RHO, InertialMean, integrate_samples
 from ..geometry.camera import StereoCamera
+
+if TYPE_CHECKING:
+    from .two_view import Tolerances
 
 __all__ = ["RestOptions", "Initialization", "VisionMotion", "initialize_at_rest", "rest_test", "vision_motion",
            "MotionOptions",
@@ -156,7 +160,7 @@ def rest_test(imu: ImuSamples, t0: float, window: float) -> dict:
 CHAIN_MIN_POINTS = 6
 
 
-def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, tolerance, min_points: int = 12):
+def _fit_frames(seq, a: int, b: int, Ia_R_Ib: np.ndarray, tolerance: Tolerances, min_points: int = 12):
     """The two-view fit (D2) of frames a and b, started from the gyro's rotation ``Ia_R_Ib`` (3,3) and a
     robust translation (:func:`_motion_guess`), on the tracks that agree with that start (gross
     mismatches, which an undamped fit can follow even from the right answer, left out), with the
