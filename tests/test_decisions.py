@@ -62,6 +62,8 @@ def test_noisy_pixels_are_measured_whole(sigma):
     assert px.tolerance.rows_px == pytest.approx(4.5 * sigma * np.sqrt(2.0), rel=0.05)
     assert px.as_dict()["row_tolerance_px"] == px.tolerance.rows_px
     assert f"rows agree within {px.tolerance.rows_px:.3g} px" in px.describe()
+    trim_said = f"residuals within {px.tolerance.trim_px:.3g} px" in px.describe()
+    assert trim_said == (px.tolerance.trim_px > two_view.TRIM_PX)  # said only where the spread widened it
 
 
 def test_tolerances_follow_the_rows_spread():

@@ -146,9 +146,14 @@ class PixelNoise:
 
     def describe(self) -> str:
         text = self._describe_sigma()
-        if self.tolerance != Tolerances():
-            text += (f"; from matches whose rows agree within {self.tolerance.rows_px:.3g} px and fits' residuals "
-                     f"within {self.tolerance.trim_px:.3g} px (the rows' own spread)")
+        used, fixed = self.tolerance, Tolerances()
+        wider = []  # the tolerances the rows' spread widened beyond the fixed ones
+        if used.rows_px > fixed.rows_px:
+            wider.append(f"matches whose rows agree within {used.rows_px:.3g} px")
+        if used.trim_px > fixed.trim_px:
+            wider.append(f"fits' residuals within {used.trim_px:.3g} px")
+        if wider:
+            text += f"; from {' and '.join(wider)} (the rows' own spread)"
         if self.disparity is not None:
             text += "; " + self.disparity.describe(self)
         return text
