@@ -57,9 +57,11 @@ class TrackTest:
         self.rejected = np.zeros(0, dtype=bool)
 
     def _grow(self, ids: np.ndarray) -> None:
+        """Room for track ids up to ``ids.max()``: at least doubled, so a run's new tracks cost
+        amortized constant copying (unseen tracks: zero sums and counts, not rejected)."""
         n = int(ids.max()) + 1 if ids.size else 0
         if n > self.rejected.size:
-            extra = n - self.rejected.size
+            extra = max(n, 2 * self.rejected.size) - self.rejected.size
             self.sums = np.concatenate([self.sums, np.zeros((extra, 3))])
             self.counts = np.concatenate([self.counts, np.zeros(extra, dtype=np.int64)])
             self.rejected = np.concatenate([self.rejected, np.zeros(extra, dtype=bool)])

@@ -106,15 +106,15 @@ def hold_error(signal: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((0.5 * np.diff(signal, axis=0)) ** 2, axis=0))
 
 
-def rows_sigma(seq: Sequence, tolerance: Tolerances | None = None) -> float:
+def rows_sigma(seq: Sequence, tolerance: Tolerances) -> float:
     """Robust std (px) of (vL - vR) / sqrt 2 over the observations whose rows agree within
-    ``tolerance`` (default: the sequence's ``two_view.tolerances``; the rest are mismatches, not
-    noise); nan without observations."""
+    ``tolerance`` (the sequence's ``two_view.tolerances``; the rest are mismatches, not noise); nan
+    without observations."""
     d = seq.obs_pixels[:, 1] - seq.obs_pixels[:, 3]
-    d = d[np.abs(d) <= (tolerance or tolerances(seq.obs_pixels)).rows_px]
+    d = d[np.abs(d) <= tolerance.rows_px]
     if d.size < 10:
         return float("nan")
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    return float(np.sqrt(_robust_var(d)) / np.sqrt(2.0))
 
 
 # ------------------------------------------------------------------------------------------ pixels
