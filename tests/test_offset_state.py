@@ -116,9 +116,9 @@ def test_the_prior_sigma_is_what_the_applied_offset_leaves():
     assert StereoOffset(estimate={"steps": 3}).residual_sigma == 0.0
 
 
-def _drive(seed: int, beta: float):
+def _drive(seed: int, beta: float, pixel_sigma: float = 0.5):
     scene = make_scene(SceneConfig(scenario="street", steps=250, seed=seed,
-                                   track_errors=TrackErrors(pixel_sigma=0.5, disparity_offset=beta)))
+                                   track_errors=TrackErrors(pixel_sigma=pixel_sigma, disparity_offset=beta)))
     return scene.sequence, (scene.sequence.time_stamps, scene.world_T_imu_true)
 
 
@@ -184,12 +184,14 @@ def test_drifting_tracks_get_no_offset_state():
 
 
 def test_the_applied_offsets_uncertainty_reaches_the_poses():
-    """The defaults on drift-free streets with -1 px planted: the decision removes it and the
+    """The defaults on drift-free streets with -1 px planted and 1 px of pixel noise: the decision
+    removes it (to within 0.004-0.074 px, 0.1-1.9 of its standard errors of about 0.04 px) and the
     filter carries its standard error as a consider state (O4); over three drives the position
-    NEES stays in its band where the decided offset taken as exact does not."""
+    NEES stays in its band where the decided offset taken as exact does not (at 0.5 px of noise the
+    decided offset is within 0.01 px, and taken as exact it costs nothing)."""
     nees = {"default": [], "exact": []}
     for seed in (5, 6, 12):
-        seq, gt = _drive(seed, -1.0)
+        seq, gt = _drive(seed, -1.0, pixel_sigma=1.0)
         for name, sets in (("default", []), ("exact", ["noise.stereo_offset_sigma=0"])):
             run = run_sequence(seq, Config().with_assignments(sets))
             if name == "default":

@@ -148,17 +148,16 @@ def test_exact_tracks_give_exactly_no_offset():
     assert abs(offset.estimate["beta_mean_px"]) < 1e-6 and offset.estimate["steps"] >= 150
 
 
-@pytest.mark.parametrize("extra_noise", [0.0, 0.5])
-def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch, extra_noise):
+def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch):
     """D2 over many step pairs in two threads: the same fits, in the same order, bit for bit, as one
-    thread gives (the noise of a SIMEX re-fit is drawn in step order before the threads start)."""
+    thread gives."""
     from vislam.backend.run import two_view
 
     seq = _scene(3, 0.5).sequence
-    threaded = two_view.fit_pairs(seq, 1, 150, offset=True, extra_noise=extra_noise, seed=4)
+    threaded = two_view.fit_pairs(seq, 1, 150, offset=True)
     assert len(threaded) >= two_view.THREADED_PAIRS
     monkeypatch.setattr(two_view, "THREADED_PAIRS", 10**9)
-    alone = two_view.fit_pairs(seq, 1, 150, offset=True, extra_noise=extra_noise, seed=4)
+    alone = two_view.fit_pairs(seq, 1, 150, offset=True)
     assert len(threaded) == len(alone)
     for a, b in zip(threaded, alone):
         assert a.step == b.step and a.beta == b.beta and a.beta_variance == b.beta_variance
@@ -166,22 +165,20 @@ def test_fits_in_threads_equal_fits_in_one_thread(monkeypatch, extra_noise):
         np.testing.assert_array_equal(a.residuals, b.residuals)
 
 
-@pytest.mark.parametrize("extra_noise", [0.0, 0.5])
-def test_fit_pairs_fits_the_pixels_matched_pair_by_pair(extra_noise):
-    """fit_pairs (the tracks of all pairs matched in one compiled call, a SIMEX re-fit's noise drawn at
-    once) gives, bit for bit, what matching each pair (``matched_pixels``, the noise drawn pair by pair
-    in step order) and fitting it alone, with the sequence's tolerances, gives."""
+def test_fit_pairs_fits_the_pixels_matched_pair_by_pair():
+    """fit_pairs (the tracks of all pairs matched in one compiled call) gives, bit for bit, what
+    matching each pair (``matched_pixels``) and fitting it alone, with the sequence's tolerances,
+    gives."""
     from vislam.backend.run import two_view
 
     seq = _scene(3, 0.5).sequence
     K = seq.K
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     steps = two_view.pair_steps(seq.num_steps, 2, 40)
-    fits = two_view.fit_pairs(seq, 2, offset=True, steps=steps, extra_noise=extra_noise, seed=7)
-    rng = np.random.default_rng(7) if extra_noise else None
+    fits = two_view.fit_pairs(seq, 2, offset=True, steps=steps)
     alone = []
     for k in steps:
-        za, zb = two_view.matched_pixels(seq, int(k), int(k) + 2, rng, extra_noise)
+        za, zb = two_view.matched_pixels(seq, int(k), int(k) + 2)
         fit = fit_pair(za, zb, cam, offset=True, step=int(k), gap=2,
                        tolerance=two_view.tolerances(seq.obs_pixels)) if za.shape[0] >= 12 else None
         alone += [fit] if fit is not None else []
@@ -207,13 +204,57 @@ def test_noise_alone_is_not_taken_for_an_offset(seed):
         assert not offset.active, e
 
 
+def test_no_offset_is_found_on_an_aerial_scene_over_noise_draws():
+    """D3 on an aerial scene with 1 px of noise and no offset (disparities of 5-20 px, where the
+    noise's own bias of beta is about a tenth of a pixel): over six noise draws every estimate lies
+    within 3 of its standard errors of 0, nothing is removed, and the estimates spread by at most
+    0.3 px (0.11 measured; with a SIMEX correction of the noise's bias from one re-fit with added
+    noise they spread by 0.87 px)."""
+    config = SceneConfig(scenario="aerial", seed=0, pixel_sigma=1.0, steps=300)
+    estimates = []
+    for noise_seed in range(6):
+        seq = make_scene(config, noise_seed=noise_seed).sequence
+        offset = identify_stereo_offset(seq, seq.imu_T_cam)
+        e = offset.estimate
+        assert abs(e["beta_mean_px"]) < 3 * e["beta_mean_se"] and not offset.active, e
+        estimates.append(e["beta_mean_px"])
+    assert np.std(estimates, ddof=1) < 0.3, estimates
+
+
+def test_batch_means_see_errors_correlated_over_neighbouring_pairs():
+    """D4 over 400 draws of 300 pairs: for independent beta_k the batch means' variance of the mean
+    agrees with the draws' own within 15 %; for errors that persist over neighbouring pairs (AR(1),
+    rho = 0.8: the variance of the mean about (1 + rho) / (1 - rho) = 9 times the independent one)
+    the batch means find at least 65 % of it, the scatter alone under 20 %."""
+    from vislam.backend.run.stereo_offset import _regress, batch_means_se
+
+    rng = np.random.default_rng(0)
+    weight = rng.integers(12, 60, 300).astype(float)  # points of each pair
+    for rho in (0.0, 0.8):
+        means, batch, scatter = [], [], []
+        for _ in range(400):
+            e = np.empty(300)
+            e[0] = rng.normal()
+            for k in range(1, 300):
+                e[k] = rho * e[k - 1] + np.sqrt(1 - rho**2) * rng.normal()
+            beta = 0.5 + e / np.sqrt(weight / weight.mean())
+            (m,), (se,) = _regress(np.ones((300, 1)), beta, weight)
+            means.append(m)
+            scatter.append(se**2)
+            batch.append(batch_means_se(beta, weight) ** 2)
+        truth = np.var(means)
+        if rho == 0.0:
+            assert abs(np.mean(batch) / truth - 1) < 0.15, (np.mean(batch), truth)
+        else:
+            assert np.mean(batch) > 0.65 * truth and np.mean(scatter) < 0.2 * truth, (np.mean(batch), np.mean(scatter), truth)
+
+
 @pytest.mark.parametrize("beta0", [-1.5, -0.5, 0.8])
 def test_planted_constant_offset_is_found_and_applied(beta0):
     seq = _with_offset(_scene(3).sequence, beta0)
     offset = identify_stereo_offset(seq, seq.imu_T_cam)
     e = offset.estimate
     assert offset.active
-    assert e["weights"] == "inverse variance", e  # the pairs' variances are right here: the precise weights kept
     assert abs(e["beta_mean_px"] - beta0) < max(4 * e["beta_mean_se"], 0.05), e
     corrected = offset.correct(seq.obs_pixels[:5], 0.0)
     np.testing.assert_allclose(corrected[:, 2] - seq.obs_pixels[:5, 2], offset.offsets(0.0))
@@ -333,8 +374,9 @@ def test_pairs_whose_noise_raised_beta_do_not_outweigh_the_rest(name, planted):
     """Aerial scenes of the grid (disparities of 5-20 px, drifting tracks, 0.5-0.75 px noise): a pair's
     own variance of beta shrinks where noise raised its beta (rank correlation of beta_k and 1 / var
     about 0.4-0.7 here), so inverse-variance weights found +4 px on s206 where none was planted, and
-    removed it. The two means disagree there, the points' one is taken: within 3 standard errors of
-    the planted offset, and an offset is removed only where one was planted."""
+    removed it. The pairs weighted by their points: within 3 standard errors of the planted offset,
+    and an offset is removed only where one was planted (on s205 the tracks alone, -0.99 +- 0.31 px,
+    leave it to the IMU's scale, D5)."""
     from vislam.synth.grid import spec as grid_spec
 
     spec = grid_spec(name)
@@ -342,6 +384,5 @@ def test_pairs_whose_noise_raised_beta_do_not_outweigh_the_rest(name, planted):
     seq = make_scene(spec.scene_config()).sequence
     offset = identify_stereo_offset(seq, seq.imu_T_cam)
     e = offset.estimate
-    assert e["weights"] == "points", e
     assert abs(e["beta_mean_px"] - planted) < 3 * e["beta_mean_se"], e
-    assert offset.active == (planted != 0.0), e
+    assert not (offset.active and planted == 0.0), e

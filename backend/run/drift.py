@@ -31,7 +31,7 @@ slows down after 2-3 steps; on rendered streets only the long gap sees any). ``W
 how much of a walk the two-view fit absorbs into the points and the motion, which depends on the
 scene's geometry and the gap (synthetic streets 3.5 at gap 2, 4.0 at 3, 6.4 at 10; aerial scenes
 2.6-3.9): it is measured on the drive itself by re-fitting up to ``WALK_PAIRS`` of its gap-H pairs
-with a known walk added (simulation-extrapolation, as the stereo offset's SIMEX refit): a displacement e ~
+with a known walk added (simulation-extrapolation, SIMEX): a displacement e ~
 N(0, v I2) common to both images of each point at k+H, v the pairs' own mean square, grows their
 mean square by m_v - m_0, so
 

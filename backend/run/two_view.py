@@ -692,8 +692,8 @@ def tolerances(obs_pixels: np.ndarray) -> Tolerances:
     """The fits' tolerances for a sequence's observations ``obs_pixels`` (L,4), from its row
     differences d = vL - vR (median m, robust spread s = 1.4826 MAD; mismatches are a minority, so
     both are the matches'): rows within |m| + ``ROW_SPREADS`` s, a trim of ``TRIM_SPREADS`` s / sqrt 2
-    (the noise per pixel), each at least the fixed ``ROW_PX``, ``TRIM_PX``. A re-fit with added noise
-    (SIMEX, the walk's) keeps the sequence's: the same estimator on noisier pixels."""
+    (the noise per pixel), each at least the fixed ``ROW_PX``, ``TRIM_PX``. The walk's re-fit (T4 of
+    ``backend.run.drift``) keeps the sequence's: the same estimator on pixels that moved."""
     d = obs_pixels[:, 1] - obs_pixels[:, 3]
     if d.size < 10:
         return Tolerances()
@@ -716,43 +716,32 @@ def pair_steps(num_steps: int, gap: int, max_pairs: int, skip: np.ndarray | None
     return candidates
 
 
-def matched_pixels(seq: Sequence, a: int, b: int, rng: np.random.Generator | None = None,
-                   extra_noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def matched_pixels(seq: Sequence, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
     """(za, zb), (m,4) each: the pixels at steps ``a`` and ``b`` of the tracks seen at both, row by
-    row the same track, kept where both disparities exceed ``MIN_DISPARITY``; with ``rng``, white
-    noise of ``extra_noise`` px is added to every pixel first (the disparities are those of the
-    noisy pixels)."""
+    row the same track, kept where both disparities exceed ``MIN_DISPARITY``."""
     ids_a, za = seq.observations(a)
     ids_b, zb = seq.observations(b)
     _, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
     za, zb = za[ia], zb[ib]
-    if rng is not None:
-        za = za + rng.normal(0.0, extra_noise, za.shape)
-        zb = zb + rng.normal(0.0, extra_noise, zb.shape)
     keep = (za[:, 0] - za[:, 2] > MIN_DISPARITY) & (zb[:, 0] - zb[:, 2] > MIN_DISPARITY)
     return za[keep], zb[keep]
 
 
 def fit_pairs(seq: Sequence, gap: int = 1, max_pairs: int = 300, offset: bool = False, min_points: int = 12,
-              skip: np.ndarray | None = None, steps: np.ndarray | None = None, extra_noise: float = 0.0,
-              seed: int = 0, walk: float = 0.0) -> list[TwoViewFit]:
+              skip: np.ndarray | None = None, steps: np.ndarray | None = None, seed: int = 0,
+              walk: float = 0.0) -> list[TwoViewFit]:
     """The fits (D2) of up to ``max_pairs`` step pairs (k, k+``gap``) spread over ``seq`` (see
     :func:`pair_steps`; or exactly the pairs starting at ``steps``), each from the points seen in
-    both with a disparity above ``MIN_DISPARITY``. ``extra_noise`` > 0: white noise of that sigma
-    (px, ``numpy.random.default_rng(seed)``) is added to every pixel first (a SIMEX re-fit);
-    ``walk`` > 0: a displacement e ~ N(0, walk I2) px^2 is added to both images' pixels of every
-    point at k+``gap`` (the walk's re-fit, T4 of ``backend.run.drift``). The sequence's
-    :func:`tolerances` hold."""
+    both with a disparity above ``MIN_DISPARITY``. ``walk`` > 0: a displacement e ~ N(0, walk I2)
+    px^2 (``numpy.random.default_rng(seed)``) is added to both images' pixels of every point at
+    k+``gap`` (the walk's re-fit, T4 of ``backend.run.drift``). The sequence's :func:`tolerances`
+    hold."""
     K = seq.K
     tolerance = tolerances(seq.obs_pixels)
     cam = (K[0, 0], K[1, 1], K[0, 2], K[1, 2], seq.baseline)
     ks = np.asarray(pair_steps(seq.num_steps, gap, max_pairs, skip) if steps is None else steps, dtype=np.int64)
     a, b, ptr = _matched_rows(seq.obs_ids, seq.obs_ptr, ks, gap)  # the tracks seen at both, in id order
     za, zb = seq.obs_pixels[a], seq.obs_pixels[b]
-    if extra_noise > 0:  # drawn as pair by pair in step order: za's (m,4) then zb's (m,4) of each pair
-        noise = np.random.default_rng(seed).normal(0.0, extra_noise, (2 * a.size, 4))
-        at = np.arange(a.size) + np.repeat(ptr[:-1], np.diff(ptr))  # row i of pair k: 2 ptr[k] + (i - ptr[k])
-        za, zb = za + noise[at], zb + noise[at + np.repeat(np.diff(ptr), np.diff(ptr))]
     if walk > 0:  # the same move of a point's left and right pixels: its disparity stays
         e = np.random.default_rng(seed).normal(0.0, np.sqrt(walk), (zb.shape[0], 2))
         zb = zb + np.hstack([e, e])
