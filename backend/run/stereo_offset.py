@@ -341,9 +341,8 @@ def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: lis
     if spread >= 1e-3:
         A = np.stack([np.ones_like(g), g], axis=1)
         coef, se = _regress(A, beta, points)
-        residual = (beta - A @ coef)[order]  # what the rate model leaves, batched as the mean's (D4)
-        se = se * max(1.0, batch_means_se(residual, points[order]) / _regress(np.ones((beta.size, 1)), residual,
-                                                                             points[order])[1][0])
+        r, w = (beta - A @ coef)[order], points[order]  # what the rate model leaves, batched as the mean (D4)
+        se = se * max(1.0, batch_means_se(r, w) / _regress(np.ones((r.size, 1)), r, w)[1][0])
     estimate.update(beta0_px=float(coef[0]), beta0_se=float(se[0]), kappa_px_s=float(coef[1]), kappa_se=float(se[1]))
     rate_shown = np.isfinite(se[1]) and abs(coef[1]) > max(SIGNIFICANCE * se[1], MIN_EFFECT_PX / max(spread, 1e-12))
     if model == "rate" and rate_shown:
