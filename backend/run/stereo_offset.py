@@ -50,7 +50,7 @@ widened by the same ratio measured on its own residuals (a planted rate term is,
 model, an error that follows the turns and so persists over neighbouring pairs).
 On the 264 scenes the error of the estimate in its standard errors has a mean square of 1.10
 with the batches (1.68 from the scatter alone; 1 is honest), and on the real drives the
-batches are the larger by 2.5-5 times (``ece276a_03.npz``: -0.65 +- 0.19 px, the scatter alone
+batches are the larger by 2.8 (0027) and 4.8 times (``ece276a_03.npz``: -0.65 +- 0.19 px, the scatter alone
 +- 0.04).
 
 ``conventions.stereo_offset = "constant"`` (the default) removes the weighted mean of ``beta_k``
@@ -59,7 +59,7 @@ when it differs from 0 by more than ``SIGNIFICANCE`` standard errors and ``MIN_E
 drive's spread of rates), else the constant; ``"off"`` estimates nothing. Both terms are always
 estimated and reported. The constant is the default because it is what the data supports: on
 KITTI 01 (frames 0-50, one steady turn) and KITTI-360 (03) the offset is a constant (-1.4 and
--0.56 px; on 03 dead reckoning's own reprojection test has its best offset at -0.6 to -0.75 px),
+-0.66 px; on 03 dead reckoning's own reprojection test has its best offset at -0.6 to -0.75 px),
 while the rate term found on KITTI 07 (ece276a_0027: -2.3 +- 1.2 px s/rad, 4-6 standard errors
 from the pairs' scatter alone, 2 with D4's batches) made the estimate worse over six draws of its
 velocity noise (BENCHMARKS.md). The run removes an offset only if the
