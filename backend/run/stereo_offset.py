@@ -320,7 +320,8 @@ def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: lis
     model = str(model)
     if model == "off":
         return StereoOffset(source="off")
-    fits = [f for f in fits if f.gap == 1 and f.points >= MIN_POINTS and np.isfinite(f.beta_variance)]
+    fits = sorted((f for f in fits if f.gap == 1 and f.points >= MIN_POINTS and np.isfinite(f.beta_variance)),
+                  key=lambda f: f.step)  # in step order: D4's batches are consecutive pairs
     ks = np.array([f.step for f in fits], dtype=np.int64)
     beta = np.array([f.beta for f in fits])
     source = f"auto, {model}"
@@ -330,9 +331,8 @@ def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: lis
     g = 0.5 * (omega[ks] + omega[np.minimum(ks + 1, omega.size - 1)])
     spread = float(np.std(g))
     points = np.array([f.points for f in fits], dtype=float)
-    order = np.argsort(ks, kind="stable")  # the batches of consecutive pairs (D4)
     (mean,), (scatter_se,) = _regress(np.ones_like(g)[:, None], beta, points)
-    batch_se = batch_means_se(beta[order], points[order])
+    batch_se = batch_means_se(beta, points)
     mean_se = float(max(scatter_se, batch_se)) if np.isfinite(batch_se) else float(scatter_se)
     estimate = {"beta_mean_px": float(mean), "beta_mean_se": mean_se, "steps": int(ks.size),
                 "omega_y_std": spread, "fx": float(seq.K[0, 0]), "scatter_se_px": float(scatter_se),
@@ -341,8 +341,8 @@ def offset_from_fits(seq: Sequence, imu_T_cam: np.ndarray, model: str, fits: lis
     if spread >= 1e-3:
         A = np.stack([np.ones_like(g), g], axis=1)
         coef, se = _regress(A, beta, points)
-        r, w = (beta - A @ coef)[order], points[order]  # what the rate model leaves, batched as the mean (D4)
-        se = se * max(1.0, batch_means_se(r, w) / _regress(np.ones((r.size, 1)), r, w)[1][0])
+        r = beta - A @ coef  # what the rate model leaves, batched as the mean (D4)
+        se = se * max(1.0, batch_means_se(r, points) / _regress(np.ones((r.size, 1)), r, points)[1][0])
     estimate.update(beta0_px=float(coef[0]), beta0_se=float(se[0]), kappa_px_s=float(coef[1]), kappa_se=float(se[1]))
     rate_shown = np.isfinite(se[1]) and abs(coef[1]) > max(SIGNIFICANCE * se[1], MIN_EFFECT_PX / max(spread, 1e-12))
     if model == "rate" and rate_shown:
