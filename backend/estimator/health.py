@@ -192,6 +192,15 @@ class ScaleCheck:
                 "noise.stereo_offset_sigma), or the IMU's speed calibration")
 
 
+def ratio_of_batches(N: np.ndarray, D: np.ndarray) -> tuple[float, float]:
+    """s = sum_b N_b / sum_b D_b over B batches of consecutive items (N_b, D_b: each batch's sums, (B,))
+    and its batch-means standard error sqrt(sum_b (N_b - s D_b)^2 / (B (B - 1))) / mean(D) (H4; the
+    disparity offset's D4 of ``backend.run.stereo_offset``, a weighted mean: N_b = sum w beta, D_b = sum w)."""
+    B = N.size
+    s = float(N.sum() / D.sum())
+    return s, float(np.sqrt(np.sum((N - s * D) ** 2) / (B * (B - 1))) / D.mean())
+
+
 def scale_check(world_T_imu: np.ndarray, imu_steps: np.ndarray) -> ScaleCheck:
     """H4 from the filter's poses ``world_T_imu`` (N,4,4) and the IMU's displacement over each step in
     the body frame at its start, ``imu_steps`` (N-1,3); the last N-1 mod ``SCALE_BATCHES`` steps
@@ -207,6 +216,4 @@ def scale_check(world_T_imu: np.ndarray, imu_steps: np.ndarray) -> ScaleCheck:
     D = np.einsum("ki,ki->k", d, d).reshape(SCALE_BATCHES, -1).sum(axis=1)
     if not D.sum() > 0:
         return ScaleCheck(float("nan"), float("nan"), n)
-    s = float(N.sum() / D.sum())
-    se = float(np.sqrt(np.sum((N - s * D) ** 2) / (SCALE_BATCHES * (SCALE_BATCHES - 1))) / D.mean())
-    return ScaleCheck(s, se, n)
+    return ScaleCheck(*ratio_of_batches(N, D), n)

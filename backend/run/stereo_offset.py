@@ -118,7 +118,7 @@ import numpy as np
 
 from ..config import Config
 from ..data.sequence import Sequence
-from ..estimator.health import SCALE_MIN_EFFECT, SCALE_MIN_STEPS, ScaleCheck
+from ..estimator.health import SCALE_MIN_EFFECT, SCALE_MIN_STEPS, ScaleCheck, ratio_of_batches
 from .two_view import fit_pairs
 
 __all__ = ["StereoOffset", "OffsetMeasurement", "identify_stereo_offset", "camera_rate_y", "offset_by_imu_scale"]
@@ -292,15 +292,14 @@ def _regress(A: np.ndarray, beta: np.ndarray, weight: np.ndarray) -> tuple[np.nd
 
 def batch_means_se(beta: np.ndarray, weight: np.ndarray, batches: int = BATCHES) -> float:
     """(D4) the standard error of the weighted mean of ``beta`` (n,), in step order, with weights
-    ``weight`` (n,), from the spread of the weighted means of ``batches`` contiguous batches; nan
-    with fewer than two batches."""
+    ``weight`` (n,), from the spread of the weighted means of ``batches`` contiguous batches (H4's
+    ratio of batch sums, :func:`~backend.estimator.health.ratio_of_batches`); nan with fewer than two
+    batches."""
     parts = [p for p in np.array_split(np.arange(beta.size), min(batches, beta.size)) if p.size]
     if len(parts) < 2:
         return math.nan
-    W = np.array([weight[p].sum() for p in parts])
-    means = np.array([weight[p] @ beta[p] for p in parts]) / W
-    m = W @ means / W.sum()
-    return float(np.sqrt(len(parts) / (len(parts) - 1) * np.sum(W**2 * (means - m) ** 2)) / W.sum())
+    sums = np.array([weight[p] @ beta[p] for p in parts])
+    return ratio_of_batches(sums, np.array([weight[p].sum() for p in parts]))[1]
 
 
 def identify_stereo_offset(seq: Sequence, imu_T_cam: np.ndarray, model: str = "constant",
