@@ -107,6 +107,8 @@ class EstimatorOptions(OptionTable):
     max_state_mib: float = 256.0  # refuse full_state when the dense covariance would exceed this (~1900 landmarks)
     estimate_stereo_offset: bool = False  # the residual disparity offset (noise.stereo_offset_sigma) estimated
     # (O1-O3); false: a consider state, its uncertainty carried into the poses and landmarks, its mean held (O4)
+    estimate_lever_arm: bool = False  # the residual lever arm of the IMU's velocities (noise.lever_arm_sigma)
+    # estimated (V1); false: considered, the estimate as without it and its share in the covariance (V2)
     estimate_gyro_bias: bool = True  # 3 gyro-bias states (random walk) ...
     gyro_bias_min_observations: float = 10.0  # ... only with at least this many stereo observations per step on average
     first_estimate_jacobians: bool = True  # body error model: linearize at each landmark's first estimate (FEJ)
@@ -132,11 +134,13 @@ class NoiseOptions(OptionTable):
     initial_pose_sigma: float = 1e-6  # the world frame is the first pose
     stereo_offset_sigma: Optional[float] = None  # px: prior sigma of the residual disparity offset the filter
     # estimates (O1 of backend.estimator.offset); unset: from the stereo offset's decision; 0: not estimated
+    lever_arm_sigma: Optional[float] = None  # m: prior sigma per axis of the residual lever arm of the IMU's
+    # velocities the filter carries (V1 of backend.estimator.lever_arm); unset: from N3's decision (V3); 0: none
 
     def check(self) -> None:
         self.require_positive("gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
         self.require_positive("pixel_sigma", "linear_velocity_sigma", "angular_velocity_sigma", optional=True)
-        for key in ("pixel_variance_per_disparity", "stereo_offset_sigma"):
+        for key in ("pixel_variance_per_disparity", "stereo_offset_sigma", "lever_arm_sigma"):
             if getattr(self, key) is not None:
                 self.require_at_least(0.0, key)
 

@@ -124,6 +124,28 @@ def _noise_jacobian(world_T_imu_next: np.ndarray, twist: np.ndarray, points: np.
     return pose, np.array([_hat(m) @ R_phi for m in points]).reshape(-1, 3, 6)
 
 
+def _dense_invariant_prediction(P, mu, twist, points, dt, q, walk, core=CORE, bias=True, lever_row=None):
+    """(I2) built densely: F P F^T + G Q G^T with G = [G_pose; m_i^ R_phi] (the landmark rows after
+    ``core``), F = I + G E_b e_b^T where ``bias`` (E_b = -tau [0; I]) and + G E_r e_r^T on the lever
+    arm's rows from ``lever_row`` (V1 of ``backend.estimator.lever_arm``), the bias walk on its rows."""
+    from vislam.backend.estimator.lever_arm import twist_columns
+
+    D = P.shape[0]
+    G_pose, G_lm = _noise_jacobian(mu, twist, points)
+    G = np.zeros((D, 6))
+    G[:6] = G_pose
+    G[core:] = G_lm.reshape(-1, 6)
+    F = np.eye(D)
+    if bias:
+        F[:, 6:9] += -dt * G[:, 3:6]
+    if lever_row is not None:
+        F[:, lever_row:lever_row + 3] += G @ twist_columns(twist)
+    expected = F @ P @ F.T + G @ np.diag(q**2) @ G.T
+    if bias:
+        expected[6:9, 6:9] += walk * np.eye(3)
+    return expected
+
+
 def _retract(world_T_imu: np.ndarray, points: np.ndarray, d_pose: np.ndarray, d_points: np.ndarray):
     """(I5) exp(dx) X_hat: pose exp(d_pose^) world_T_imu, landmarks m <- R_d m + J_l(phi) zeta."""
     E = _exp_se3(d_pose)
@@ -138,19 +160,11 @@ def test_predict_invariant_equals_dense_propagation(bias):
     K = 7
     D = CORE + 3 * K
     P, mu, twist, points, dt, q, walk = _prediction_problem(rng, K)
-    G_pose, G_lm = _noise_jacobian(mu, twist, points)
-    G = np.zeros((D, 6))
-    G[:6] = G_pose
-    G[CORE:] = G_lm.reshape(-1, 6)
-    F = np.eye(D)
-    if bias:
-        F[:, 6:9] += -dt * G[:, 3:6]
-    expected = F @ P @ F.T + G @ np.diag(q**2) @ G.T
-    if bias:
-        expected[6:9, 6:9] += walk * np.eye(3)
+    assert P.shape == (D, D)
+    expected = _dense_invariant_prediction(P, mu, twist, points, dt, q, walk, bias=bias)
     pose, R_phi = _noise_jacobian_pose(mu, twist)
     out = P.copy()
-    invariant.predict_covariance_inplace(out, pose, R_phi, points, q, dt, bias, walk)
+    invariant.predict_covariance_inplace(out, pose, R_phi, points, q, dt, bias, walk, -1, np.zeros(3))
     np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
     assert np.array_equal(out, out.T)
 
@@ -184,7 +198,8 @@ def test_predict_step_is_mean_propagation_then_invariant_covariance():
     lm_walk = 2e-4
     mu_next = mu @ _exp_se3(twist)
     expected = P.copy()
-    invariant.predict_covariance_inplace(expected, *_noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk)
+    invariant.predict_covariance_inplace(expected, *_noise_jacobian_pose(mu_next, twist), points, q, dt, True, walk, -1,
+                                         np.zeros(3))
     expected[np.arange(CORE, D), np.arange(CORE, D)] += lm_walk
     pose, G_pose = invariant.predict_step(mu, twist)
     np.testing.assert_allclose(pose, mu_next, rtol=0, atol=1e-13)

@@ -77,6 +77,7 @@ def summary_dict(result: RunResult, source: str, errors: Optional[dict] = None, 
         "scale_against_imu": None if stats.scale is None else stats.scale.as_dict(),
         "gyro_bias_final": result.gyro_bias,
         "disparity_offset_final": None if result.disparity_offset is None else result.disparity_offset.as_dict(),
+        "lever_arm_final": None if result.lever_arm is None else result.lever_arm.as_dict(),
         **({"accel_bias_final": result.accel_biases[-1], "velocity_final": result.velocity[-1]} if result.inertial else {}),
         "timing": {
             "run_seconds": stats.total_seconds,

@@ -9,7 +9,8 @@ over tau = t_{k+1} - t_k:
     xi <- exp(-tau u-curlyhat) xi - tau J_r(tau u) [0; I] db + w,   w ~ N(0, W)
     P_xx <- F P_xx F^T + Q,  P_x,L <- F P_x,L,   F = [[exp(-tau u-curlyhat), -tau J_r E], [0, I]]   (B1)
 
-with Q = diag(sigma_v^2, sigma_omega^2) tau^2 on the pose and the bias random walk on b_g.
+with Q = diag(sigma_v^2, sigma_omega^2) tau^2 on the pose and the bias random walk on b_g; a residual
+lever arm in the state (V1 of ``backend.estimator.lever_arm``) has the columns J_r(tau u) E_r.
 
 Observation of landmark j in the stereo pair (course eq. z = Ks pi(cam_T_imu T^-1 m)), with the
 landmark as a homogeneous point w = A (e + B theta) (L1):
@@ -35,7 +36,8 @@ import numpy as np
 from ..geometry import se3
 from ..geometry.camera import dpi_dq, pi
 from . import landmarks
-from .layout import BIAS, POSE, SQRT_HALF, landmark_rows
+from .layout import BIAS, LEVER_ROWS, POSE, SQRT_HALF, landmark_rows
+from .lever_arm import SensitivityTransition, twist_columns
 from .model import ErrorModel
 from .state import FilterState
 from .state_helper import CoreTransition, NewLandmarks
@@ -58,13 +60,20 @@ class BodyModel(ErrorModel):
         self.predict_mean_only(state, step)
         if not self.estimate_pose:
             return None
-        Phi = np.eye(state.core)  # the disparity offset's row, where estimated, is constant
+        Phi = np.eye(state.core)  # the disparity offset's and the lever arm's rows are constant
         Phi[POSE, POSE] = se3.adjoint(se3.inverse(step))  # exp(-tau u-curlyhat) = Ad(exp(tau u^)^-1)
         q_var = np.zeros(state.core)
         q_var[POSE] = q * q
+        J_r = se3.right_jacobian_se3(twist)
         if self.estimate_bias:
-            Phi[POSE, BIAS] = -dt * se3.right_jacobian_se3(twist)[:, 3:6]
+            Phi[POSE, BIAS] = -dt * J_r[:, 3:6]
             q_var[BIAS] = bias_walk_var
+        if state.lever_row is None:
+            return CoreTransition(Phi, q_var)
+        g = J_r @ twist_columns(twist)  # (V1): the lever arm's columns of F on the pose rows
+        if state.lever_considered:  # (V2) its sensitivity column only
+            return SensitivityTransition(CoreTransition(Phi, q_var), state.lever_row, g)
+        Phi[POSE, state.lever_row:state.lever_row + LEVER_ROWS] = g
         return CoreTransition(Phi, q_var)
 
     # ---------------------------------------------------------------- observation (B2, B3)
@@ -125,10 +134,11 @@ class BodyModel(ErrorModel):
         state.theta += dx[state.core:].reshape(-1, 3)
 
     def world_landmarks(self, state, slots):
-        idx = landmark_rows(state.core, slots)
-        cov = state.P[idx[:, :, None], idx[:, None, :]]  # the 3x3 diagonal blocks
+        P, rows = state.considered_state(slots)  # (V2) with a considered lever arm's share
+        idx = landmark_rows(state.core, rows)
+        cov = P[idx[:, :, None], idx[:, None, :]]  # the 3x3 diagonal blocks
         anchors = state.anchors[slots] if state.anchors is not None else None
         return landmarks.to_world(self.parametrization, state.theta[slots], anchors, cov)
 
     def pose_covariance(self, state) -> np.ndarray:
-        return state.P[POSE, POSE].copy()
+        return state.covariance_of(POSE)

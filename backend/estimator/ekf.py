@@ -40,7 +40,8 @@ from ..data.inertial import ImuSamples
 from .health import HealthMonitor
 from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
-from .layout import BIAS, CORE, OFFSET, POSE, state_dimension
+from .layout import BIAS, CORE, LEVER_ROWS, OFFSET, POSE, state_dimension
+from .lever_arm import LeverArmEstimate
 from .model import ErrorModel
 from .offset import OffsetEstimate, corrected_pixels, offset_innovation
 from .propagation import ImuNoise
@@ -168,6 +169,12 @@ class VisualInertialEKF:
         ``propagate(imu, t0, t1)`` replaces ``predict``. With ``estimator.window`` set (SLAM mode) the
         state holds that many pose clones instead of landmarks (``backend.estimator.window``).
 
+    lever_prior : array, shape (3, 3), optional
+        The prior covariance (m^2) of the residual lever arm of the IMU's velocities (V1-V3 of
+        ``backend.estimator.lever_arm``; the velocity model's SLAM runs): considered by default
+        (V2), estimated with ``estimator.estimate_lever_arm``; None: ``noise.lever_arm_sigma``^2 I where
+        that is set, else no such state.
+
     Use: ``predict(dt, v, w)`` (or ``propagate(imu, t0, t1)``) then ``update(ids, pixels)`` once per
     time step, ``finish()`` at the end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
     ``execution.blas_threads`` threads (one by default: at the filter's ~200 x 200 sizes more
@@ -185,6 +192,7 @@ class VisualInertialEKF:
         world_T_imu: np.ndarray | None = None,
         expected_landmarks: int | None = None,
         inertial: InertialStart | None = None,
+        lever_prior: np.ndarray | None = None,
     ) -> None:
         window = window_in_use(config, inertial is not None)
         warm_up(inertial=inertial is not None, window=window)  # compile or load the kernels now (once per process), not in the first step
@@ -198,6 +206,7 @@ class VisualInertialEKF:
         self.estimate_pose = est.mode == Mode.SLAM
         self.use_vision = est.mode != Mode.DEAD_RECKONING
         self.inertial = inertial is not None
+        self._lever_prior = None  # (3,3) the residual lever arm's prior, where the state holds it (V1)
         if self.inertial:
             self.model = InertialModel(camera, imu_T_cam, inertial, self.estimate_pose)
             m = inertial.mean
@@ -208,13 +217,20 @@ class VisualInertialEKF:
         else:
             self.model = make_error_model(config, camera, imu_T_cam)
             offset_sigma = noise.stereo_offset_sigma if self.use_vision and not window else None
+            if lever_prior is None and noise.lever_arm_sigma:
+                lever_prior = noise.lever_arm_sigma**2 * np.eye(LEVER_ROWS)
+            lever = lever_prior is not None and self.estimate_pose
             core = CORE + 1 if offset_sigma else CORE
+            lever_row = core if lever else None
+            core += LEVER_ROWS if lever else 0
             self.state = FilterState(
                 mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
                 theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
                 anchors=np.zeros((0, 4, 4)) if "anchors" in self.model.per_landmark else None,
                 core=core, offset_row=OFFSET if offset_sigma else None,
                 offset_considered=bool(offset_sigma) and not est.estimate_stereo_offset,
+                lever_row=lever_row, lever_considered=lever and not est.estimate_lever_arm,
+                lever_information=np.linalg.inv(lever_prior) if lever else None,
             )
             prior = np.zeros((core, core))
             if self.estimate_pose:
@@ -223,6 +239,10 @@ class VisualInertialEKF:
                     prior[BIAS, BIAS] = np.eye(3) * noise.gyro_bias_sigma0**2
             if offset_sigma:  # (O1) the residual disparity offset
                 prior[OFFSET, OFFSET] = offset_sigma**2
+            if lever:  # (V1) the residual lever arm of the IMU's velocities
+                rows = slice(lever_row, lever_row + LEVER_ROWS)
+                prior[rows, rows] = np.asarray(lever_prior, dtype=float)
+            self._lever_prior = np.asarray(lever_prior, dtype=float) if lever else None
             StateHelper.set_prior(self.state, prior)
         if noise.pixel_sigma is None:
             raise FilterError("noise.pixel_sigma is unset: set it, or let vislam.decide() identify it from the data "
@@ -288,6 +308,16 @@ class VisualInertialEKF:
                               float(self.config.noise.stereo_offset_sigma), not st.offset_considered)
 
     @property
+    def lever_arm(self) -> LeverArmEstimate | None:
+        """The residual lever arm of the IMU's velocities in the state (V1, V2), or None where it is not."""
+        st = self.state
+        if st.lever_row is None:
+            return None
+        rows = np.arange(st.lever_row, st.lever_row + LEVER_ROWS)
+        return LeverArmEstimate(st.lever_arm.tolist(), np.sqrt(np.maximum(st.P[rows, rows], 0.0)).tolist(),
+                                np.sqrt(np.diag(self._lever_prior)).tolist(), not st.lever_considered)
+
+    @property
     def num_active(self) -> int:
         """Landmarks in the state."""
         return self.state.num_landmarks
@@ -327,7 +357,11 @@ class VisualInertialEKF:
 
     def _imu_twist(self, dt: float, linear_velocity: np.ndarray, angular_velocity: np.ndarray):
         """(the step's body twist tau (v, w - b) (6,), its noise sigmas times tau (6,)) from the IMU sample."""
-        u = np.concatenate([linear_velocity, np.asarray(angular_velocity) - self.state.gyro_bias])
+        w = np.asarray(angular_velocity) - self.state.gyro_bias
+        v = np.asarray(linear_velocity)
+        if self.state.lever_row is not None and not self.state.lever_considered:  # (V1) estimated: v - omega x r
+            v = v - np.cross(w, self.state.lever_arm)
+        u = np.concatenate([v, w])
         noise = self.imu_noise
         return dt * u, np.concatenate([noise.linear_sigma, noise.angular_sigma]) * dt
 
@@ -351,7 +385,7 @@ class VisualInertialEKF:
             self.finish()
             transition = self.model.predict(self.state, twist, q, dt, bias_walk)
         else:
-            transition = self.model.predict_frozen(self.state, twist, q, dt, bias_walk, weight[3:6])
+            transition = self.model.predict_frozen(self.state, twist, q, dt, bias_walk, weight)
         StateHelper.propagate(self.state, transition, self._walk(dt))
 
     def _walk(self, dt: float) -> float | np.ndarray:
@@ -422,6 +456,8 @@ class VisualInertialEKF:
             self.model.correct(state, dx)
             if state.offset_row is not None:
                 state.offset += float(dx[state.offset_row])
+            if state.lever_row is not None:
+                state.lever_arm = state.lever_arm + dx[state.lever_row:state.lever_row + LEVER_ROWS]
             return
         c = state.core
         self.model.correct(state, dx[:c])

@@ -50,7 +50,7 @@ innovation, the initialization and the correction are each one compiled call.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -58,7 +58,8 @@ from ..compiled import jit, warms_up
 from ..geometry import se3
 from ..geometry.camera import triangulate_rows
 from .covariance import mirror_lower_inplace
-from .layout import CORE, POSE, SQRT_HALF, landmark_row
+from .layout import CORE, LEVER_ROWS, POSE, SQRT_HALF, landmark_row
+from .lever_arm import SensitivityTransition, twist_columns
 from .linalg import add_product_lower
 from .model import ErrorModel
 from .state_helper import NewLandmarks
@@ -67,20 +68,24 @@ from .update import Innovation, innovation_covariance
 
 # ---------------------------------------------------------------- prediction (I2)
 @jit
-def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_var):
-    """(I2) P <- F P F^T + G Q G^T  with  F = I + g e_b^T,  g = -tau G_omega.
+def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_var, lever, tau_omega):
+    """(I2) P <- F P F^T + G Q G^T  with  F = I + g E_c^T,  g = G [E_b, E_r]  on the constant rows c.
 
     G (D,6) maps a body-twist error to the error state: pose rows ``G_pose`` (6,6), landmark rows
     m_i^ R_phi (3,6) for the world points ``points`` (K,3); q (6,) = the twist noise sigmas times
-    tau. With C = P[:, b] and P_bb = P[b, b], F P F^T = P + g C^T + C g^T + g P_bb g^T, so
-    P += Z X^T with X = [g, C, G diag(q)] and Z = [g P_bb + C, g, G diag(q)] (D x 12): one BLAS
-    product, added on the lower triangle and mirrored. ``bias``: the gyro bias is in the state
-    (else F = I and X = G diag(q)); it takes a random walk of variance ``bias_walk_var`` a step.
+    tau. The constant rows c: the gyro bias's 6..8 where ``bias`` (E_b = -tau [0; I]) and the
+    residual lever arm's ``lever`` .. + 2 where ``lever`` >= 0 (E_r = -[(tau omega)^; 0] of V1,
+    ``tau_omega`` (3,) the step's rotation). With C = P[:, c] and P_cc = P[c, c], F P F^T = P + g C^T +
+    C g^T + g P_cc g^T, so P += Z X^T with X = [g, C, G diag(q)] and Z = [g P_cc + C, g, G diag(q)]:
+    one BLAS product, added on the lower triangle and mirrored (no constant row: F = I and
+    X = G diag(q)). The bias takes a random walk of variance ``bias_walk_var`` a step; the lever arm none.
     """
     D = P.shape[0]
     K = points.shape[0]
-    core = D - 3 * K  # CORE, or CORE + 1 with the disparity offset (O1 of backend.estimator.offset)
-    w = 12 if bias else 6
+    core = D - 3 * K  # CORE, + 1 with the disparity offset (O1), + 3 with the lever arm (V1)
+    nb = 3 if bias else 0
+    nc = nb + (3 if lever >= 0 else 0)
+    w = 2 * nc + 6
     X = np.zeros((D, w))
     Z = np.zeros((D, w))
     G = X[:, w - 6:]
@@ -91,18 +96,27 @@ def predict_covariance_inplace(P, G_pose, R_phi, points, q, dt, bias, bias_walk_
         for a in range(3):  # rows of m_i^ R_phi
             for c in range(6):
                 G[r + a, c] = W[a, 0] * R_phi[0, c] + W[a, 1] * R_phi[1, c] + W[a, 2] * R_phi[2, c]
-    if bias:
+    if nc:
+        cols = np.empty(nc, dtype=np.int64)
+        for c in range(nb):
+            cols[c] = 6 + c
+        for c in range(nc - nb):
+            cols[nb + c] = lever + c
+        Wo = se3.hat3(tau_omega)
         for i in range(D):
-            for c in range(3):
-                X[i, c] = -dt * G[i, 3 + c]  # g
-                X[i, 3 + c] = P[i, 6 + c]  # C
+            for c in range(nb):
+                X[i, c] = -dt * G[i, 3 + c]  # g = G E_b
+            for c in range(nc - nb):
+                X[i, nb + c] = -(G[i, 0] * Wo[0, c] + G[i, 1] * Wo[1, c] + G[i, 2] * Wo[2, c])  # g = G E_r
+            for c in range(nc):
+                X[i, nc + c] = P[i, cols[c]]  # C
         for i in range(D):
-            for b in range(3):
-                s = X[i, 3 + b]
-                for a in range(3):
-                    s += X[i, a] * P[6 + a, 6 + b]
+            for b in range(nc):
+                s = X[i, nc + b]
+                for a in range(nc):
+                    s += X[i, a] * P[cols[a], cols[b]]
                 Z[i, b] = s
-                Z[i, 3 + b] = X[i, b]
+                Z[i, nc + b] = X[i, b]
     for i in range(D):
         for c in range(6):
             G[i, c] *= q[c]
@@ -140,7 +154,8 @@ def predict_step(world_T_imu, twist):
 class InvariantTransition:
     """(I2) for one step: :func:`predict_covariance_inplace` with the noise map ``G_pose`` (6,6) at
     the propagated pose, the world ``points`` (K,3), twist noise ``q`` (6,), ``dt``, the bias in the
-    state or not and its walk's variance."""
+    state or not and its walk's variance; the lever arm's first row (-1: not in the state) and the
+    step's rotation tau omega (3,) for its columns (V1)."""
 
     G_pose: np.ndarray
     points: np.ndarray
@@ -148,19 +163,22 @@ class InvariantTransition:
     dt: float
     bias: bool
     bias_walk_var: float
+    lever: int = -1
+    tau_omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def apply(self, P: np.ndarray) -> np.ndarray:
         predict_covariance_inplace(P, self.G_pose, np.ascontiguousarray(self.G_pose[3:6]), self.points, self.q,
-                                   self.dt, self.bias, self.bias_walk_var)
+                                   self.dt, self.bias, self.bias_walk_var, self.lever,
+                                   np.ascontiguousarray(self.tau_omega, dtype=np.float64))
         return P
 
 
 @dataclass
 class FrozenTransition:
-    """(I8) for one frozen step: P <- F P F^T + N N^T with F the row map of (I8) (``dR``, the bias
-    columns ``g`` (6,3) of the pose rows) and N the noise map (``G`` (6,6) scaled by ``q`` on the
-    pose and on every landmark's translation rows), and the bias walk; the landmark rows start at
-    ``core``."""
+    """(I8) for one frozen step: P <- F P F^T + N N^T with F the row map of (I8) (``dR``, the columns
+    ``g`` (6,c) of the pose rows on the constant rows ``cols`` (c,): the bias's, the lever arm's of V1)
+    and N the noise map (``G`` (6,6) scaled by ``q`` on the pose and on every landmark's translation
+    rows), and the bias walk; the landmark rows start at ``core``."""
 
     dR: np.ndarray
     g: np.ndarray
@@ -169,21 +187,22 @@ class FrozenTransition:
     bias: bool
     bias_walk_var: float
     core: int = CORE
+    cols: np.ndarray = field(default_factory=lambda: np.arange(6, 9))
 
     def apply(self, P: np.ndarray) -> np.ndarray:
         D = P.shape[0]
         core = self.core
         K = (D - core) // 3
-        dR, g = self.dR, self.g
+        dR, g, cols = self.dR, self.g, self.cols
         I_dR = np.eye(3) - dR
 
         def rows(M: np.ndarray) -> np.ndarray:
             """F M for the linear map F of (I8) on the rows of M (D, n)."""
             out = M.copy()
-            out[POSE] += g @ M[6:9]
+            out[POSE] += g @ M[cols]
             if K:
                 lm = M[core:].reshape(K, 3, -1)
-                out[core:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[6:9])[None]).reshape(3 * K, -1)
+                out[core:] = (np.einsum("ab,kbn->kan", dR, lm) + (I_dR @ M[0:3] + g[0:3] @ M[cols])[None]).reshape(3 * K, -1)
             return out
 
         FP = rows(P)
@@ -200,19 +219,26 @@ class FrozenTransition:
 
 
 def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray, dt: float,
-                   bias: bool, bias_walk_var: float, bias_weight: np.ndarray | None = None, core: int = CORE):
+                   bias: bool, bias_walk_var: float, imu_weight: np.ndarray | None = None, core: int = CORE,
+                   lever: int = -1):
     """(I8) one frozen step: returns (mu_next = mu exp(twist^), P's :class:`FrozenTransition`); the
     world ``points`` (K,3) move in place with the body. ``q`` (6,): the twist's noise sigmas;
-    ``bias_weight`` (3,): the share of the rotation that came from the gyro (1: all; less when the
-    twist fuses another prediction), scaling its bias column."""
+    ``imu_weight`` (6,): the share of each axis of the twist that came from the IMU (1: all; less
+    when the twist fuses another prediction), scaling the bias's columns (its rotation) and the
+    lever arm's (V1, its translation; ``lever``: its first row, -1 where not in the state)."""
     mu = world_T_imu @ se3.exp_se3(twist)
     G = se3.adjoint(mu) @ se3.right_jacobian_se3(twist)  # (6,6) body twist error -> (rho, phi)
-    g = -dt * G[:, 3:6] * (np.ones(3) if bias_weight is None else bias_weight)[None, :] if bias else np.zeros((6, 3))
+    weight = np.ones(6) if imu_weight is None else np.asarray(imu_weight, dtype=float)
+    g = -dt * G[:, 3:6] * weight[None, 3:6] if bias else np.zeros((6, 3))
+    cols = np.arange(6, 9)
+    if lever >= 0:
+        g = np.concatenate([g, G @ twist_columns(twist, weight[0:3])], axis=1)
+        cols = np.r_[cols, lever:lever + LEVER_ROWS]
     dR = mu[:3, :3] @ world_T_imu[:3, :3].T
     if points.shape[0]:
         step = mu @ se3.inverse(world_T_imu)
         points[...] = points @ step[:3, :3].T + step[:3, 3]
-    return mu, FrozenTransition(dR, g, G, np.asarray(q, dtype=float), bias, bias_walk_var, core)
+    return mu, FrozenTransition(dR, g, G, np.asarray(q, dtype=float), bias, bias_walk_var, core, cols)
 
 
 # ---------------------------------------------------------------- observation (I3, U1)
@@ -381,12 +407,19 @@ class InvariantModel(ErrorModel):
 
     freezes = True
 
-    def predict_frozen(self, state, twist, q, dt, bias_walk_var, bias_weight=None) -> FrozenTransition:
+    def predict_frozen(self, state, twist, q, dt, bias_walk_var, imu_weight=None) -> FrozenTransition:
         if not self.estimate_pose:  # mapping: the poses are held, the landmarks move with them
             q = np.zeros(6)
+        carried = state.lever_row is not None and self.estimate_pose
+        considered = carried and state.lever_considered
+        lever = state.lever_row if carried and not considered else -1
         state.mu, transition = predict_frozen(state.mu, state.theta, twist, q, dt,
-                                              self.estimate_bias and self.estimate_pose, bias_walk_var, bias_weight,
-                                              state.core)
+                                              self.estimate_bias and self.estimate_pose, bias_walk_var, imu_weight,
+                                              state.core, lever)
+        if considered:  # (V2) the sensitivity column, by the IMU's share of the linear velocity
+            weight = np.ones(6) if imu_weight is None else np.asarray(imu_weight, dtype=float)
+            g = transition.G @ twist_columns(twist, weight[0:3])
+            return SensitivityTransition(transition, state.lever_row, g, state.core)
         return transition
 
     def predict(self, state, twist, q, dt, bias_walk_var) -> InvariantTransition | None:
@@ -394,7 +427,12 @@ class InvariantModel(ErrorModel):
             self.predict_mean_only(state, se3.exp_se3(twist))
             return None
         state.mu, G_pose = predict_step(state.mu, twist)
-        return InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var)
+        if state.lever_row is not None and state.lever_considered:  # (V2) the sensitivity column only
+            inner = InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var)
+            return SensitivityTransition(inner, state.lever_row, G_pose @ twist_columns(twist))
+        lever = -1 if state.lever_row is None else state.lever_row
+        return InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var, lever,
+                                   np.array(twist[3:6], dtype=float))
 
     def innovation(self, state, slots, pixels, pixel_var) -> Innovation:
         cam = self.camera
@@ -415,10 +453,11 @@ class InvariantModel(ErrorModel):
 
     def world_landmarks(self, state, slots):
         theta = state.theta[slots]  # world positions: every one finite
-        return theta, world_covariances(state.P, slots, theta, state.core), np.ones(slots.size, dtype=bool)
+        P, rows = state.considered_state(slots)  # (V2) with a considered lever arm's share
+        return theta, world_covariances(P, rows, theta, state.core), np.ones(slots.size, dtype=bool)
 
     def pose_covariance(self, state) -> np.ndarray:
-        return body_pose_covariance(state.mu, state.P[POSE, POSE])
+        return body_pose_covariance(state.mu, state.covariance_of(POSE))
 
 
 @warms_up(only="landmarks")
@@ -429,7 +468,8 @@ def _warm_up() -> None:
     slots = np.arange(k, dtype=np.int64)
     points = np.ones((k, 3))
     twist = np.full(6, 0.01)
-    predict_covariance_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8)
+    predict_covariance_inplace(P.copy(), np.eye(6), np.ones((3, 6)), points, np.ones(6), 0.1, True, 1e-8, -1,
+                               np.zeros(3))
     pose, _ = predict_step(np.eye(4), twist)
     retract_inplace(pose, points.copy(), np.full(D, 1e-3), CORE)
     pixels = np.array([[600.0, 180.0, 560.0, 180.0]] * k)

@@ -19,6 +19,7 @@ POSE = slice(0, 6)  # pose error
 BIAS = slice(6, 9)  # gyro bias
 CORE = 9  # pose + gyro bias: the landmark slots start here, 3 rows each
 OFFSET = 9  # the residual disparity offset (px), where estimated (the core is then CORE + 1 rows)
+LEVER_ROWS = 3  # the residual lever arm (m, IMU frame), where carried: after the bias and the offset (V1)
 ROWS = 3  # rows per observation in the update (U1)
 SQRT_HALF = float(np.sqrt(0.5))
 

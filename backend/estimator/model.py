@@ -80,10 +80,11 @@ class ErrorModel(abc.ABC):
     freezes: bool = False
 
     def predict_frozen(self, state: FilterState, twist: np.ndarray, q: np.ndarray, dt: float, bias_walk_var: float,
-                       bias_weight: np.ndarray | None = None) -> Transition | None:
+                       imu_weight: np.ndarray | None = None) -> Transition | None:
         """A step whose frame repeats the previous one: the pose moves by ``twist`` as in :meth:`predict`
         while the landmarks keep their coordinates in the body frame (the content froze: the world
-        moved with the camera); returns P's prediction. Only models with ``freezes`` implement it."""
+        moved with the camera); returns P's prediction. ``imu_weight`` (6,): the IMU's share of each
+        axis of ``twist`` where it fuses another prediction. Only models with ``freezes`` implement it."""
         raise NotImplementedError(f"{type(self).__name__} does not carry landmarks through a frozen step")
 
     @staticmethod

@@ -3,7 +3,8 @@
 The mean is the pose ``mu`` = world_T_imu (4,4), the gyro bias (3,) and the parameters ``theta``
 (n,3) of the n landmarks in the state, in slot order; ``P`` (D,D), D = core + 3n (core 9, or 10
 with the disparity offset), is the covariance of the error state (``backend.estimator.layout``;
-its meaning is the error model's). Per landmark
+its meaning is the error model's; + 3 with the lever arm of V1, whose rows, where it is considered,
+hold its sensitivity instead: ``covariance_of``, V2). Per landmark
 the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, the steps in a row
 it was not used, the observations since it was anchored and how many it may have (R1 of
 ``backend.estimator.tracks``), and the steps in a row the RANSAC rejected its track; and, where
@@ -19,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .layout import BIAS, CORE
+from .layout import BIAS, CORE, LEVER_ROWS
 
 TRACK_ROWS = ID, GATED, COUNT, LIMIT, OUTLIER = range(5)  # rows of FilterState.track
 
@@ -52,6 +53,12 @@ class FilterState:
     offset_row: int | None = None
     offset: float = 0.0  # px: its mean, added to every right-image column before use (O1)
     offset_considered: bool = False  # the offset is a consider state: never updated, its variance kept (O4)
+    #: P's first row of the residual lever arm of the IMU's velocities (3 rows, V1 of
+    #: ``backend.estimator.lever_arm``); None: not in the state
+    lever_row: int | None = None
+    lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m: its mean (0 unless estimated)
+    lever_considered: bool = False  # considered: P's lever rows hold its sensitivity S P_rr, its prior P_rr (V2)
+    lever_information: np.ndarray | None = None  # (3,3) P_rr^-1 of a considered lever arm (held: its prior's)
 
     def __post_init__(self) -> None:
         if self.P.shape[0] < self.core:
@@ -92,6 +99,42 @@ class FilterState:
         """(the landmark ids sorted, their slots): the look-up of ``tracks.slots_of`` and ``tracks.plan_update``."""
         return self._ids_sorted, self._ids_order
 
+    def considered_rows(self) -> np.ndarray:
+        """Rows of P the update holds (their block and mean): a considered disparity offset (O4,
+        Schmidt), a considered lever arm (V2)."""
+        rows = [self.offset_row] if self.offset_row is not None and self.offset_considered else []
+        if self.lever_row is not None and self.lever_considered:
+            rows += range(self.lever_row, self.lever_row + LEVER_ROWS)
+        return np.array(rows, dtype=np.int64)
+
+    @property
+    def lever_share(self) -> bool:
+        """P holds a considered lever arm's sensitivity, whose share the covariance adds (V2)."""
+        return self.lever_row is not None and self.lever_considered
+
+    def covariance_of(self, rows: np.ndarray | slice) -> np.ndarray:
+        """(k,k) covariance of the states ``rows`` (k,) or a slice: P's block, plus a considered lever
+        arm's share S P_rr S^T = P[rows, r] P_rr^-1 P[r, rows] (V2; P holds its sensitivity there, not
+        its covariance with the estimate)."""
+        if isinstance(rows, slice):
+            block = self.P[rows, rows].copy()
+        else:
+            rows = np.asarray(rows, dtype=np.int64)
+            block = self.P[rows[:, None], rows]
+        if self.lever_share:
+            C = self.P[rows, self.lever_row:self.lever_row + LEVER_ROWS]
+            block += C @ self.lever_information @ C.T
+        return block
+
+    def considered_state(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the covariance (c+3k, c+3k) of the core and the landmarks ``slots`` (k,) with a considered
+        lever arm's share (V2), their slots in it: 0..k-1); without one, (P, ``slots``) as they are."""
+        slots = np.asarray(slots, dtype=np.int64)
+        if not self.lever_share or not slots.size:
+            return self.P, slots
+        rows = np.concatenate([np.arange(self.core), (self.core + 3 * slots[:, None] + np.arange(3)).ravel()])
+        return np.ascontiguousarray(self.covariance_of(rows)), np.arange(slots.size, dtype=np.int64)
+
     def estimated(self, pose: bool, bias: bool) -> np.ndarray:
         """(D,) mask of the states the filter estimates (the pose and the bias may be held fixed)."""
         mask = np.ones(self.P.shape[0], dtype=bool)
@@ -99,6 +142,8 @@ class FilterState:
             mask[:self.core] = False
         elif not bias:
             mask[BIAS] = False
+        if self.lever_row is not None and self.lever_considered:  # (V2): sensitivity rows, not covariance
+            mask[self.lever_row:self.lever_row + LEVER_ROWS] = False
         return mask
 
     def _reindex(self) -> None:

@@ -6,7 +6,7 @@ Every change of ``FilterState.P`` is one of these operations, each one function 
 - ``set_prior``: the core's covariance before the first step.
 - ``propagate``: P <- F P F^T + G Q G^T by the error model's :class:`Transition` (I2, I8, B1, J6, W2),
   then the landmarks' random walk (P_mm += q I).
-- ``update``: the joint update with the gate, RANSAC and rescue (U2-U5).
+- ``update``: the joint update with the gate, RANSAC and rescue (U2-U5); considered rows held (O4, V2).
 - ``augment``: new landmarks from their stereo pixels (A1), with the disparity offset's columns (O3).
 - ``marginalize``: landmarks leave the state (A2).
 - ``repair``: eigenvalues clipped when P lost positive definiteness (H2).
@@ -127,17 +127,17 @@ class StateHelper:
         """The gate (U4), 1-point RANSAC (U5), the rescue (U3) and the joint update (U2) of P in one
         compiled call, with the prior innovation ``inn`` of landmarks ``slots``; the landmarks'
         RANSAC and gating runs are counted in the state's track rows. The mean is the caller's to
-        correct by ``dx`` (the error model's retraction). A considered disparity offset (O4) keeps
-        its variance and mean."""
-        row = state.offset_row if state.offset_considered else None
-        if row is not None:
-            prior = state.P[row, row]
+        correct by ``dx`` (the error model's retraction). Consider states (a disparity offset, O4; a
+        lever arm, V2) keep their covariance block and mean."""
+        held = state.considered_rows()
+        if held.size:
+            prior = state.P[np.ix_(held, held)]
         status, dx, used = select_and_update_inplace(
             state.P, inn.HP, inn.S, inn.residual, inn.off_row, inn.nis, inn.in_front, slots, gate,
             ransac_threshold_px, pixel_var, state.outlier_run, persistent_outlier_steps, state.gated_run)
-        if row is not None:
-            state.P[row, row] = prior
-            dx[row] = 0.0
+        if held.size:
+            state.P[np.ix_(held, held)] = prior
+            dx[held] = 0.0
         return UpdateResult(int(status), dx, used)
 
     @staticmethod

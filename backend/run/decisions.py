@@ -39,8 +39,8 @@ from ..data.sequence import Sequence
 from .conventions import ConventionDecision, MatchedPairs, decide_conventions, matched_pairs, reprojection_error
 from .drift import NOISE_MIN_POINTS, DriftDecision, decide_track_drift
 from .noise import (
-    ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise, gap_statistics,
-    hold_error, imu_vs_vision, pixel_noise, with_disparity_noise,
+    LEVER_PRIOR_M, ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise,
+    gap_statistics, hold_error, imu_vs_vision, pixel_noise, with_disparity_noise,
 )
 from .stereo_offset import StereoOffset, offset_by_imu_scale, offset_from_fits
 from .timing import repeated_steps
@@ -105,9 +105,37 @@ class Decisions:
         configured = None if config is None else config.noise.stereo_offset_sigma
         return self.offset_sigma if configured is None else configured
 
+    @property
+    def lever_covariance(self) -> np.ndarray:
+        """(3,3) m^2: the prior of the residual lever arm of the IMU's velocities the filter carries
+        (V3 of ``backend.estimator.lever_arm``), the second moment of what N3 leaves: its covariance
+        where its correction was applied, that plus r r^T where N3 measured r and the velocities stay
+        as given, N3's own prior (``LEVER_PRIOR_M`` per axis) where the tracks could not measure it.
+        (A component the motion does not excite, as a street's height for its yaw, keeps about that
+        prior: it moves no pose either.)"""
+        v = self.imu.vision
+        if v is None:
+            return LEVER_PRIOR_M**2 * np.eye(3)
+        moment = v.covariance[:3, :3]
+        if not self.velocity.active:
+            moment = moment + np.outer(v.lever_arm, v.lever_arm)
+        return 0.5 * (moment + moment.T)
+
+    def lever_covariance_for(self, config: Config | None) -> np.ndarray | None:
+        """The lever arm's prior (3,3) a run with ``config`` gives its filter: the configured
+        ``noise.lever_arm_sigma`` (sigma^2 I; 0: None, no such state), else :attr:`lever_covariance` for a
+        SLAM run (None where the poses take no vision)."""
+        configured = None if config is None else config.noise.lever_arm_sigma
+        if configured is not None:
+            return configured**2 * np.eye(3) if configured else None
+        if config is not None and config.estimator.mode != Mode.SLAM:
+            return None
+        return self.lever_covariance
+
     def config_for(self, config: Config) -> Config:
         """``config`` with the decided values the filter reads (pixel noise, drift and its walk, gyro bias,
-        the residual disparity offset's prior unless configured)."""
+        the residual disparity offset's prior unless configured; the lever arm's prior goes to the filter
+        itself, :meth:`lever_covariance_for`)."""
         values = {"noise.stereo_offset_sigma": self.offset_sigma_for(config),
                   "noise.pixel_sigma": self.pixels.sigma,
                   "noise.pixel_variance_per_disparity": self.pixels.variance_per_disparity,
@@ -118,7 +146,7 @@ class Decisions:
 
     def describe(self, config: Config | None = None) -> str:
         lines = [self.conventions.describe(), self.stereo_offset.describe(), self._offset_state_text(config),
-                 self._velocity_text(),
+                 self._velocity_text(), self._lever_text(config),
                  self.imu.describe(), self.pixels.describe(), self.drift.describe(config)]
         if not self.gyro_bias.estimated:
             lines.append(f"gyro bias: not estimated ({self.gyro_bias.reason})")
@@ -141,6 +169,23 @@ class Decisions:
             why = "no offset applied"
         return f"residual disparity offset: not a filter state ({why})"
 
+    def _lever_text(self, config: Config | None) -> str:
+        """The residual lever arm in the filter (V2, V3), as :meth:`lever_covariance_for` gives it."""
+        prior = self.lever_covariance_for(config)
+        if prior is None:
+            return "IMU lever arm: not in the covariance (noise.lever_arm_sigma = 0, or no SLAM run)"
+        sigma = ", ".join(f"{s:.2f}" for s in np.sqrt(np.diag(prior)))
+        how = "estimated" if config is not None and config.estimator.estimate_lever_arm else "considered"
+        if config is not None and config.noise.lever_arm_sigma is not None:
+            why = "configured"
+        elif self.imu.vision is None:
+            why = "not measured by the tracks: N3's prior"
+        elif self.velocity.active:
+            why = "the applied correction's standard error"
+        else:
+            why = "N3's estimate and its standard error, the velocities as given"
+        return f"IMU lever arm: {how} in the covariance, prior sigmas [{sigma}] m ({why}, V3)"
+
     def _velocity_text(self) -> str:
         v = self.imu.vision
         if v is None:
@@ -162,6 +207,7 @@ class Decisions:
             "stereo_offset": {**self.stereo_offset.as_dict(), "state_prior_sigma_px": self.offset_sigma},
             "velocity_correction": {"lever_arm_m": self.velocity.lever_arm.tolist(),
                                     "offset_m_s": self.velocity.offset.tolist(), "applied": self.velocity.active,
+                                    "lever_arm_state_prior_m2": self.lever_covariance.tolist(),
                                     "dead_reckoning_reprojection_px": self.velocity_guard},
             "imu_noise": self.imu.as_dict(),
             "pixel_noise": self.pixels.as_dict(),

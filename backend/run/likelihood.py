@@ -33,9 +33,13 @@ LIKELIHOOD_STEPS = 300
 @contextmanager
 def _trial_run(seq: Sequence, decisions, config: Config, likelihood: bool) -> Iterator:
     """An ``OnlineRun`` of ``decisions`` over ``seq`` (health silent: a trial of the decisions, not the
-    user's run; the innovation likelihood tracked where ``likelihood``), closed on leaving."""
+    user's run; the innovation likelihood tracked where ``likelihood``), closed on leaving. A considered
+    lever arm (V2 of ``backend.estimator.lever_arm``) moves neither the estimate nor the innovations:
+    the trial runs without it."""
     from .online import OnlineRun  # the run layer above: imported when a comparison runs
 
+    if not config.estimator.estimate_lever_arm:
+        config = config.with_values({"noise.lever_arm_sigma": 0.0})
     run = OnlineRun(StereoCamera(seq.K, seq.baseline), decisions, config)
     run.ekf.track_likelihood = likelihood
     run.ekf.health.silent = True

@@ -20,6 +20,7 @@ from ..config import Config, Mode, RepeatedFrames
 from ..errors import InputError
 from ..estimator.ekf import ImuNoise, StepStats, VisualInertialEKF
 from ..estimator.health import ScaleCheck, scale_check, vision_check
+from ..estimator.lever_arm import LeverArmEstimate
 from ..estimator.offset import OffsetEstimate
 from ..estimator.propagation import VELOCITY_INDEX_OFFSET, compose_steps
 from ..geometry import se3
@@ -176,6 +177,7 @@ class RunResult:
     gyro_biases: np.ndarray | None = None  # (N,3) rad/s at every step: an inertial run's
     accel_biases: np.ndarray | None = None  # (N,3) m/s^2 at every step: an inertial run's
     disparity_offset: OffsetEstimate | None = None  # the residual disparity offset in the filter at the end (O1)
+    lever_arm: LeverArmEstimate | None = None  # the residual lever arm of the IMU's velocities at the end (V1)
 
     @property
     def inertial(self) -> bool:
@@ -216,7 +218,8 @@ class OnlineRun:
         self.decisions = decisions
         imu = decisions.imu
         self.ekf = VisualInertialEKF(camera, decisions.imu_T_cam, config, ImuNoise(imu.linear_sigma, imu.angular_sigma),
-                                     expected_landmarks=expected_landmarks)
+                                     expected_landmarks=expected_landmarks,
+                                     lever_prior=decisions.lever_covariance_for(config))
         self.observer = observer
         self.book = RunBook(self.ekf)
         self.stats = self.book.stats
@@ -319,6 +322,7 @@ class OnlineRun:
             map_covariances=map_cov,
             gyro_bias=self.ekf.gyro_bias.copy(),
             disparity_offset=self.ekf.disparity_offset,
+            lever_arm=self.ekf.lever_arm,
             stats=self.stats,
             step_seconds=step_seconds,
             decisions=self.decisions,
