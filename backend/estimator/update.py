@@ -52,9 +52,9 @@ nearer the image centre and at a smaller disparity than they fall on average (E[
 with too small an S; the errors of many such observations do not average out, and no noise level
 repairs them. On synthetic streets and aerial scenes with 1 px of white noise (truth known, the
 filter told the true noise, 12 runs of 300 steps on each of three geometries,
-``benchmarks/pixel_noise_consistency.py``) the pose NEES goes from 7.6-10.0 to 5.8-6.6 (expected 6)
+``benchmarks/pixel_noise_consistency.py``) the pose NEES goes from 7.0-9.9 to 5.7-6.6 (expected 6)
 and the position error down by a third (street 0.19-0.25 -> 0.12-0.15 m); at 0.5 px it changes
-little (pose NEES 5.5-7.7 -> 5.1-6.8). :func:`second_order_inplace`; ``update.second_order``.
+little (pose NEES 5.4-7.6 -> 5.1-6.8). :func:`second_order_inplace`; ``update.second_order``.
 
 Observations of unequal noise (N5: a variance per observation) enter by whitening (U6,
 :func:`whiten`): each observation's rows scaled to the one variance the compiled update takes.
