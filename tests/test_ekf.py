@@ -603,7 +603,8 @@ def test_reanchoring_equals_tracks_cut_into_new_landmarks(error_model):
     observation: the same filter as one that sees each track segment as a separate track."""
     seq = to_sequence(make_drive(80, seed=5, density=1.5, track=(8, 30)))
     near, far, far_disparity = 3, 7, 20.0  # depth 5-40 m here: disparity 10-77 px
-    walk = {"drift.pixel_walk": 0.05, "drift.pixel_walk_per_disparity": 0.002}  # the same walk by depth in both (R3)
+    walk = {"drift.pixel_walk": 0.05, "drift.pixel_walk_per_disparity": 0.002,  # the same walk by depth in both (R3)
+            "noise.lever_arm_sigma": 0.5}  # and the same considered lever arm (V2; N3 sees the relabelled tracks apart)
     on = run_sequence(seq, slam_config({"estimator.error_model": error_model, "drift.track_drift": "yes",
                                         "drift.reanchor_observations": near, "drift.reanchor_far_observations": far,
                                         "drift.reanchor_far_disparity": far_disparity, **walk}))
