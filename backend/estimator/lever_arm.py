@@ -58,6 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import se3
+from .layout import LEVER_ROWS
 
 __all__ = ["LeverArmEstimate", "SensitivityTransition", "twist_columns"]
 
@@ -69,7 +70,7 @@ class LeverArmEstimate:
     residual_m: list  # (3,) delta_r_hat, IMU frame; zeros for a considered one
     sigma_m: list  # (3,) sqrt of the diagonal of P_rr
     prior_sigma_m: list  # (3,) sqrt of the diagonal of its prior
-    estimated: bool  # False: a consider state (V2), its mean and variance held
+    estimated: bool  # False: considered (V2), its mean 0 and its prior held
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -89,7 +90,7 @@ def twist_columns(twist: np.ndarray, linear_weight: np.ndarray | None = None) ->
 @dataclass
 class SensitivityTransition:
     """(V2) a prediction whose error also moves by g delta_r, delta_r a considered parameter (rows
-    ``row`` .. + 2) that P holds as a sensitivity column S P_rr: P by ``inner`` (the prediction
+    ``row`` .. + 2) that P holds as sensitivity columns S P_rr: P by ``inner`` (the prediction
     without delta_r), then S <- F S + g, i.e. P[x, r] += g P_rr on the pose rows (``g`` (6,3)) and,
     with ``core`` given (a frozen step, I8: every landmark's translation rows follow the pose's), on
     each landmark's rows by g[0:3]."""
@@ -101,7 +102,7 @@ class SensitivityTransition:
 
     def apply(self, P: np.ndarray) -> np.ndarray:
         P = self.inner.apply(P)
-        r = slice(self.row, self.row + 3)
+        r = slice(self.row, self.row + LEVER_ROWS)
         add = self.g @ P[r, r]
         P[0:6, r] += add
         if self.core is not None and P.shape[0] > self.core:
