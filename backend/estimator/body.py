@@ -71,7 +71,7 @@ class BodyModel(ErrorModel):
         if state.lever_row is None:
             return CoreTransition(Phi, q_var)
         g = J_r @ twist_columns(twist)  # (V1): the lever arm's columns of F on the pose rows
-        if state.lever_considered:  # (V2) its sensitivity column only
+        if state.lever_share:  # (V2) its sensitivity column only
             return SensitivityTransition(CoreTransition(Phi, q_var), state.lever_row, g)
         Phi[POSE, state.lever_row:state.lever_row + LEVER_ROWS] = g
         return CoreTransition(Phi, q_var)

@@ -103,7 +103,7 @@ class FilterState:
         """Rows of P the update holds (their block and mean): a considered disparity offset (O4,
         Schmidt), a considered lever arm (V2)."""
         rows = [self.offset_row] if self.offset_row is not None and self.offset_considered else []
-        if self.lever_row is not None and self.lever_considered:
+        if self.lever_share:
             rows += range(self.lever_row, self.lever_row + LEVER_ROWS)
         return np.array(rows, dtype=np.int64)
 
@@ -142,7 +142,7 @@ class FilterState:
             mask[:self.core] = False
         elif not bias:
             mask[BIAS] = False
-        if self.lever_row is not None and self.lever_considered:  # (V2): sensitivity rows, not covariance
+        if self.lever_share:  # (V2): sensitivity rows, not covariance
             mask[self.lever_row:self.lever_row + LEVER_ROWS] = False
         return mask
 
