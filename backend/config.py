@@ -136,11 +136,13 @@ class NoiseOptions(OptionTable):
     # estimates (O1 of backend.estimator.offset); unset: from the stereo offset's decision; 0: not estimated
     lever_arm_sigma: Optional[float] = None  # m: prior sigma per axis of the residual lever arm of the IMU's
     # velocities the filter carries (V1 of backend.estimator.lever_arm); unset: from N3's decision (V3); 0: none
+    imu_rotation_sigma: Optional[float] = None  # deg: prior sigma per axis of the rotation of the IMU samples'
+    # frame the filter considers with the lever arm (V4 of backend.estimator.lever_arm); unset: from N6's decision; 0: none
 
     def check(self) -> None:
         self.require_positive("gyro_bias_sigma0", "gyro_bias_random_walk", "initial_pose_sigma")
         self.require_positive("pixel_sigma", "linear_velocity_sigma", "angular_velocity_sigma", optional=True)
-        for key in ("pixel_variance_per_disparity", "stereo_offset_sigma", "lever_arm_sigma"):
+        for key in ("pixel_variance_per_disparity", "stereo_offset_sigma", "lever_arm_sigma", "imu_rotation_sigma"):
             if getattr(self, key) is not None:
                 self.require_at_least(0.0, key)
 

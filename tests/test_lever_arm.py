@@ -181,10 +181,13 @@ def test_the_prior_is_what_n3_leaves():
     applied = dataclasses.replace(dense, velocity=dataclasses.replace(dense.velocity, lever_arm=v.lever_arm.copy()))
     assert applied.velocity.active
     np.testing.assert_allclose(applied.lever_covariance, v.covariance[:3, :3], rtol=1e-12)
-    np.testing.assert_array_equal(dense.lever_covariance_for(Config()), dense.lever_covariance)
-    assert dense.lever_covariance_for(Config().with_assignments(["noise.lever_arm_sigma=0"])) is None
-    np.testing.assert_array_equal(dense.lever_covariance_for(Config().with_assignments(["noise.lever_arm_sigma=0.3"])),
-                                  0.09 * np.eye(3))
+    no_rotation = ["noise.imu_rotation_sigma=0"]
+    np.testing.assert_array_equal(dense.lever_covariance_for(Config().with_assignments(no_rotation)),
+                                  dense.lever_covariance)
+    assert dense.lever_covariance_for(Config().with_assignments(["noise.lever_arm_sigma=0"] + no_rotation)) is None
+    np.testing.assert_array_equal(
+        dense.lever_covariance_for(Config().with_assignments(["noise.lever_arm_sigma=0.3"] + no_rotation)),
+        0.09 * np.eye(3))
     assert dense.lever_covariance_for(Config().with_assignments(["estimator.mode=mapping"])) is None
 
 
@@ -201,7 +204,7 @@ def test_a_lever_arm_the_tracks_cannot_measure_is_held_by_the_covariance():
     runs = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", HealthWarning)
-        for name, sets in (("default", []), ("none", ["noise.lever_arm_sigma=0"])):
+        for name, sets in (("default", []), ("none", ["noise.lever_arm_sigma=0", "noise.imu_rotation_sigma=0"])):
             runs[name] = run_sequence(seq, Config().with_assignments(sets))
     assert runs["default"].decisions.imu.vision is None
     assert runs["default"].lever_arm.prior_sigma_m == [LEVER_PRIOR_M] * 3 and runs["none"].lever_arm is None

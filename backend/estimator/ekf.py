@@ -41,7 +41,7 @@ from .health import HealthMonitor
 from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
 from .layout import BIAS, CORE, LEVER_ROWS, OFFSET, POSE, state_dimension
-from .lever_arm import LeverArmEstimate
+from .lever_arm import LeverArmEstimate, consider_information
 from .model import ErrorModel
 from .offset import OffsetEstimate, corrected_pixels, offset_innovation
 from .propagation import ImuNoise
@@ -169,11 +169,12 @@ class VisualInertialEKF:
         ``propagate(imu, t0, t1)`` replaces ``predict``. With ``estimator.window`` set (SLAM mode) the
         state holds that many pose clones instead of landmarks (``backend.estimator.window``).
 
-    lever_prior : array, shape (3, 3), optional
+    lever_prior : array, shape (3, 3) or (6, 6), optional
         The prior covariance (m^2) of the residual lever arm of the IMU's velocities (V1-V3 of
-        ``backend.estimator.lever_arm``; the velocity model's SLAM runs): considered by default
-        (V2), estimated with ``estimator.estimate_lever_arm``; None: ``noise.lever_arm_sigma``^2 I where
-        that is set, else no such state.
+        ``backend.estimator.lever_arm``; the velocity model's SLAM runs), (6,6) with the rotation of the
+        samples' frame (rad^2, V4) after it: considered by default (V2), the lever arm alone estimated
+        with ``estimator.estimate_lever_arm``; None: ``noise.lever_arm_sigma``^2 I where that is set,
+        else no such state.
 
     Use: ``predict(dt, v, w)`` (or ``propagate(imu, t0, t1)``) then ``update(ids, pixels)`` once per
     time step, ``finish()`` at the end. While the filter lives (until ``close()`` or garbage collection) the process's BLAS uses
@@ -206,7 +207,7 @@ class VisualInertialEKF:
         self.estimate_pose = est.mode == Mode.SLAM
         self.use_vision = est.mode != Mode.DEAD_RECKONING
         self.inertial = inertial is not None
-        self._lever_prior = None  # (3,3) the residual lever arm's prior, where the state holds it (V1)
+        self._lever_prior = None  # (k,k) the residual lever arm's prior (and V4's rotation's), where the state holds it (V1)
         if self.inertial:
             self.model = InertialModel(camera, imu_T_cam, inertial, self.estimate_pose)
             m = inertial.mean
@@ -219,10 +220,13 @@ class VisualInertialEKF:
             offset_sigma = noise.stereo_offset_sigma if self.use_vision and not window else None
             if lever_prior is None and noise.lever_arm_sigma:
                 lever_prior = noise.lever_arm_sigma**2 * np.eye(LEVER_ROWS)
+            if lever_prior is not None and est.estimate_lever_arm:  # (V4) an estimated lever arm carries no rotation
+                lever_prior = np.asarray(lever_prior, dtype=float)[:LEVER_ROWS, :LEVER_ROWS]
             lever = lever_prior is not None and self.estimate_pose
+            lever_dim = np.shape(lever_prior)[0] if lever else 0
             core = CORE + 1 if offset_sigma else CORE
             lever_row = core if lever else None
-            core += LEVER_ROWS if lever else 0
+            core += lever_dim
             self.state = FilterState(
                 mu=np.eye(4) if world_T_imu is None else np.array(world_T_imu, dtype=float),
                 theta_first=np.zeros((0, 3)) if "theta_first" in self.model.per_landmark else None,
@@ -230,7 +234,7 @@ class VisualInertialEKF:
                 core=core, offset_row=OFFSET if offset_sigma else None,
                 offset_considered=bool(offset_sigma) and not est.estimate_stereo_offset,
                 lever_row=lever_row, lever_considered=lever and not est.estimate_lever_arm,
-                lever_information=np.linalg.inv(lever_prior) if lever else None,
+                lever_information=consider_information(lever_prior) if lever else None,
             )
             prior = np.zeros((core, core))
             if self.estimate_pose:
@@ -240,7 +244,7 @@ class VisualInertialEKF:
             if offset_sigma:  # (O1) the residual disparity offset
                 prior[OFFSET, OFFSET] = offset_sigma**2
             if lever:  # (V1) the residual lever arm of the IMU's velocities
-                rows = slice(lever_row, lever_row + LEVER_ROWS)
+                rows = slice(lever_row, lever_row + lever_dim)
                 prior[rows, rows] = np.asarray(lever_prior, dtype=float)
             self._lever_prior = np.asarray(lever_prior, dtype=float) if lever else None
             StateHelper.set_prior(self.state, prior)
@@ -314,8 +318,10 @@ class VisualInertialEKF:
         if st.lever_row is None:
             return None
         rows = np.arange(st.lever_row, st.lever_row + LEVER_ROWS)
+        prior_sd = np.sqrt(np.diag(self._lever_prior))
+        rotation = np.degrees(prior_sd[LEVER_ROWS:]).tolist() if st.lever_dim > LEVER_ROWS else None
         return LeverArmEstimate(st.lever_arm.tolist(), np.sqrt(np.maximum(st.P[rows, rows], 0.0)).tolist(),
-                                np.sqrt(np.diag(self._lever_prior)).tolist(), not st.lever_considered)
+                                prior_sd[:LEVER_ROWS].tolist(), not st.lever_considered, rotation)
 
     @property
     def num_active(self) -> int:

@@ -220,20 +220,21 @@ class FrozenTransition:
 
 def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarray, q: np.ndarray, dt: float,
                    bias: bool, bias_walk_var: float, imu_weight: np.ndarray | None = None, core: int = CORE,
-                   lever: int = -1, lever_considered: bool = False):
+                   lever: int = -1, lever_considered: bool = False, rotation: bool = False):
     """(I8) one frozen step: returns (mu_next = mu exp(twist^), P's transition); the world
     ``points`` (K,3) move in place with the body. ``q`` (6,): the twist's noise sigmas;
     ``imu_weight`` (6,): the share of each axis of the twist that came from the IMU (1: all; less
     when the twist fuses another prediction), scaling the bias's columns (its rotation) and the
     lever arm's (V1, its translation; ``lever``: its first row, -1 where not in the state). The
     transition is a :class:`FrozenTransition`, with the lever arm's columns where it is estimated and
-    wrapped in its sensitivity's where it is ``lever_considered`` (V2)."""
+    wrapped in its sensitivity's where it is ``lever_considered`` (V2; with ``rotation``, also the
+    samples' frame rotation's, V4)."""
     mu = world_T_imu @ se3.exp_se3(twist)
     G = se3.adjoint(mu) @ se3.right_jacobian_se3(twist)  # (6,6) body twist error -> (rho, phi)
     weight = np.ones(6) if imu_weight is None else np.asarray(imu_weight, dtype=float)
     g = -dt * G[:, 3:6] * weight[None, 3:6] if bias else np.zeros((6, 3))
     cols = np.arange(6, 9)
-    g_lever = G @ twist_columns(twist, weight[0:3]) if lever >= 0 else None
+    g_lever = G @ twist_columns(twist, weight, rotation and lever_considered) if lever >= 0 else None
     if lever >= 0 and not lever_considered:
         g = np.concatenate([g, g_lever], axis=1)
         cols = np.r_[cols, lever:lever + LEVER_ROWS]
@@ -419,7 +420,8 @@ class InvariantModel(ErrorModel):
         lever = state.lever_row if state.lever_row is not None and self.estimate_pose else -1
         state.mu, transition = predict_frozen(state.mu, state.theta, twist, q, dt,
                                               self.estimate_bias and self.estimate_pose, bias_walk_var, imu_weight,
-                                              state.core, lever, state.lever_considered)
+                                              state.core, lever, state.lever_considered,
+                                              state.lever_dim > LEVER_ROWS)
         return transition
 
     def predict(self, state, twist, q, dt, bias_walk_var) -> InvariantTransition | None:
@@ -429,7 +431,8 @@ class InvariantModel(ErrorModel):
         state.mu, G_pose = predict_step(state.mu, twist)
         if state.lever_share:  # (V2) the sensitivity column only
             inner = InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var)
-            return SensitivityTransition(inner, state.lever_row, G_pose @ twist_columns(twist))
+            return SensitivityTransition(inner, state.lever_row,
+                                         G_pose @ twist_columns(twist, rotation=state.lever_dim > LEVER_ROWS))
         lever = -1 if state.lever_row is None else state.lever_row
         return InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var, lever,
                                    np.array(twist[3:6], dtype=float))

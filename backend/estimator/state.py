@@ -3,7 +3,7 @@
 The mean is the pose ``mu`` = world_T_imu (4,4), the gyro bias (3,) and the parameters ``theta``
 (n,3) of the n landmarks in the state, in slot order; ``P`` (D,D), D = core + 3n (core 9, or 10
 with the disparity offset), is the covariance of the error state (``backend.estimator.layout``;
-its meaning is the error model's; + 3 with the lever arm of V1, whose rows, where it is considered,
+its meaning is the error model's; + 3 with the lever arm of V1 (6 with V4's rotation), whose rows, where it is considered,
 hold its sensitivity instead: ``covariance_of``, V2). Per landmark
 the state also keeps ``track``, rows of counts (``TRACK_ROWS``): the track id, the steps in a row
 it was not used, the observations since it was anchored and how many it may have (R1 of
@@ -58,7 +58,9 @@ class FilterState:
     lever_row: int | None = None
     lever_arm: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m: its mean (0 unless estimated)
     lever_considered: bool = False  # considered: P's lever rows hold its sensitivity S P_rr, its prior P_rr (V2)
-    lever_information: np.ndarray | None = None  # (3,3) P_rr^-1 of a considered lever arm (held: its prior's)
+    #: (k,k) P_rr^+ of a considered lever arm (its prior's pseudo-inverse, held), k = 3, or 6 with the
+    #: rotation of the samples' frame (V4)
+    lever_information: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.P.shape[0] < self.core:
@@ -104,8 +106,13 @@ class FilterState:
         Schmidt), a considered lever arm (V2)."""
         rows = [self.offset_row] if self.offset_row is not None and self.offset_considered else []
         if self.lever_share:
-            rows += range(self.lever_row, self.lever_row + LEVER_ROWS)
+            rows += range(self.lever_row, self.lever_row + self.lever_dim)
         return np.array(rows, dtype=np.int64)
+
+    @property
+    def lever_dim(self) -> int:
+        """Rows of the lever arm's block: 3, or 6 with a considered rotation of the samples' frame (V4)."""
+        return LEVER_ROWS if self.lever_information is None else self.lever_information.shape[0]
 
     @property
     def lever_share(self) -> bool:
@@ -122,7 +129,7 @@ class FilterState:
             rows = np.asarray(rows, dtype=np.int64)
             block = self.P[rows[:, None], rows]
         if self.lever_share:
-            C = self.P[rows, self.lever_row:self.lever_row + LEVER_ROWS]
+            C = self.P[rows, self.lever_row:self.lever_row + self.lever_dim]
             block += C @ self.lever_information @ C.T
         return block
 
@@ -143,7 +150,7 @@ class FilterState:
         elif not bias:
             mask[BIAS] = False
         if self.lever_share:  # (V2): sensitivity rows, not covariance
-            mask[self.lever_row:self.lever_row + LEVER_ROWS] = False
+            mask[self.lever_row:self.lever_row + self.lever_dim] = False
         return mask
 
     def _reindex(self) -> None:

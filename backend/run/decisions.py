@@ -39,7 +39,7 @@ from ..data.sequence import Sequence
 from .conventions import ConventionDecision, MatchedPairs, decide_conventions, matched_pairs, reprojection_error
 from .drift import NOISE_MIN_POINTS, DriftDecision, decide_track_drift
 from .noise import (
-    LEVER_PRIOR_M, ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise,
+    LEVER_PRIOR_M, ROTATION_PRIOR_RAD, ImuNoiseDecision, ImuVsVision, PixelNoise, VelocityCorrection, disparity_noise, estimate_white_noise,
     gap_statistics, hold_error, imu_vs_vision, pixel_noise, with_disparity_noise,
 )
 from .stereo_offset import StereoOffset, offset_by_imu_scale, offset_from_fits
@@ -121,16 +121,37 @@ class Decisions:
             moment = moment + np.outer(v.lever_arm, v.lever_arm)
         return 0.5 * (moment + moment.T)
 
+    @property
+    def rotation_covariance(self) -> np.ndarray:
+        """(3,3) rad^2: the prior of the rotation of the IMU samples' frame the filter considers with the
+        lever arm (V4 of ``backend.estimator.lever_arm``), the second moment of N6's estimate (the samples
+        stay as given): theta theta^T plus its covariance where theta is significant, 0 (none carried)
+        where it is not, ``ROTATION_PRIOR_RAD`` per axis where the tracks could not measure it."""
+        v = self.imu.vision
+        if v is None:
+            return ROTATION_PRIOR_RAD**2 * np.eye(3)
+        if not v.rotation_significant():
+            return np.zeros((3, 3))
+        moment = v.rotation_covariance + np.outer(v.rotation, v.rotation)
+        return 0.5 * (moment + moment.T)
+
     def lever_covariance_for(self, config: Config | None) -> np.ndarray | None:
-        """The lever arm's prior (3,3) a run with ``config`` gives its filter: the configured
-        ``noise.lever_arm_sigma`` (sigma^2 I; 0: None, no such state), else :attr:`lever_covariance` for a
-        SLAM run (None where the poses take no vision)."""
-        configured = None if config is None else config.noise.lever_arm_sigma
-        if configured is not None:
-            return configured**2 * np.eye(3) if configured else None
+        """The considered block's prior a run with ``config`` gives its filter: (3,3) m^2 of the lever arm,
+        or (6,6) with the samples' frame rotation (rad^2) after it (V4); each part configured by
+        ``noise.lever_arm_sigma`` (m) and ``noise.imu_rotation_sigma`` (deg) (sigma^2 I; 0: none), else
+        :attr:`lever_covariance` and :attr:`rotation_covariance`; None for a run whose poses take no
+        vision or with both parts 0."""
         if config is not None and config.estimator.mode != Mode.SLAM:
             return None
-        return self.lever_covariance
+        lever_sigma = None if config is None else config.noise.lever_arm_sigma
+        rotation_sigma = None if config is None else config.noise.imu_rotation_sigma
+        lever = self.lever_covariance if lever_sigma is None else lever_sigma**2 * np.eye(3)
+        rotation = self.rotation_covariance if rotation_sigma is None else np.radians(rotation_sigma)**2 * np.eye(3)
+        if not rotation.any() or (config is not None and config.estimator.estimate_lever_arm):  # (V4) none estimated
+            return lever if lever.any() else None
+        prior = np.zeros((6, 6))
+        prior[:3, :3], prior[3:, 3:] = lever, rotation
+        return prior
 
     def config_for(self, config: Config) -> Config:
         """``config`` with the decided values the filter reads (pixel noise, drift and its walk, gyro bias,
@@ -170,10 +191,38 @@ class Decisions:
         return f"residual disparity offset: not a filter state ({why})"
 
     def _lever_text(self, config: Config | None) -> str:
-        """The residual lever arm in the filter (V2, V3), as :meth:`lever_covariance_for` gives it."""
+        """The residual lever arm and the samples' frame rotation in the filter (V2-V4), as
+        :meth:`lever_covariance_for` gives them."""
         prior = self.lever_covariance_for(config)
         if prior is None:
-            return "IMU lever arm: not in the covariance (noise.lever_arm_sigma = 0, or no SLAM run)"
+            return ("IMU lever arm and frame rotation: not in the covariance (noise.lever_arm_sigma = "
+                    "noise.imu_rotation_sigma = 0, or no SLAM run)")
+        lines = [self._lever_part(config, prior[:3, :3])]
+        if prior.shape[0] > 3:
+            lines.append(self._rotation_part(config, prior[3:, 3:]))
+        elif self.imu.vision is not None and (config is None or config.noise.imu_rotation_sigma is None):
+            v = self.imu.vision
+            lines.append(f"IMU samples' frame rotation: not in the covariance (N6's estimate "
+                         f"[{', '.join(f'{x:+.2f}' for x in np.degrees(v.rotation))}] deg, chi2 {v.rotation_chi2:.1f}: "
+                         "not significant, V4)")
+        return "\n".join(lines)
+
+    def _rotation_part(self, config: Config | None, prior: np.ndarray) -> str:
+        sigma = ", ".join(f"{s:.2f}" for s in np.degrees(np.sqrt(np.diag(prior))))
+        v = self.imu.vision
+        if config is not None and config.noise.imu_rotation_sigma is not None:
+            why = "configured"
+        elif v is None:
+            why = "not measured by the tracks: N6's prior"
+        else:
+            est = ", ".join(f"{x:+.2f}" for x in np.degrees(v.rotation))
+            se = ", ".join(f"{x:.2f}" for x in np.degrees(np.sqrt(np.diag(v.rotation_covariance))))
+            why = f"N6's estimate [{est}] +- [{se}] deg, the samples as given"
+        return f"IMU samples' frame rotation: considered in the covariance, prior sigmas [{sigma}] deg ({why}, V4)"
+
+    def _lever_part(self, config: Config | None, prior: np.ndarray) -> str:
+        if not prior.any():
+            return "IMU lever arm: not in the covariance (noise.lever_arm_sigma = 0)"
         sigma = ", ".join(f"{s:.2f}" for s in np.sqrt(np.diag(prior)))
         how = "estimated" if config is not None and config.estimator.estimate_lever_arm else "considered"
         if config is not None and config.noise.lever_arm_sigma is not None:
@@ -208,6 +257,7 @@ class Decisions:
             "velocity_correction": {"lever_arm_m": self.velocity.lever_arm.tolist(),
                                     "offset_m_s": self.velocity.offset.tolist(), "applied": self.velocity.active,
                                     "lever_arm_state_prior_m2": self.lever_covariance.tolist(),
+                                    "frame_rotation_state_prior_rad2": self.rotation_covariance.tolist(),
                                     "dead_reckoning_reprojection_px": self.velocity_guard},
             "imu_noise": self.imu.as_dict(),
             "pixel_noise": self.pixels.as_dict(),

@@ -39,7 +39,7 @@ def _trial_run(seq: Sequence, decisions, config: Config, likelihood: bool) -> It
     from .online import OnlineRun  # the run layer above: imported when a comparison runs
 
     if not config.estimator.estimate_lever_arm:
-        config = config.with_values({"noise.lever_arm_sigma": 0.0})
+        config = config.with_values({"noise.lever_arm_sigma": 0.0, "noise.imu_rotation_sigma": 0.0})
     run = OnlineRun(StereoCamera(seq.K, seq.baseline), decisions, config)
     run.ekf.track_likelihood = likelihood
     run.ekf.health.silent = True
