@@ -26,7 +26,10 @@ With the ground truth's attitude, the elevation angle of the velocity over windo
 compared with that of the ground truth's own motion: as body-frame velocities (rotated by the
 ground truth's attitude) and as level-frame velocities (the world frame's tilt from the level
 fitted, two angles). The smaller residual names the frame; the dead reckoning of both shows the
-cost. Last, the file's velocities against the ground truth's own body velocity (central differences
+cost. The rates get the same test where it is sharpest, in turns (the truth turning faster than
+0.1 rad/s): the file's roll and pitch rates against the truth's body rates (its relative rotations),
+taken as body-frame rates and as level-frame ones (wf wl wu) turned into the body by the truth's
+attitude and the world tilt the velocities gave (not fitted to the rates). Last, the file's velocities against the ground truth's own body velocity (central differences
 of its poses), in the first 5 s and after, with the truth's sideslip angle in the first 5 s.
 
 A third table asks the same of 03, which has no ground truth, with the default run's trajectory in
@@ -184,6 +187,25 @@ def velocity_frame(seq, truth: np.ndarray, velocity_index: str) -> dict:
             "early_slip_deg": float(np.degrees(np.median(np.arctan2(truth_body[early, 1], truth_body[early, 0]))))}
 
 
+def rate_frame(seq, truth: np.ndarray, tilt_deg: np.ndarray, velocity_index: str) -> dict:
+    """RMS (rad/s) of the file's roll and pitch rates against the truth's body rates in turns, as
+    body-frame and as level-frame rates (turned by the truth's attitude and ``tilt_deg``)."""
+    n = min(seq.num_steps, truth.shape[0])
+    _, w = step_velocities(seq.linear_velocity, seq.angular_velocity, velocity_index)
+    dt = np.diff(seq.time_stamps)[:n - 1]
+    truth_w = np.array([se3.log_so3(truth[k, :3, :3].T @ truth[k + 1, :3, :3]) for k in range(n - 1)]) / dt[:, None]
+    R0 = rotation(np.radians([tilt_deg[0], tilt_deg[1], 0.0]))
+    level = np.empty((n - 1, 3))
+    for k in range(n - 1):
+        Rg = R0 @ truth[k, :3, :3]
+        body_R_level = Rg.T @ rotation([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])])
+        level[k] = body_R_level @ w[k]
+    turning = np.abs(truth_w[:, 2]) > 0.1
+    return {"turning": int(turning.sum()),
+            "body": np.sqrt(np.mean((w[:n - 1] - truth_w)[turning, :2] ** 2, axis=0)),
+            "level": np.sqrt(np.mean((level - truth_w)[turning, :2] ** 2, axis=0))}
+
+
 def level_dead_reckoning(seq, tilt_deg: np.ndarray, velocity_index: str) -> np.ndarray:
     """Dead reckoning with the velocities and rates taken in the level frame (KITTI's vf vl vu, wf wl wu)."""
     v, w = step_velocities(seq.linear_velocity, seq.angular_velocity, velocity_index)
@@ -250,8 +272,9 @@ def main() -> None:
     print()
     print("| drive | windows | elevation residual: body frame (deg) | level frame (deg), world's tilt fitted (roll, pitch deg) "
           "| dead reckoning ATE m: body | level | velocity - truth's body velocity, RMS x y z m/s: first 5 s | after "
-          "| truth's sideslip, first 5 s (median deg) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| truth's sideslip, first 5 s (median deg) | steps turning | roll, pitch rate - truth's, RMS rad/s: as body "
+          "rates | as level-frame rates |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     tilt_rows = []
     for name, seq, gt_t, gt, index in frames:
         f = velocity_frame(seq, gt, index)
@@ -259,10 +282,12 @@ def main() -> None:
         body = trajectory_errors(seq.time_stamps, dead_reckoning(seq.time_stamps, seq.linear_velocity,
                                                                  seq.angular_velocity, index), gt_t, gt).ate_rmse
         level = trajectory_errors(seq.time_stamps, level_dead_reckoning(seq, f["tilt_deg"], index), gt_t, gt).ate_rmse
+        rates = rate_frame(seq, gt, f["tilt_deg"], index)
         print(f"| {name} | {f['windows']} | {f['body_deg']:.3f} | {f['level_deg']:.3f} "
               f"({f['tilt_deg'][0]:.2f}, {f['tilt_deg'][1]:.2f}) | {body:.2f} | {level:.2f} "
               f"| {' '.join(f'{x:.2f}' for x in f['early'])} | {' '.join(f'{x:.2f}' for x in f['later'])} "
-              f"| {f['early_slip_deg']:.1f} |")
+              f"| {f['early_slip_deg']:.1f} | {rates['turning']} | {' '.join(f'{x:.4f}' for x in rates['body'])} "
+              f"| {' '.join(f'{x:.4f}' for x in rates['level'])} |")
     print()
     print("| drive | trajectory | windows | elevation residual: body frame (deg) | level frame (deg), world's tilt "
           "(roll, pitch deg) | the vertical from the first z axis (deg) | largest tilt of the z axis: from its first "

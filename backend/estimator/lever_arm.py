@@ -1,4 +1,4 @@
-"""The residual lever arm of the IMU's velocities in the filter (V1-V3).
+"""The residual lever arm of the IMU's velocities and the rotation of its samples' frame in the filter (V1-V4).
 
 A velocity sensor measures the velocity of its own point, not of the frame the extrinsic defines:
 with that point at r in the IMU frame, v_imu = v_m - omega x r (N3 of ``backend.run.noise``, which
