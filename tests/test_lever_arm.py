@@ -33,6 +33,12 @@ from test_kernels import _dense_invariant_prediction, _noise_jacobian_pose, _pre
 CORE_L = CORE + LEVER_ROWS  # pose, gyro bias, the lever arm
 
 
+def pose_error(model: str, T: np.ndarray, T_hat: np.ndarray) -> np.ndarray:
+    """(6,) the error of ``T`` against ``T_hat`` in ``model``'s form: log(T T_hat^-1) (invariant, I2),
+    log(T_hat^-1 T) (body, B1)."""
+    return se3.log_se3(T @ se3.inverse(T_hat) if model == "invariant" else se3.inverse(T_hat) @ T)
+
+
 def _twist_error(v, w, tau, dr):
     """The step's body twist tau [v - w x dr; w] (6,), the velocity measured at a point dr from the frame."""
     return tau * np.r_[v - np.cross(w, dr), w]
@@ -57,11 +63,7 @@ def test_the_lever_arms_columns_are_the_derivative_of_the_step(model):
         dr = np.zeros(3)
         dr[i] = h
         ends = [mu @ se3.exp_se3(_twist_error(v, w, tau, s * dr)) for s in (1.0, -1.0)]
-        if model == "invariant":
-            errors = [se3.log_se3(T @ se3.inverse(T_hat)) for T in ends]
-        else:
-            errors = [se3.log_se3(se3.inverse(T_hat) @ T) for T in ends]
-        fd[:, i] = (errors[0] - errors[1]) / (2 * h)
+        fd[:, i] = (pose_error(model, ends[0], T_hat) - pose_error(model, ends[1], T_hat)) / (2 * h)
     assert np.abs(expected).max() > 0.01
     np.testing.assert_allclose(fd, expected, rtol=0, atol=1e-7)
 

@@ -198,16 +198,19 @@ class Decisions:
             return ("IMU lever arm and frame rotation: not in the covariance (noise.lever_arm_sigma = "
                     "noise.imu_rotation_sigma = 0, or no SLAM run)")
         lines = [self._lever_part(config, prior[:3, :3])]
+        v = self.imu.vision
         if prior.shape[0] > 3:
             lines.append(self._rotation_part(config, prior[3:, 3:]))
-        elif self.imu.vision is not None and (config is None or config.noise.imu_rotation_sigma is None):
-            v = self.imu.vision
+        elif config is not None and config.estimator.estimate_lever_arm:
+            lines.append("IMU samples' frame rotation: not in the covariance (an estimated lever arm carries none, V4)")
+        elif v is not None and (config is None or config.noise.imu_rotation_sigma is None):
             lines.append(f"IMU samples' frame rotation: not in the covariance (N6's estimate "
                          f"[{', '.join(f'{x:+.2f}' for x in np.degrees(v.rotation))}] deg, chi2 {v.rotation_chi2:.1f}: "
                          "not significant, V4)")
         return "\n".join(lines)
 
     def _rotation_part(self, config: Config | None, prior: np.ndarray) -> str:
+        """The line of the samples' frame rotation the filter considers with prior ``prior`` (3,3) rad^2 (V4)."""
         sigma = ", ".join(f"{s:.2f}" for s in np.degrees(np.sqrt(np.diag(prior))))
         v = self.imu.vision
         if config is not None and config.noise.imu_rotation_sigma is not None:
@@ -221,6 +224,7 @@ class Decisions:
         return f"IMU samples' frame rotation: considered in the covariance, prior sigmas [{sigma}] deg ({why}, V4)"
 
     def _lever_part(self, config: Config | None, prior: np.ndarray) -> str:
+        """The line of the residual lever arm the filter carries with prior ``prior`` (3,3) m^2 (V2, V3)."""
         if not prior.any():
             return "IMU lever arm: not in the covariance (noise.lever_arm_sigma = 0)"
         sigma = ", ".join(f"{s:.2f}" for s in np.sqrt(np.diag(prior)))

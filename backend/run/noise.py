@@ -484,9 +484,9 @@ def frame_rotation(u_vis: np.ndarray, var_vis: np.ndarray, v_imu: np.ndarray, w_
     n = u_vis.shape[0]
     v, w = u_vis[:, :3], u_vis[:, 3:]
     A = np.zeros((n, 6, 12))
-    A[:, :3, 0:3] = np.array([se3.hat3(x) for x in w])  # omega x r
+    A[:, :3, 0:3] = np.array([se3.hat3(u) for u in w])  # omega x r
     A[:, :3, 3:6] = np.eye(3)  # c
-    A[:, :3, 9:12] = np.array([se3.hat3(x) for x in v])  # v x theta
+    A[:, :3, 9:12] = np.array([se3.hat3(u) for u in v])  # v x theta
     A[:, 3:, 6:9] = np.eye(3)  # b
     A[:, 3:, 9:12] = A[:, :3, 0:3]  # omega x theta
     y = np.concatenate([v_imu - v, w_imu - w], axis=1)  # (n,6)
