@@ -187,6 +187,13 @@ def velocity_frame(seq, truth: np.ndarray, velocity_index: str) -> dict:
             "early_slip_deg": float(np.degrees(np.median(np.arctan2(truth_body[early, 1], truth_body[early, 0]))))}
 
 
+def body_R_level(level_R_world: np.ndarray, world_R_imu: np.ndarray) -> np.ndarray:
+    """(3,3) the rotation of a level, heading-aligned frame into the body of attitude ``world_R_imu``,
+    the world tilted from the level by ``level_R_world``."""
+    Rg = level_R_world @ world_R_imu
+    return Rg.T @ rotation([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])])
+
+
 def rate_frame(seq, truth: np.ndarray, tilt_deg: np.ndarray, velocity_index: str) -> dict:
     """RMS (rad/s) of the file's roll and pitch rates against the truth's body rates in turns, as
     body-frame and as level-frame rates (turned by the truth's attitude and ``tilt_deg``)."""
@@ -195,11 +202,7 @@ def rate_frame(seq, truth: np.ndarray, tilt_deg: np.ndarray, velocity_index: str
     dt = np.diff(seq.time_stamps)[:n - 1]
     truth_w = np.array([se3.log_so3(truth[k, :3, :3].T @ truth[k + 1, :3, :3]) for k in range(n - 1)]) / dt[:, None]
     R0 = rotation(np.radians([tilt_deg[0], tilt_deg[1], 0.0]))
-    level = np.empty((n - 1, 3))
-    for k in range(n - 1):
-        Rg = R0 @ truth[k, :3, :3]
-        body_R_level = Rg.T @ rotation([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])])
-        level[k] = body_R_level @ w[k]
+    level = np.array([body_R_level(R0, truth[k, :3, :3]) @ w[k] for k in range(n - 1)])
     turning = np.abs(truth_w[:, 2]) > 0.1
     return {"turning": int(turning.sum()),
             "body": np.sqrt(np.mean((w[:n - 1] - truth_w)[turning, :2] ** 2, axis=0)),
@@ -213,9 +216,8 @@ def level_dead_reckoning(seq, tilt_deg: np.ndarray, velocity_index: str) -> np.n
     T = np.eye(4)
     out = [T]
     for k, dt in enumerate(np.diff(seq.time_stamps)):
-        Rg = R0 @ T[:3, :3]
-        body_R_level = Rg.T @ rotation([0.0, 0.0, np.arctan2(Rg[1, 0], Rg[0, 0])])
-        T = T @ se3.exp_se3(np.r_[body_R_level @ v[k], body_R_level @ w[k]] * dt)
+        R = body_R_level(R0, T[:3, :3])
+        T = T @ se3.exp_se3(np.r_[R @ v[k], R @ w[k]] * dt)
         out.append(T)
     return np.array(out)
 

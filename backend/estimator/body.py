@@ -70,7 +70,7 @@ class BodyModel(ErrorModel):
             q_var[BIAS] = bias_walk_var
         if state.lever_row is None:
             return CoreTransition(Phi, q_var)
-        g = J_r @ twist_columns(twist, rotation=state.lever_dim > LEVER_ROWS)  # (V1, V4): the lever arm's columns of F
+        g = J_r @ twist_columns(twist, rotation=state.carries_rotation)  # (V1, V4): the lever arm's columns of F
         if state.lever_share:  # (V2) its sensitivity column only
             return SensitivityTransition(CoreTransition(Phi, q_var), state.lever_row, g)
         Phi[POSE, state.lever_row:state.lever_row + LEVER_ROWS] = g

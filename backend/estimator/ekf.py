@@ -319,7 +319,7 @@ class VisualInertialEKF:
             return None
         rows = np.arange(st.lever_row, st.lever_row + LEVER_ROWS)
         prior_sd = np.sqrt(np.diag(self._lever_prior))
-        rotation = np.degrees(prior_sd[LEVER_ROWS:]).tolist() if st.lever_dim > LEVER_ROWS else None
+        rotation = np.degrees(prior_sd[LEVER_ROWS:]).tolist() if st.carries_rotation else None
         return LeverArmEstimate(st.lever_arm.tolist(), np.sqrt(np.maximum(st.P[rows, rows], 0.0)).tolist(),
                                 prior_sd[:LEVER_ROWS].tolist(), not st.lever_considered, rotation)
 

@@ -234,7 +234,7 @@ def predict_frozen(world_T_imu: np.ndarray, points: np.ndarray, twist: np.ndarra
     weight = np.ones(6) if imu_weight is None else np.asarray(imu_weight, dtype=float)
     g = -dt * G[:, 3:6] * weight[None, 3:6] if bias else np.zeros((6, 3))
     cols = np.arange(6, 9)
-    g_lever = G @ twist_columns(twist, weight, rotation and lever_considered) if lever >= 0 else None
+    g_lever = G @ twist_columns(twist, weight, rotation) if lever >= 0 else None
     if lever >= 0 and not lever_considered:
         g = np.concatenate([g, g_lever], axis=1)
         cols = np.r_[cols, lever:lever + LEVER_ROWS]
@@ -421,7 +421,7 @@ class InvariantModel(ErrorModel):
         state.mu, transition = predict_frozen(state.mu, state.theta, twist, q, dt,
                                               self.estimate_bias and self.estimate_pose, bias_walk_var, imu_weight,
                                               state.core, lever, state.lever_considered,
-                                              state.lever_dim > LEVER_ROWS)
+                                              state.carries_rotation)
         return transition
 
     def predict(self, state, twist, q, dt, bias_walk_var) -> InvariantTransition | None:
@@ -432,7 +432,7 @@ class InvariantModel(ErrorModel):
         if state.lever_share:  # (V2) the sensitivity column only
             inner = InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var)
             return SensitivityTransition(inner, state.lever_row,
-                                         G_pose @ twist_columns(twist, rotation=state.lever_dim > LEVER_ROWS))
+                                         G_pose @ twist_columns(twist, rotation=state.carries_rotation))
         lever = -1 if state.lever_row is None else state.lever_row
         return InvariantTransition(G_pose, state.theta, q, dt, self.estimate_bias, bias_walk_var, lever,
                                    np.array(twist[3:6], dtype=float))

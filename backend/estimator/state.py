@@ -115,6 +115,11 @@ class FilterState:
         return LEVER_ROWS if self.lever_information is None else self.lever_information.shape[0]
 
     @property
+    def carries_rotation(self) -> bool:
+        """The considered block holds the samples' frame rotation after the lever arm (V4)."""
+        return self.lever_dim > LEVER_ROWS
+
+    @property
     def lever_share(self) -> bool:
         """P holds a considered lever arm's sensitivity, whose share the covariance adds (V2)."""
         return self.lever_row is not None and self.lever_considered

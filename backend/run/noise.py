@@ -416,6 +416,19 @@ def _robust_var(x: np.ndarray) -> np.ndarray:
     return (1.4826 * np.median(np.abs(x - np.median(x, axis=0)), axis=0)) ** 2
 
 
+def _gls(A: np.ndarray, weight: np.ndarray, y: np.ndarray, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N3, N6) generalized least squares with diagonal weights and a prior information: the rows
+    ``A`` (n,a,k), their weights ``weight`` and values ``y`` (n,a), ``prior`` (k,k); returns (x (k,),
+    its covariance (k,k))."""
+    cov = np.linalg.inv(np.einsum("nai,na,naj->ij", A, weight, A) + prior)
+    return cov @ np.einsum("nai,na,na->i", A, weight, y), cov
+
+
+def _huber(z: np.ndarray) -> np.ndarray:
+    """Huber's weights of residuals ``z`` in standard deviations (tuning 1.345)."""
+    return np.where(z <= 1.345, 1.0, 1.345 / np.maximum(z, 1e-12))
+
+
 def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, velocity_index: str) -> ImuVsVision | None:
     """(N3) from the gap-1 ``fits`` of ``seq`` with the extrinsic and velocity timing decided; None
     with fewer than ``MIN_PAIRS`` fits of ``MIN_POINTS`` points or more."""
@@ -445,7 +458,7 @@ def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, 
     # linear: e = v_imu - v_vis = [omega]x r + c + noise, GLS with Huber weights and a weak prior
     e = v_imu - u_vis[:, :3]
     A = np.zeros((n, 3, 6))
-    A[:, :, :3] = np.array([se3.hat3(w) for w in u_vis[:, 3:]])
+    A[:, :, :3] = se3.hat3(u_vis[:, 3:])
     A[:, :, 3:] = np.eye(3)
     vis_v = np.median(var_vis[:, :3], axis=0)
     noise_var = np.maximum(_robust_var(e) - vis_v, 1e-6)
@@ -453,15 +466,10 @@ def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, 
     theta = np.zeros(6)
     huber = np.ones((n, 3))
     for _ in range(5):
-        w = huber / (var_vis[:, :3] + noise_var)  # (n,3) diagonal weights
-        H = np.einsum("nai,na,naj->ij", A, w, A) + prior
-        g = np.einsum("nai,na,na->i", A, w, e)
-        cov = np.linalg.inv(H)
-        theta = cov @ g
+        theta, cov = _gls(A, huber / (var_vis[:, :3] + noise_var), e, prior)
         res = e - np.einsum("nai,i->na", A, theta)
         noise_var = np.maximum(_robust_var(res) - vis_v, 1e-6)
-        z = np.abs(res) / np.sqrt(var_vis[:, :3] + noise_var)
-        huber = np.where(z <= 1.345, 1.0, 1.345 / np.maximum(z, 1e-12))
+        huber = _huber(np.abs(res) / np.sqrt(var_vis[:, :3] + noise_var))
     effect = np.sqrt(np.mean(np.einsum("nai,i->na", A, theta) ** 2, axis=0))
     chi2 = float(theta @ np.linalg.solve(cov, theta))
     total = _robust_var(res)
@@ -484,9 +492,9 @@ def frame_rotation(u_vis: np.ndarray, var_vis: np.ndarray, v_imu: np.ndarray, w_
     n = u_vis.shape[0]
     v, w = u_vis[:, :3], u_vis[:, 3:]
     A = np.zeros((n, 6, 12))
-    A[:, :3, 0:3] = np.array([se3.hat3(u) for u in w])  # omega x r
+    A[:, :3, 0:3] = se3.hat3(w)  # omega x r
     A[:, :3, 3:6] = np.eye(3)  # c
-    A[:, :3, 9:12] = np.array([se3.hat3(u) for u in v])  # v x theta
+    A[:, :3, 9:12] = se3.hat3(v)  # v x theta
     A[:, 3:, 6:9] = np.eye(3)  # b
     A[:, 3:, 9:12] = A[:, :3, 0:3]  # omega x theta
     y = np.concatenate([v_imu - v, w_imu - w], axis=1)  # (n,6)
@@ -495,22 +503,14 @@ def frame_rotation(u_vis: np.ndarray, var_vis: np.ndarray, v_imu: np.ndarray, w_
                           np.full(3, BIAS_PRIOR_RAD_S**-2), np.full(3, ROTATION_PRIOR_RAD**-2)])
     huber = np.ones((n, 6))
     for _ in range(5):
-        wgt = huber / var
-        H = np.einsum("nai,na,naj->ij", A, wgt, A) + prior
-        cov = np.linalg.inv(H)
-        x = cov @ np.einsum("nai,na,na->i", A, wgt, y)
-        res = y - np.einsum("nai,i->na", A, x)
-        z = np.abs(res) / np.sqrt(var)
-        huber = np.where(z <= 1.345, 1.0, 1.345 / np.maximum(z, 1e-12))
+        x, cov = _gls(A, huber / var, y, prior)
+        huber = _huber(np.abs(y - np.einsum("nai,i->na", A, x)) / np.sqrt(var))
     cov = 0.5 * (cov[9:12, 9:12] + cov[9:12, 9:12].T)
     parts = [p for p in np.array_split(np.argsort(steps, kind="stable"), min(BATCHES, n)) if p.size]
     if len(parts) >= 2:
-        wgt = huber / var
-        fits = []
-        for p in parts:
-            H = np.einsum("nai,na,naj->ij", A[p], wgt[p], A[p]) + prior
-            fits.append(np.linalg.solve(H, np.einsum("nai,na,na->i", A[p], wgt[p], y[p]))[9:12])
-        batch_var = np.var(np.array(fits), axis=0, ddof=1) / len(parts)
+        weight = huber / var
+        batches = np.array([_gls(A[p], weight[p], y[p], prior)[0][9:12] for p in parts])
+        batch_var = np.var(batches, axis=0, ddof=1) / len(parts)
         widen = np.sqrt(np.maximum(batch_var / np.maximum(np.diag(cov), 1e-30), 1.0))
         cov = cov * np.outer(widen, widen)
     return x[9:12].copy(), cov
