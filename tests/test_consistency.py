@@ -259,3 +259,24 @@ def test_the_runs_mean_interval_and_its_verdict():
     assert "overconfident" in consistency_verdict(4.0, [4.4, 4.5, 4.6], "the innovations' covariances")
     assert consistency_verdict(4.0, [3.9, 4.1, 4.0], "x").endswith("consistent with 4")
     assert consistency_verdict(3.0, [2.0], "x") == "one run: no interval of the mean"
+
+
+@pytest.mark.parametrize("factor, verdict", [(1.0, "consistent with 6"), (1.5, "overconfident"), (0.6, "pessimistic")])
+def test_the_pose_nees_line_says_what_the_runs_time_averages_give(factor, verdict):
+    """The pose NEES line carries the interval of the runs' time averages (E1): each run is one
+    independent sample however long its errors persist. Runs whose NEES is ``factor`` x chi2(6) at
+    every step: 1 holds 6, 1.5 is flagged overconfident, 0.6 pessimistic; consistency.json has the
+    same interval."""
+    from vislam.backend.evaluation.consistency import RunTrace, run_mean_interval, summarize
+
+    rng = np.random.default_rng(11)
+    traces = [RunTrace(noise_seed=i, pose_nees=factor * rng.chisquare(6, 60), nis_sum=rng.chisquare(20, 60),
+                       nis_count=np.full(60, 5), landmark_nees=rng.chisquare(3, 50), ate_estimate=0.1,
+                       ate_dead_reckoning=1.0) for i in range(20)]
+    result = summarize(traces)
+    line = result.summary_lines()[0]
+    assert line.startswith("pose NEES (6 dof)") and "interval of the 20 runs' mean" in line
+    assert line.endswith(verdict) if factor == 1.0 else verdict in line
+    lo, hi = run_mean_interval(result.per_run_pose_nees)
+    assert (lo <= 6.0 <= hi) == (factor == 1.0)
+    assert result.as_dict()["pose_nees"]["interval_of_run_mean"] == [lo, hi]
