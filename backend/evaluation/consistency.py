@@ -503,8 +503,8 @@ class ConsistencyResult:
 
     def summary_lines(self) -> list[str]:
         """Pose NEES against its 95 % band and, as landmark NEES and NIS, against the interval of
-        the runs' mean (:func:`consistency_verdict`); then a warning line for each distinct health message of
-        the runs (how many runs had it)."""
+        the runs' mean (:func:`consistency_verdict`); then a warning line for each distinct health
+        message of the runs (how many runs had it)."""
         lo, hi = self.pose_nees_band
         return self._metric_lines(lo, hi) + self._health_lines()
 
