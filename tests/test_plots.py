@@ -238,6 +238,25 @@ def test_mc_flags_a_landmark_nees_outside_its_band(factor, in_band):
     assert not any("landmark NEES mean" in ln for ln in summary_lines(none, landmark_nees_check(none)))
 
 
+@pytest.mark.parametrize("factor, verdict", [(1.0, "consistent with 6"), (1.6, "overconfident")])
+def test_mc_plot_note_says_what_the_screen_says_of_the_pose_nees(tmp_path, factor, verdict):
+    """nees.png's first note is the screen's pose verdict (the runs' time averages, E1) with the time
+    average, and stands in the figure's title, wrapped to lines the figure's width holds."""
+    from vislam.tools.commands.mc import pose_nees_line
+
+    traces = _traces(10, 1.0)
+    for t in traces:
+        t.pose_nees *= factor
+    result = summarize(traces)
+    note = pose_nees_line(result)
+    assert note.startswith(f"pose NEES time average {result.pose_nees_time_average:.2f}; 95 % interval of the 10 runs'")
+    assert verdict in note and result.summary_lines()[0].endswith(note.split("; ", 1)[1])
+    fig = plots.plot_consistency(tmp_path / "nees.png", result, notes=(note,))
+    lines = fig.axes[0].get_title().split("\n")
+    assert " ".join(lines[1:]) == note and max(len(line) for line in lines) <= plots.NOTE_WIDTH
+    assert (len(lines) > 2) == (len(note) > plots.NOTE_WIDTH)
+
+
 def test_mc_with_an_overconfident_filter_warns(tmp_path, capsys):
     """Pixel noise taken as 0.1 px instead of the scene's: the map is overconfident (NEES ~50)."""
     assert main(["mc", "--runs", "2", "--steps", "40", "--workers", "1", "--landmark-density", "0.5",

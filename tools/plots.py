@@ -14,6 +14,7 @@ figure state is kept and importing this module does not change the caller's back
 from __future__ import annotations
 
 import os
+import textwrap
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional
 
@@ -37,6 +38,8 @@ __all__ = [
 ]
 
 DPI = 150
+#: characters a title's note line holds at the consistency figure's 9 inches (medium font); longer ones wrap
+NOTE_WIDTH = 110
 MAX_LANDMARKS_PLOTTED = 20000
 #: Ground truth is drawn from this many seconds before the first estimated stamp to as many after the last.
 GT_CROP_TOLERANCE = 0.05
@@ -477,6 +480,7 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
     matplotlib.figure.Figure
     """
     steps = np.arange(result.steps)
+    notes = [line for note in notes for line in textwrap.wrap(note, NOTE_WIDTH)]  # the figure's width
     fig = _new_figure((9.0, 6.5 + 0.2 * len(notes)))
     ax = fig.add_subplot(2, 1, 1)
     lo, hi = result.pose_nees_band

@@ -508,6 +508,10 @@ class ConsistencyResult:
         lo, hi = self.pose_nees_band
         return self._metric_lines(lo, hi) + self._health_lines()
 
+    def pose_nees_verdict(self) -> str:
+        """The runs' time averages of the pose NEES against 6 (E1): :func:`consistency_verdict`."""
+        return consistency_verdict(6.0, self.per_run_pose_nees, "the pose covariances")
+
     def _health_lines(self) -> list[str]:
         counts: dict[str, int] = {}
         for messages in self.health_messages.values():
@@ -519,7 +523,7 @@ class ConsistencyResult:
         return [
             f"pose NEES (6 dof): {100 * self.pose_nees_in_band:.0f} % of steps {self.skip}..{self.steps - 1} in the "
             f"95 % band [{lo:.2f}, {hi:.2f}] of the {self.runs}-run average; time average {self.pose_nees_time_average:.2f}; "
-            + consistency_verdict(6.0, self.per_run_pose_nees, "the pose covariances"),
+            + self.pose_nees_verdict(),
             f"landmark NEES (3 dof): mean {self.landmark_nees_mean:.2f} over {self.landmark_count} landmarks; "
             + consistency_verdict(3.0, self.per_run_landmark_nees, "the map's covariances"),
             f"NIS (4 dof): mean {self.nis_mean:.3f} per observation over {self.nis_count}"

@@ -85,7 +85,8 @@ def main(args: argparse.Namespace) -> int:
         data = result.as_dict()
         data["landmark_nees"].update(check)
         outputs.write_json(staging / "consistency.json", data)
-        plot_consistency(staging / "nees.png", result, notes=(landmark_nees_line(result, check),))
+        notes = (pose_nees_line(result), landmark_nees_line(result, check))
+        plot_consistency(staging / "nees.png", result, notes=notes)
     if not args.quiet:
         print("\n".join(summary_lines(result, check)))
     return 0
@@ -114,6 +115,12 @@ def landmark_nees_check(result) -> dict:
     mean = float(result.landmark_nees_mean)
     in_band = bool(lo <= mean <= hi) if result.landmark_count > 0 and math.isfinite(mean) else None
     return {"expectation": 3.0, "band_of_run_average": [lo, hi], "in_band_of_run_average": in_band}
+
+
+def pose_nees_line(result) -> str:
+    """One line (the plot's note): the pose NEES's time average and the verdict of the runs' time
+    averages (E1 of ``backend.evaluation.consistency``), as on the screen."""
+    return f"pose NEES time average {result.pose_nees_time_average:.2f}; {result.pose_nees_verdict()}"
 
 
 def landmark_nees_line(result, check: dict) -> str:
