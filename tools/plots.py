@@ -473,7 +473,8 @@ def plot_consistency(path: str | os.PathLike, result, notes: tuple[str, ...] = (
     ----------
     path : path of the PNG
     result : ``backend.evaluation.consistency.ConsistencyResult``
-    notes : lines added under the first panel's title (e.g. the landmark NEES check)
+    notes : lines added under the first panel's title (e.g. the landmark NEES check), each wrapped at
+        ``NOTE_WIDTH`` characters
 
     Returns
     -------
