@@ -41,7 +41,7 @@ from .health import HealthMonitor
 from .inertial import CORE_INERTIAL, InertialModel, InertialStart
 from .invariant import InvariantModel
 from .layout import BIAS, CORE, LEVER_ROWS, OFFSET, POSE, state_dimension
-from .lever_arm import LeverArmEstimate, consider_information
+from .lever_arm import LeverArmEstimate, carried_prior, consider_information
 from .model import ErrorModel
 from .offset import OffsetEstimate, corrected_pixels, offset_innovation
 from .propagation import ImuNoise
@@ -220,8 +220,8 @@ class VisualInertialEKF:
             offset_sigma = noise.stereo_offset_sigma if self.use_vision and not window else None
             if lever_prior is None and noise.lever_arm_sigma:
                 lever_prior = noise.lever_arm_sigma**2 * np.eye(LEVER_ROWS)
-            if lever_prior is not None and est.estimate_lever_arm:  # (V4) an estimated lever arm carries no rotation
-                lever_prior = np.asarray(lever_prior, dtype=float)[:LEVER_ROWS, :LEVER_ROWS]
+            if lever_prior is not None:
+                lever_prior = carried_prior(lever_prior, est.estimate_lever_arm)
             lever = lever_prior is not None and self.estimate_pose
             lever_dim = np.shape(lever_prior)[0] if lever else 0
             core = CORE + 1 if offset_sigma else CORE

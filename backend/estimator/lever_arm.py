@@ -73,8 +73,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import se3
+from .layout import LEVER_ROWS
 
-__all__ = ["LeverArmEstimate", "SensitivityTransition", "consider_information", "twist_columns"]
+__all__ = ["LeverArmEstimate", "SensitivityTransition", "carried_prior", "consider_information", "twist_columns"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,13 @@ def twist_columns(twist: np.ndarray, imu_weight: np.ndarray | None = None, rotat
     if imu_weight is not None:
         E *= np.asarray(imu_weight, dtype=float)[:, None]
     return E
+
+
+def carried_prior(prior: np.ndarray, estimated: bool) -> np.ndarray:
+    """(V4) the block a filter carries of a prior (3,3), or (6,6) with the samples' frame rotation:
+    an estimated lever arm carries no rotation, so there its (3,3)."""
+    prior = np.asarray(prior, dtype=float)
+    return prior[:LEVER_ROWS, :LEVER_ROWS] if estimated else prior
 
 
 def consider_information(prior: np.ndarray) -> np.ndarray:

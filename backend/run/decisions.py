@@ -36,6 +36,7 @@ import numpy as np
 
 from ..config import Choice, Config, Mode
 from ..data.sequence import Sequence
+from ..estimator.lever_arm import carried_prior
 from .conventions import ConventionDecision, MatchedPairs, decide_conventions, matched_pairs, reprojection_error
 from .drift import NOISE_MIN_POINTS, DriftDecision, decide_track_drift
 from .noise import (
@@ -147,11 +148,12 @@ class Decisions:
         rotation_sigma = None if config is None else config.noise.imu_rotation_sigma
         lever = self.lever_covariance if lever_sigma is None else lever_sigma**2 * np.eye(3)
         rotation = self.rotation_covariance if rotation_sigma is None else np.radians(rotation_sigma)**2 * np.eye(3)
-        if not rotation.any() or (config is not None and config.estimator.estimate_lever_arm):  # (V4) none estimated
+        if not rotation.any():
             return lever if lever.any() else None
         prior = np.zeros((6, 6))
         prior[:3, :3], prior[3:, 3:] = lever, rotation
-        return prior
+        prior = carried_prior(prior, config is not None and config.estimator.estimate_lever_arm)
+        return prior if prior.any() else None
 
     def config_for(self, config: Config) -> Config:
         """``config`` with the decided values the filter reads (pixel noise, drift and its walk, gyro bias,

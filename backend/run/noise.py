@@ -424,6 +424,15 @@ def _gls(A: np.ndarray, weight: np.ndarray, y: np.ndarray, prior: np.ndarray) ->
     return cov @ np.einsum("nai,na,na->i", A, weight, y), cov
 
 
+def _lever_rows(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N3) the rows of v_imu - v_vis in x = [r, c] for the pairs' rates ``omega`` (n,3): [omega^, I]
+    (n,3,6), and the prior information of x (6,6) (``LEVER_PRIOR_M``, ``OFFSET_PRIOR_M_S``)."""
+    A = np.zeros((omega.shape[0], 3, 6))
+    A[:, :, :3] = se3.hat3(omega)
+    A[:, :, 3:] = np.eye(3)
+    return A, np.diag(np.r_[np.full(3, LEVER_PRIOR_M**-2), np.full(3, OFFSET_PRIOR_M_S**-2)])
+
+
 def _huber(z: np.ndarray) -> np.ndarray:
     """Huber's weights of residuals ``z`` in standard deviations (tuning 1.345)."""
     return np.where(z <= 1.345, 1.0, 1.345 / np.maximum(z, 1e-12))
@@ -457,12 +466,9 @@ def imu_vs_vision(fits: list[TwoViewFit], seq: Sequence, imu_T_cam: np.ndarray, 
     ang = np.sqrt(np.maximum(_robust_var(dw) - vis_w, 0.0))
     # linear: e = v_imu - v_vis = [omega]x r + c + noise, GLS with Huber weights and a weak prior
     e = v_imu - u_vis[:, :3]
-    A = np.zeros((n, 3, 6))
-    A[:, :, :3] = se3.hat3(u_vis[:, 3:])
-    A[:, :, 3:] = np.eye(3)
+    A, prior = _lever_rows(u_vis[:, 3:])
     vis_v = np.median(var_vis[:, :3], axis=0)
     noise_var = np.maximum(_robust_var(e) - vis_v, 1e-6)
-    prior = np.diag(np.r_[np.full(3, LEVER_PRIOR_M**-2), np.full(3, OFFSET_PRIOR_M_S**-2)])
     theta = np.zeros(6)
     huber = np.ones((n, 3))
     for _ in range(5):
@@ -492,15 +498,14 @@ def frame_rotation(u_vis: np.ndarray, var_vis: np.ndarray, v_imu: np.ndarray, w_
     n = u_vis.shape[0]
     v, w = u_vis[:, :3], u_vis[:, 3:]
     A = np.zeros((n, 6, 12))
-    A[:, :3, 0:3] = se3.hat3(w)  # omega x r
-    A[:, :3, 3:6] = np.eye(3)  # c
+    prior = np.zeros((12, 12))
+    A[:, :3, 0:6], prior[0:6, 0:6] = _lever_rows(w)  # omega x r + c (N3)
     A[:, :3, 9:12] = se3.hat3(v)  # v x theta
     A[:, 3:, 6:9] = np.eye(3)  # b
     A[:, 3:, 9:12] = A[:, :3, 0:3]  # omega x theta
+    prior[6:12, 6:12] = np.diag(np.r_[np.full(3, BIAS_PRIOR_RAD_S**-2), np.full(3, ROTATION_PRIOR_RAD**-2)])
     y = np.concatenate([v_imu - v, w_imu - w], axis=1)  # (n,6)
     var = var_vis + np.r_[linear_var, np.maximum(angular_var, 1e-10)]
-    prior = np.diag(np.r_[np.full(3, LEVER_PRIOR_M**-2), np.full(3, OFFSET_PRIOR_M_S**-2),
-                          np.full(3, BIAS_PRIOR_RAD_S**-2), np.full(3, ROTATION_PRIOR_RAD**-2)])
     huber = np.ones((n, 6))
     for _ in range(5):
         x, cov = _gls(A, huber / var, y, prior)
